@@ -1,0 +1,43 @@
+"""lodscape: huge 3D landscapes in real time, by choosing every frame the detail each tile needs.
+
+The pure layers (``geo``, ``lod``) import without rasterio or OpenGL; the scene, which needs both,
+loads on first use of ``lodscape.open`` or ``lodscape.Scene``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from lodscape.errors import CameraError, LodscapeError, SourceError
+from lodscape.lod.camera import Camera
+from lodscape.lod.select import SelectOptions, Selection, select
+
+if TYPE_CHECKING:
+    from lodscape.scene import FrameStats, Scene, SceneOptions, open
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Camera",
+    "CameraError",
+    "FrameStats",
+    "LodscapeError",
+    "Scene",
+    "SceneOptions",
+    "SelectOptions",
+    "Selection",
+    "SourceError",
+    "__version__",
+    "open",
+    "select",
+]
+
+_LAZY = {"FrameStats", "Scene", "SceneOptions", "open"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        from lodscape import scene
+
+        return getattr(scene, name)
+    raise AttributeError(f"module 'lodscape' has no attribute {name!r}")

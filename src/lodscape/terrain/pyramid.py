@@ -1,0 +1,229 @@
+"""The tile tree of a height source: which tiles exist, their height range and geometric error.
+
+One bottom-up pass, a whole level per numpy call. Level z is sampled on a grid of 16 segments per
+tile; the deepest level sampled is the data's own resolution (its 16-segment grid is as fine as the
+256-texel texture of the finest tile level), taken as the truth with zero error. A coarser tile's
+error is bounded by the triangle inequality: its deviation from its children's meshes (exact, since
+child triangles nest in parent triangles, so the largest deviation sits on a child vertex) plus
+the largest error among its children. A tile drawn with 16·2^k segments uses exactly the vertices
+of its level z+k descendants, so its error is their largest 16-segment error.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+from numpy.typing import NDArray
+
+from lodscape.errors import SourceError
+from lodscape.geo.frames import WGS84_A
+from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, merc_to_lonlat, tiles_array
+from lodscape.terrain.mesh import GRIDS
+
+__all__ = ["Level", "SampleSource", "TileTree", "build_tree", "level_range"]
+
+_BASE = GRIDS[0]
+#: Samples of the deepest level above which on-the-fly rendering coarsens the data (a build keeps
+#: full detail); 2^26 float32 heights are 256 MiB.
+MAX_SAMPLES = 1 << 26
+
+
+class SampleSource(Protocol):
+    name: str
+    bounds_merc: Bbox
+    resolution_merc: float
+
+    def sample(
+        self, xm: NDArray[np.float64], ym: NDArray[np.float64], spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
+
+
+@dataclass(frozen=True, eq=False)
+class Level:
+    """Per-tile statistics of one level over the tile range x0.., y0.. (arrays indexed [y, x])."""
+
+    z: int
+    x0: int
+    y0: int
+    exists: NDArray[np.bool_]
+    min_h: NDArray[np.float32]
+    max_h: NDArray[np.float32]
+    #: (len(grids), ny, nx): metres of vertical error of the tile meshed with grids[k] segments.
+    error: NDArray[np.float32]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        ny, nx = self.exists.shape
+        return ny, nx
+
+    def index(
+        self, x: NDArray[np.int64], y: NDArray[np.int64]
+    ) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+        """(tile exists, flat index into the level's arrays; 0 where it does not)."""
+        ny, nx = self.shape
+        cx, cy = x - self.x0, y - self.y0
+        inside = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
+        flat = np.where(inside, cy * nx + cx, 0)
+        return inside & self.exists.ravel()[flat], flat
+
+
+@dataclass(frozen=True, eq=False)
+class TileTree:
+    """The quadtree a selection walks: levels zmin..zmax, each with per-tile statistics."""
+
+    levels: tuple[Level, ...]
+    grids: tuple[int, ...]
+    tile_size: int
+    height_range: tuple[float, float]
+    #: Levels the data's resolution was coarsened by to fit MAX_SAMPLES (0: full detail).
+    coarsened: int = 0
+
+    @property
+    def zmin(self) -> int:
+        return self.levels[0].z
+
+    @property
+    def zmax(self) -> int:
+        return self.levels[-1].z
+
+    def level(self, z: int) -> Level:
+        return self.levels[z - self.zmin]
+
+    def roots(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        lv = self.levels[0]
+        y, x = np.nonzero(lv.exists)
+        return (x + lv.x0).astype(np.int64), (y + lv.y0).astype(np.int64)
+
+
+def level_range(bounds: Bbox, z: int) -> tuple[int, int, int, int]:
+    """(x0, y0, nx, ny): the tiles of level z that the box touches."""
+    x0, y0 = tiles_array(bounds.left, bounds.top, z)
+    # a box edge exactly on a tile edge does not pull in the next tile
+    eps = 1e-6 * (2.0 * ORIGIN / (1 << z))
+    x1, y1 = tiles_array(bounds.right - eps, bounds.bottom + eps, z)
+    return int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1)
+
+
+def _level_grid(
+    source: SampleSource, z: int, rng: tuple[int, int, int, int]
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    x0, y0, nx, ny = rng
+    step = 2.0 * ORIGIN / float(1 << z) / _BASE
+    # the same exact-power-of-two vertex coordinates as terrain.mesh.grid_coordinates
+    xs = -ORIGIN + (x0 * _BASE + np.arange(nx * _BASE + 1)).astype(np.float64) * step
+    ys = ORIGIN - (y0 * _BASE + np.arange(ny * _BASE + 1)).astype(np.float64) * step
+    xx, yy = np.meshgrid(xs, ys)
+    return source.sample(xx, yy, step)
+
+
+def _blocks(a: NDArray[np.generic]) -> NDArray[np.generic]:
+    """(ny, nx, 17, 17) views of each tile's vertices (edges shared with the neighbours)."""
+    return sliding_window_view(a, (_BASE + 1, _BASE + 1))[::_BASE, ::_BASE]
+
+
+def _upsample(h: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The parent's triangulated surface evaluated on the child grid (twice as fine)."""
+    m, n = h.shape
+    out = np.empty((2 * m - 1, 2 * n - 1), dtype=np.float32)
+    out[::2, ::2] = h
+    out[::2, 1::2] = (h[:, :-1] + h[:, 1:]) / 2
+    out[1::2, ::2] = (h[:-1, :] + h[1:, :]) / 2
+    # cell centres lie on the north-west to south-east diagonal
+    out[1::2, 1::2] = (h[:-1, :-1] + h[1:, 1:]) / 2
+    return out
+
+
+def _pool(child: NDArray[np.floating], off: tuple[int, int], shape: tuple[int, int],
+          fill: float, op: str) -> NDArray[np.float32]:
+    """Reduce a child level's per-tile array onto its parents (2×2 blocks), missing = fill."""
+    ny, nx = shape
+    full = np.full((2 * ny, 2 * nx), fill, dtype=np.float32)
+    oy, ox = off
+    full[oy : oy + child.shape[0], ox : ox + child.shape[1]] = child
+    blocks = full.reshape(ny, 2, nx, 2)
+    return getattr(blocks, op)(axis=(1, 3)).astype(np.float32)  # type: ignore[no-any-return]
+
+
+def build_tree(source: SampleSource, *, tile_size: int = 256,
+               grids: tuple[int, ...] = GRIDS) -> TileTree:
+    """Walk the source once, bottom-up, and return its tile tree."""
+    if grids[0] != _BASE or any(g != _BASE << k for k, g in enumerate(grids)):
+        raise ValueError(f"Expected grids {_BASE}·2^k, got {grids}")
+    depth = len(grids) - 1
+    bounds = source.bounds_merc
+    res = source.resolution_merc
+    zmax = math.ceil(math.log2(2.0 * ORIGIN / (tile_size * res)))
+    zmax = min(max(zmax, 0), MAX_ZOOM - depth)
+    coarsened = 0
+    while zmax > 0:
+        _, _, nx, ny = level_range(bounds, zmax + depth)
+        if (nx * _BASE + 1) * (ny * _BASE + 1) <= MAX_SAMPLES:
+            break
+        zmax -= 1
+        coarsened += 1
+    # the roots: the finest level at which the data spans at most 2×2 tiles
+    zmin = zmax
+    while zmin > 0 and max(level_range(bounds, zmin)[2:]) > 2:
+        zmin -= 1
+
+    levels: dict[int, tuple[Level, NDArray[np.float32], tuple[int, int, int, int]]] = {}
+    height_range = (0.0, 0.0)
+    child: tuple[NDArray[np.float32], tuple[int, int, int, int], Level] | None = None
+    for z in range(zmax + depth, zmin - 1, -1):
+        rng = level_range(bounds, z)
+        x0, y0, nx, ny = rng
+        h, valid = _level_grid(source, z, rng)
+        if child is None:
+            if not valid.any():
+                raise SourceError(f"{source.name}: no valid heights inside the data's footprint")
+            hv = h[valid]
+            height_range = (float(hv.min()), float(hv.max()))
+        mn = _blocks(h).min(axis=(2, 3)).astype(np.float32)
+        mx = _blocks(h).max(axis=(2, 3)).astype(np.float32)
+        exists = _blocks(valid).any(axis=(2, 3))
+        e16 = np.zeros((ny, nx), dtype=np.float32)
+        if child is not None:
+            hc, crng, clv = child
+            cx0, cy0, cnx, cny = crng
+            ox, oy = cx0 - 2 * x0, cy0 - 2 * y0
+            up = _upsample(h)
+            sub = up[oy * _BASE : oy * _BASE + hc.shape[0], ox * _BASE : ox * _BASE + hc.shape[1]]
+            dev = _blocks(np.abs(sub - hc)).max(axis=(2, 3))
+            # the child tiles' own error (its 16-segment mesh against the truth) adds on
+            total = np.where(clv.exists, dev + clv.error[0], 0.0)
+            e16 = _pool(total, (oy, ox), (ny, nx), 0.0, "max")
+            mn = np.minimum(mn, _pool(clv.min_h, (oy, ox), (ny, nx), np.inf, "min"))
+            mx = np.maximum(mx, _pool(clv.max_h, (oy, ox), (ny, nx), -np.inf, "max"))
+            exists |= _pool(clv.exists.astype(np.float32), (oy, ox), (ny, nx), 0.0, "max") > 0
+        lv = Level(z, x0, y0, exists, mn, mx, e16[None])
+        levels[z] = (lv, e16, rng)
+        child = (h, rng, lv)
+
+    out = []
+    for z in range(zmin, zmax + 1):
+        lv, _, rng = levels[z]
+        x0, y0, nx, ny = rng
+        errs = []
+        for k in range(depth + 1):
+            _, ek, (kx0, ky0, _, _) = levels[z + k]
+            f = 1 << k
+            full = np.zeros((ny * f, nx * f), dtype=np.float32)
+            oy, ox = ky0 - y0 * f, kx0 - x0 * f
+            full[oy : oy + ek.shape[0], ox : ox + ek.shape[1]] = ek
+            err = full.reshape(ny, f, nx, f).max(axis=(1, 3))
+            errs.append(err + _sag(z, grids[k], y0, ny))
+        out.append(Level(z, x0, y0, lv.exists, lv.min_h, lv.max_h, np.stack(errs)))
+    return TileTree(tuple(out), grids, tile_size, height_range, coarsened)
+
+
+def _sag(z: int, segments: int, y0: int, ny: int) -> NDArray[np.float32]:
+    """How far straight mesh edges sag below the curved Earth: spacing²/(8R), per tile row."""
+    step = 2.0 * ORIGIN / float(1 << z) / segments
+    ym = ORIGIN - (np.arange(ny) + y0 + 0.5) * (2.0 * ORIGIN / float(1 << z))
+    _, lat = merc_to_lonlat(0.0, ym)
+    ground = step * np.cos(np.radians(lat)) * math.sqrt(2.0)
+    return (ground**2 / (8.0 * WGS84_A)).astype(np.float32)[:, None]

@@ -1,0 +1,95 @@
+"""The camera value: frames, the screen-space formulas, the frustum and validation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from lodscape.errors import CameraError
+from lodscape.geo.frames import ecef_to_geodetic, enu_basis, geodetic_to_ecef
+from lodscape.lod.camera import Camera
+
+
+@given(st.floats(-180, 180), st.floats(-89.9, 89.9), st.floats(-500, 9e6))
+def test_ecef_round_trip(lon: float, lat: float, h: float) -> None:
+    lon2, lat2, h2 = ecef_to_geodetic(geodetic_to_ecef(lon, lat, h))
+    assert math.isclose(float(lat2), lat, abs_tol=1e-8)
+    assert math.isclose((float(lon2) - lon + 180) % 360 - 180, 0.0, abs_tol=1e-8)
+    assert math.isclose(float(h2), h, abs_tol=1e-3)
+
+
+@given(st.floats(-180, 180), st.floats(-89.9, 89.9))
+def test_enu_is_orthonormal_and_right_handed(lon: float, lat: float) -> None:
+    b = enu_basis(lon, lat)
+    assert np.allclose(b @ b.T, np.eye(3), atol=1e-12)
+    assert np.allclose(np.cross(b[0], b[1]), b[2], atol=1e-12)
+
+
+def test_scale_unit_is_paper_000s_d() -> None:
+    cam = Camera(0, 0, 100, fov_y=60, width=1280, height=720)
+    assert cam.scale == pytest.approx(720 / (2 * math.tan(math.radians(30))))
+    # H = h·d/dist: a 100 m tile at 1000 m covers 100·d/1000 pixels
+    assert float(cam.screen_size(100.0, 1000.0)) == pytest.approx(cam.scale / 10)
+    assert float(cam.screen_error(2.0, 1000.0)) == pytest.approx(2 * cam.scale / 1000)
+
+
+@pytest.mark.parametrize(("heading", "east", "north"), [(0, 0, 1), (90, 1, 0), (180, 0, -1)])
+def test_heading_is_clockwise_from_north(heading: float, east: float, north: float) -> None:
+    cam = Camera(10.0, 45.0, 1000.0, heading=heading, pitch=0.0)
+    e, n, u = enu_basis(10.0, 45.0) @ cam.forward
+    assert (e, n, u) == pytest.approx((east, north, 0.0), abs=1e-12)
+
+
+def test_pitch_and_roll() -> None:
+    down = Camera(10.0, 45.0, 1000.0, pitch=-90.0)
+    assert enu_basis(10.0, 45.0) @ down.forward == pytest.approx([0, 0, -1], abs=1e-12)
+    banked = Camera(10.0, 45.0, 1000.0, pitch=0.0, roll=30.0)
+    right_enu = enu_basis(10.0, 45.0) @ banked.rotation[0]
+    assert right_enu[2] == pytest.approx(-math.sin(math.radians(30)))
+
+
+def test_frustum_contains_what_is_ahead_only() -> None:
+    cam = Camera(-84.2, 36.6, 2000.0, heading=45, pitch=-20).with_clip(1.0, 1e5)
+    planes = cam.frustum_planes()
+    ahead = 5000.0 * cam.forward
+    behind = -5000.0 * cam.forward
+    beyond = 2e5 * cam.forward
+    side = 5000.0 * cam.rotation[0]
+    inside = lambda p: bool(np.all(planes[:, :3] @ p + planes[:, 3] >= 0))  # noqa: E731
+    assert inside(ahead) and not inside(behind) and not inside(beyond) and not inside(side)
+    # the frustum corners lie on the planes
+    ty = math.tan(math.radians(30))
+    corner = 100.0 * (cam.forward + ty * cam.aspect * cam.rotation[0] + ty * cam.rotation[1])
+    assert np.min(planes[:, :3] @ corner + planes[:, 3]) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_view_projection_centres_the_target() -> None:
+    cam = Camera(-84.2, 36.6, 2000.0, heading=45, pitch=-20).with_clip(1.0, 1e5)
+    target = cam.position + 3000.0 * cam.forward
+    clip = cam.view_projection(target) @ np.array([0, 0, 0, 1.0])
+    assert clip[:2] / clip[3] == pytest.approx([0.0, 0.0], abs=1e-9)
+    look = Camera.looking_at(-84.2, 36.6, 2000.0, (-84.1, 36.7, 300.0))
+    e, n, u = enu_basis(-84.2, 36.6) @ (geodetic_to_ecef(-84.1, 36.7, 300.0) - look.position)
+    assert look.heading == pytest.approx(math.degrees(math.atan2(e, n)) % 360)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"lat": float("nan")}, "lat must be a finite number"),
+        ({"alt": float("inf")}, "alt must be a finite number"),
+        ({"lat": 91.0}, "lat must be within"),
+        ({"pitch": -95.0}, "pitch"),
+        ({"fov_y": 0.0}, "fov"),
+        ({"width": 0}, "width"),
+        ({"near": -1.0}, "near"),
+    ],
+)
+def test_invalid_cameras_are_named(kwargs: dict[str, float], message: str) -> None:
+    base: dict[str, float] = {"lon": 0.0, "lat": 0.0, "alt": 100.0}
+    with pytest.raises(CameraError, match=message):
+        Camera(**{**base, **kwargs})  # type: ignore[arg-type]
