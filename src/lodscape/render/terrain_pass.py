@@ -1,0 +1,379 @@
+"""The terrain pass: textured tile meshes into an offscreen colour + view-distance framebuffer.
+
+Precision: vertices stay float32 relative to their tile centre, and the Earth-sized translation
+(centre − camera) is folded into each draw's matrix in float64 on the CPU before the cast, so the
+GPU never adds two large numbers and a tile 6,000 km from the origin does not jitter.
+
+Depth: the view distance (camera-space −z, metres) is written to an R32F colour attachment rather
+than read back from the depth buffer, whose non-linear 24-bit values lose centimetres far away.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Protocol, TypeVar
+
+import moderngl
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.lod.camera import Camera
+from lodscape.render._context import create_context, make_current
+from lodscape.terrain.mesh import TileMesh, grid_indices
+
+__all__ = ["DrawItem", "DrawStats", "Renderer"]
+
+Rgb = tuple[float, float, float]
+
+
+class _GLObject(Protocol):
+    def release(self) -> None: ...
+
+
+_T = TypeVar("_T", bound=_GLObject)
+
+_VERTEX_SHADER = """
+#version 330
+uniform mat4 u_mvp;      // projection · view, for positions relative to the tile centre
+uniform mat3 u_rot;      // world → view rotation
+uniform vec3 u_offset;   // view-space position of the tile centre
+uniform vec3 u_up;       // direction skirts hang from (ellipsoid normal at the centre)
+uniform float u_skirt;   // metres to lower skirt vertices in this draw
+in vec3 in_pos;
+in vec2 in_uv;
+in float in_skirt;
+out vec2 v_uv;
+out float v_dist;
+void main() {
+    vec3 p = in_pos - in_skirt * u_skirt * u_up;
+    gl_Position = u_mvp * vec4(p, 1.0);
+    v_uv = in_uv;
+    // linear in view space, so perspective-correct interpolation keeps it exact per fragment
+    v_dist = -(u_offset + u_rot * p).z;
+}
+"""
+
+_FRAGMENT_SHADER = """
+#version 330
+uniform sampler2D u_tex;
+in vec2 v_uv;
+in float v_dist;
+layout(location = 0) out vec4 f_color;
+layout(location = 1) out float f_dist;
+void main() {
+    // the imagery already carries its shading: no lighting here
+    f_color = vec4(texture(u_tex, v_uv).rgb, 1.0);
+    f_dist = v_dist;
+}
+"""
+
+_VERTEX_FORMAT = ("3f 2f 1f", "in_pos", "in_uv", "in_skirt")
+_MAX_ANISOTROPY = 16.0
+_ALL = (True, True, True, True)
+_NONE = (False, False, False, False)
+
+
+@dataclass(frozen=True)
+class DrawItem:
+    """One tile in a frame: an uploaded mesh and how far its skirts hang this frame."""
+
+    key: int
+    #: Metres to lower skirt vertices (0 hides them inside the tile's edge).
+    skirt: float
+
+
+@dataclass(frozen=True)
+class DrawStats:
+    """What the last ``Renderer.draw`` issued."""
+
+    draw_calls: int = 0
+    triangles: int = 0
+
+
+@dataclass(eq=False)
+class _Tile:
+    vbo: moderngl.Buffer
+    vao: moderngl.VertexArray
+    texture: moderngl.Texture
+    segments: int
+    triangles: int
+    nbytes: int
+    center: NDArray[np.float64]
+    up: bytes
+
+
+@dataclass(eq=False)
+class _Target:
+    size: tuple[int, int]
+    color: moderngl.Renderbuffer
+    dist: moderngl.Renderbuffer
+    depth: moderngl.Renderbuffer
+    fbo: moderngl.Framebuffer
+
+
+class Renderer:
+    """Owns the GL objects of the tiles uploaded to it and draws any subset of them per frame.
+
+    Every method must be called from the thread that created the renderer (the GL thread).
+    ``anisotropy`` caps the anisotropic filtering of tile textures (1 disables it).
+    """
+
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        *,
+        ctx: moderngl.Context | None = None,
+        background: Rgb = (0.53, 0.70, 0.90),
+        anisotropy: float = _MAX_ANISOTROPY,
+    ) -> None:
+        self._owns_ctx = ctx is None
+        self.ctx: moderngl.Context = create_context() if ctx is None else ctx
+        self._thread = threading.get_ident()
+        self._closed = False
+        self.background = _rgb(background)
+        self.last_stats = DrawStats()
+        self._live = 0
+        self._tiles: dict[int, _Tile] = {}
+        # one index buffer per segment count, shared by its tiles and freed with the last of them
+        self._indices: dict[int, tuple[moderngl.Buffer, int]] = {}
+        make_current(self.ctx)
+        self._program = self._track(
+            self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+        )
+        self._u_mvp = self._uniform("u_mvp")
+        self._u_rot = self._uniform("u_rot")
+        self._u_offset = self._uniform("u_offset")
+        self._u_up = self._uniform("u_up")
+        self._u_skirt = self._uniform("u_skirt")
+        self._uniform("u_tex").value = 0
+        # 1 turns it off: on llvmpipe any anisotropic filtering triples the cost of a frame
+        self._anisotropy = max(1.0, min(float(self.ctx.max_anisotropy), float(anisotropy)))
+        self._target: _Target | None = None
+        self._target_for(width, height)
+
+    # --- resources --------------------------------------------------------------------------
+
+    def upload(self, mesh: TileMesh) -> None:
+        """Make ``mesh`` drawable under its key; uploading a key again is a no-op."""
+        self._use()
+        if mesh.key in self._tiles:
+            return
+        s = mesh.segments
+        vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+        if vertices.shape != ((s + 1) ** 2 + 4 * s, 6):
+            raise ValueError(
+                f"mesh {mesh.key}: expected {(s + 1) ** 2 + 4 * s}x6 vertices for {s} segments, "
+                f"got {vertices.shape}"
+            )
+        texture = np.ascontiguousarray(mesh.texture, dtype=np.uint8)
+        if texture.ndim != 3 or texture.shape[2] != 3:
+            raise ValueError(f"mesh {mesh.key}: expected an (H, W, 3) texture, got {texture.shape}")
+        ibo = self._index_buffer(s)
+        vbo = self._track(self.ctx.buffer(vertices))
+        vao = self._track(
+            self.ctx.vertex_array(  # type: ignore[no-untyped-call]  # untyped in moderngl's stubs
+                self._program,
+                [(vbo, *_VERTEX_FORMAT)],
+                index_buffer=ibo,
+                index_element_size=4,
+            )
+        )
+        # rows go up as written, so texture row 0 (north) is at t = 0, where v = 0 samples
+        tex = self._track(
+            self.ctx.texture((texture.shape[1], texture.shape[0]), 3, texture, alignment=1)
+        )
+        tex.build_mipmaps()
+        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        tex.repeat_x = tex.repeat_y = False
+        if self._anisotropy > 1.0:
+            tex.anisotropy = self._anisotropy
+        self._tiles[mesh.key] = _Tile(
+            vbo,
+            vao,
+            tex,
+            s,
+            mesh.triangles,
+            mesh.nbytes,
+            np.asarray(mesh.center, dtype=np.float64).copy(),
+            np.asarray(mesh.up, dtype=np.float32).tobytes(),
+        )
+
+    def release(self, key: int) -> None:
+        """Free the GL objects of ``key`` (a key that is not resident is ignored)."""
+        self._use()
+        tile = self._tiles.pop(key, None)
+        if tile is None:
+            return
+        for obj in (tile.vao, tile.vbo, tile.texture):
+            self._free(obj)
+        ibo, users = self._indices[tile.segments]
+        if users > 1:
+            self._indices[tile.segments] = (ibo, users - 1)
+        else:
+            del self._indices[tile.segments]
+            self._free(ibo)
+
+    def resident(self) -> dict[int, int]:
+        """GPU bytes (vertices + texture with mips) of every uploaded key."""
+        return {key: tile.nbytes for key, tile in self._tiles.items()}
+
+    def live_objects(self) -> int:
+        """GL objects this renderer holds now (programs, buffers, VAOs, textures, FBO parts)."""
+        return self._live
+
+    # --- drawing ----------------------------------------------------------------------------
+
+    def draw(
+        self, camera: Camera, items: Sequence[DrawItem], *, background: Rgb | None = None
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        """Render ``items`` from ``camera``: RGB (H, W, 3) uint8, row 0 at the top, and view
+        distance (H, W) float32 in metres along the view axis, +inf where nothing was drawn."""
+        self._use()
+        # resolve every key before touching GL state, so a bad frame changes nothing
+        tiles = []
+        for item in items:
+            tile = self._tiles.get(item.key)
+            if tile is None:
+                raise KeyError(
+                    f"mesh {item.key} is not uploaded to this renderer (upload it before drawing)"
+                )
+            tiles.append(tile)
+        rot = camera.rotation
+        view_projections = [camera.view_projection(tile.center) for tile in tiles]
+        target = self._target_for(camera.width, camera.height)
+        bg = self.background if background is None else _rgb(background)
+
+        ctx, fbo = self.ctx, target.fbo
+        fbo.use()
+        # glClear writes one value to every colour attachment: mask each in turn instead
+        # (the stubs type color_mask for one attachment; moderngl takes one mask per attachment)
+        fbo.color_mask = (_ALL, _NONE)  # type: ignore[assignment]
+        fbo.clear(*bg, 1.0, depth=1.0)
+        fbo.color_mask = (_NONE, _ALL)  # type: ignore[assignment]
+        fbo.clear(float("inf"), 0.0, 0.0, 0.0)
+        fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
+        # no culling: skirts and steep faces are seen from both sides
+        ctx.enable_only(moderngl.DEPTH_TEST)
+        ctx.depth_func = "<"
+
+        self._u_rot.write(np.ascontiguousarray(rot.T, dtype=np.float32))
+        triangles = 0
+        for item, tile, mvp in zip(items, tiles, view_projections, strict=True):
+            # GLSL matrices are column-major: upload the transpose of the row-major numpy one
+            self._u_mvp.write(np.ascontiguousarray(mvp.T, dtype=np.float32))
+            self._u_offset.write(np.asarray(_view_offset(rot, tile.center, camera), np.float32))
+            self._u_up.write(tile.up)
+            self._u_skirt.value = float(item.skirt)
+            tile.texture.use(0)
+            tile.vao.render(moderngl.TRIANGLES)
+            triangles += tile.triangles
+        self.last_stats = DrawStats(len(tiles), triangles)
+
+        h, w = camera.height, camera.width
+        # GL rows go bottom-up: flip so row 0 is the top of the picture
+        rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
+        dist = np.frombuffer(
+            fbo.read(components=1, attachment=1, alignment=1, dtype="f4"), np.float32
+        )
+        return (
+            np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1]),
+            np.ascontiguousarray(dist.reshape(h, w)[::-1]),
+        )
+
+    # --- lifetime ---------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Release every GL object, and the context when this renderer created it."""
+        if self._closed:
+            return
+        self._use()
+        for key in list(self._tiles):
+            self.release(key)
+        if self._target is not None:
+            self._free_target(self._target)
+            self._target = None
+        self._free(self._program)
+        self._closed = True
+        if self._owns_ctx:
+            self.ctx.release()
+
+    def __enter__(self) -> Renderer:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # --- internals --------------------------------------------------------------------------
+
+    def _use(self) -> None:
+        if self._closed:
+            raise RuntimeError("this Renderer is closed")
+        if threading.get_ident() != self._thread:
+            raise RuntimeError("a Renderer must be used from the thread that created it")
+        make_current(self.ctx)
+
+    def _track(self, obj: _T) -> _T:
+        self._live += 1
+        return obj
+
+    def _free(self, obj: _GLObject) -> None:
+        obj.release()
+        self._live -= 1
+
+    def _uniform(self, name: str) -> moderngl.Uniform:
+        uniform = self._program[name]
+        if not isinstance(uniform, moderngl.Uniform):
+            raise TypeError(f"terrain shader member {name!r} is not a uniform")
+        return uniform
+
+    def _index_buffer(self, segments: int) -> moderngl.Buffer:
+        entry = self._indices.get(segments)
+        if entry is None:
+            entry = (self._track(self.ctx.buffer(grid_indices(segments))), 0)
+        self._indices[segments] = (entry[0], entry[1] + 1)
+        return entry[0]
+
+    def _target_for(self, width: int, height: int) -> _Target:
+        target = self._target
+        if target is not None and target.size == (width, height):
+            return target
+        if target is not None:
+            self._free_target(target)
+        size = (width, height)
+        color = self._track(self.ctx.renderbuffer(size, 4))
+        dist = self._track(self.ctx.renderbuffer(size, 1, dtype="f4"))
+        depth = self._track(self.ctx.depth_renderbuffer(size))
+        fbo = self._track(self.ctx.framebuffer([color, dist], depth))
+        self._target = _Target(size, color, dist, depth, fbo)
+        return self._target
+
+    def _free_target(self, target: _Target) -> None:
+        # moderngl re-binds its idea of the bound framebuffer after creating or reading objects;
+        # left pointing at a deleted name that is GL_INVALID_OPERATION, so bind name 0 first
+        self.ctx.detect_framebuffer(0).use()
+        for obj in (target.fbo, target.color, target.dist, target.depth):
+            self._free(obj)
+
+
+def _view_offset(
+    rot: NDArray[np.float64], center: NDArray[np.float64], camera: Camera
+) -> NDArray[np.float64]:
+    """View-space position of a tile centre: R·(centre − camera), in float64."""
+    result: NDArray[np.float64] = rot @ (center - camera.position)
+    return result
+
+
+def _rgb(colour: Sequence[float]) -> Rgb:
+    values = tuple(float(c) for c in colour)
+    if len(values) != 3:
+        raise ValueError(f"expected an RGB colour of three numbers 0..1, got {colour!r}")
+    return values[0], values[1], values[2]

@@ -1,0 +1,35 @@
+"""Shared fixtures: one headless OpenGL context for the tests marked ``gl``."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def gl_ctx() -> Iterator[Any]:
+    """A standalone EGL context shared by the session; skips the test where EGL is missing."""
+    import moderngl  # imported here so the pure tests never load OpenGL
+
+    try:
+        ctx = moderngl.create_standalone_context(backend="egl", require=330)
+    except Exception as exc:  # a missing libEGL or driver surfaces as a bare Exception
+        pytest.skip(f"no headless OpenGL 3.3 context through EGL: {exc}")
+    yield ctx
+    ctx.release()
+
+
+@pytest.fixture(autouse=True)
+def _gl_errors_checked(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Tests marked ``gl`` skip without EGL and must leave the shared context error-free."""
+    if request.node.get_closest_marker("gl") is None:
+        yield
+        return
+    ctx = request.getfixturevalue("gl_ctx")
+    ctx.__enter__()  # other contexts may have been bound since; rebind before reading errors
+    ctx.clear_errors()
+    yield
+    ctx.__enter__()
+    assert ctx.error == "GL_NO_ERROR"

@@ -1,0 +1,260 @@
+"""The terrain pass on real OpenGL (headless EGL): pixels, view distance, precision far from the
+origin, skirts, determinism and GL object hygiene."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from lodscape.geo.frames import enu_basis, geodetic_to_ecef
+from lodscape.lod.camera import Camera
+from lodscape.render import DrawItem, DrawStats, Renderer
+from lodscape.terrain.mesh import TileMesh, ring_indices
+
+pytestmark = pytest.mark.gl
+
+MAGENTA = (1.0, 0.0, 1.0)
+MAGENTA_U8 = (255, 0, 255)
+LON, LAT, H = 7.0, 46.5, 800.0
+# four quadrants, north-west first: the picture must keep north up and east right
+QUADRANTS = {"nw": (220, 40, 40), "ne": (40, 200, 60), "sw": (40, 60, 220), "se": (230, 210, 30)}
+
+
+def _quadrant_texture(size: int = 64) -> NDArray[np.uint8]:
+    tex = np.empty((size, size, 3), np.uint8)
+    half = size // 2
+    tex[:half, :half] = QUADRANTS["nw"]
+    tex[:half, half:] = QUADRANTS["ne"]
+    tex[half:, :half] = QUADRANTS["sw"]
+    tex[half:, half:] = QUADRANTS["se"]
+    return tex
+
+
+def _patch(
+    key: int,
+    texture: NDArray[np.uint8],
+    *,
+    lon: float = LON,
+    lat: float = LAT,
+    h: float = H,
+    size: float = 1000.0,
+    segments: int = 8,
+) -> TileMesh:
+    """A flat square of ``size`` metres in the tangent plane at (lon, lat, h), row 0 north."""
+    s = segments
+    east = np.linspace(-size / 2, size / 2, s + 1)
+    north = np.linspace(size / 2, -size / 2, s + 1)
+    ee, nn = np.meshgrid(east, north)
+    basis = enu_basis(lon, lat)
+    local = np.column_stack([ee.ravel(), nn.ravel(), np.zeros(ee.size)])
+    u, v = np.meshgrid(np.arange(s + 1) / s, np.arange(s + 1) / s)
+    grid = np.column_stack([local @ basis, u.ravel(), v.ravel(), np.zeros(ee.size)])
+    skirt = grid[ring_indices(s)].copy()
+    skirt[:, 5] = 1.0
+    vertices = np.concatenate([grid, skirt]).astype(np.float32)
+    center = geodetic_to_ecef(lon, lat, h)
+    return TileMesh(key, s, vertices, center, basis[2].astype(np.float32), texture)
+
+
+def _pixel(camera: Camera, point: NDArray[np.float64]) -> tuple[float, float]:
+    """Where an ECEF point lands: (column, row from the top), in pixel units."""
+    clip = camera.view_projection(point) @ np.array([0.0, 0.0, 0.0, 1.0])
+    x, y = clip[:2] / clip[3]
+    return (x + 1) / 2 * camera.width, (1 - y) / 2 * camera.height
+
+
+def _plane_distance(camera: Camera, mesh: TileMesh) -> NDArray[np.float64]:
+    """View-axis distance to the plane through ``mesh.center`` normal to ``mesh.up``, per pixel."""
+    t = np.tan(np.radians(camera.fov_y) / 2)
+    x = ((np.arange(camera.width) + 0.5) / camera.width * 2 - 1) * t * camera.aspect
+    y = (1 - (np.arange(camera.height) + 0.5) / camera.height * 2) * t
+    xx, yy = np.meshgrid(x, y)
+    rays = np.stack([xx, yy, -np.ones_like(xx)], axis=-1) @ camera.rotation  # view z = -1
+    up = mesh.up.astype(np.float64)
+    result: NDArray[np.float64] = (up @ (mesh.center - camera.position)) / (rays @ up)
+    return result
+
+
+@pytest.fixture
+def renderer(gl_ctx: Any) -> Any:
+    with Renderer(64, 48, ctx=gl_ctx) as r:
+        yield r
+
+
+def test_flat_patch_from_above_fills_its_pixels_with_the_texture(renderer: Renderer) -> None:
+    renderer.upload(_patch(1, _quadrant_texture()))
+    height = 2000.0
+    cam = Camera(LON, LAT, H + height, pitch=-90, width=320, height=240).with_clip(1.0, 1e4)
+    rgb, depth = renderer.draw(cam, [DrawItem(1, 0.0)], background=MAGENTA)
+    assert rgb.shape == (240, 320, 3)
+    assert rgb.dtype == np.uint8
+    assert depth.shape == (240, 320)
+    assert depth.dtype == np.float32
+
+    half = 500.0 * cam.scale / height  # the patch's half width in pixels
+    cols = np.arange(320) + 0.5 - 160.0
+    rows = np.arange(240) + 0.5 - 120.0
+    dx, dy = np.meshgrid(cols, rows)
+    inside = (np.abs(dx) < half - 1.5) & (np.abs(dy) < half - 1.5)
+    outside = (np.abs(dx) > half + 1.5) | (np.abs(dy) > half + 1.5)
+    assert not np.all(rgb[inside] == MAGENTA_U8, axis=1).any()
+    assert np.all(rgb[outside] == MAGENTA_U8)
+    # quadrant centres, far from any edge where filtering blends colours
+    q = half / 2
+    for name, (x, y) in {"nw": (-q, -q), "ne": (q, -q), "sw": (-q, q), "se": (q, q)}.items():
+        core = (np.abs(dx - x) < q - 3) & (np.abs(dy - y) < q - 3)
+        assert np.all(rgb[core] == QUADRANTS[name]), name
+
+    # a plane square to the view axis lies at one distance: the camera's height above it
+    np.testing.assert_allclose(depth[inside], height, rtol=5e-3)
+    assert np.all(np.isinf(depth[outside]))
+    assert renderer.last_stats == DrawStats(draw_calls=1, triangles=2 * 8 * 8 + 8 * 8)
+
+
+def test_patch_far_from_the_origin_does_not_jitter(renderer: Renderer) -> None:
+    rng = np.random.default_rng(7)
+    noise = rng.integers(0, 256, (128, 128, 3), dtype=np.uint8)
+    lon, lat = 10.0, 30.0
+    mesh = _patch(2, noise, lon=lon, lat=lat, h=0.0, segments=16)
+    assert np.linalg.norm(mesh.center) > 6.0e6
+    renderer.upload(mesh)
+    base = Camera(lon, lat - 0.0005, 100.0, pitch=-50, width=320, height=240).with_clip(1.0, 5e3)
+
+    def frame(cam: Camera) -> NDArray[np.float64]:
+        return renderer.draw(cam, [DrawItem(2, 0.0)], background=MAGENTA)[0].astype(np.float64)
+
+    still = frame(base)
+    assert not np.all(still == MAGENTA_U8, axis=2).any()  # the patch fills the view
+    # every pixel's view distance matches a float64 ray cast to within a centimetre per 100 m,
+    # where float32 ECEF would be off by up to half a metre
+    depth = renderer.draw(base, [DrawItem(2, 0.0)])[1]
+    np.testing.assert_allclose(depth, _plane_distance(base, mesh), rtol=1e-4)
+    nudged = frame(base.moved(alt=100.001))  # 1 mm: far below a pixel
+    moved = frame(base.moved(alt=100.5))  # 0.5 m: a few pixels
+    # float32 ECEF would snap vertices to half a metre here; the relative transform keeps 1 mm
+    # to rounding noise, while half a metre visibly moves the picture
+    assert np.abs(nudged - still).mean() < 0.1
+    assert np.mean(np.abs(nudged - still).max(axis=2) > 8) < 1e-3
+    assert np.abs(moved - still).mean() > 1.0
+
+
+def test_skirts_hang_below_the_edge_only_when_asked(renderer: Renderer) -> None:
+    renderer.upload(_patch(3, np.full((16, 16, 3), (200, 120, 40), np.uint8)))
+    south = LAT - 2000.0 / 111_200.0  # about 2 km south of the patch centre
+    cam = Camera.looking_at(LON, south, H + 200.0, (LON, LAT, H), width=320, height=240)
+    cam = cam.with_clip(1.0, 1e4)
+    flat, flat_depth = renderer.draw(cam, [DrawItem(3, 0.0)], background=MAGENTA)
+    hung, hung_depth = renderer.draw(cam, [DrawItem(3, 100.0)], background=MAGENTA)
+
+    col = 160
+    covered = ~np.all(flat[:, col] == MAGENTA_U8, axis=1)
+    with_skirt = ~np.all(hung[:, col] == MAGENTA_U8, axis=1)
+    # the south edge and the bottom of its 100 m skirt, projected on the CPU
+    basis = enu_basis(LON, LAT)
+    edge = geodetic_to_ecef(LON, LAT, H) - 500.0 * basis[1]
+    _, edge_row = _pixel(cam, edge)
+    _, foot_row = _pixel(cam, edge - 100.0 * basis[2])
+    assert foot_row - edge_row > 10  # a skirt worth seeing
+    assert abs(np.flatnonzero(covered).max() + 0.5 - edge_row) < 1.5
+    assert abs(np.flatnonzero(with_skirt).max() + 0.5 - foot_row) < 1.5
+    band = slice(int(edge_row) + 2, int(foot_row) - 1)
+    assert np.all(flat[band, col] == MAGENTA_U8)
+    assert np.all(np.isinf(flat_depth[band, col]))
+    assert np.all(hung[band, col] == (200, 120, 40))
+    # the skirt is a wall square to the ground, at the edge's distance along the view axis
+    edge_dist = float(-(cam.rotation @ (edge - cam.position))[2])
+    np.testing.assert_allclose(hung_depth[band, col], edge_dist, rtol=0.05)
+    # above the edge nothing changes: the skirt hangs below the surface, never over it
+    assert np.array_equal(flat[: int(edge_row) - 1], hung[: int(edge_row) - 1])
+
+
+def test_same_inputs_give_byte_identical_frames(renderer: Renderer, gl_ctx: Any) -> None:
+    meshes = [_patch(k, _quadrant_texture(), lon=LON + 0.01 * k) for k in range(3)]
+    for mesh in meshes:
+        renderer.upload(mesh)
+    items = [DrawItem(k, 20.0 * k) for k in range(3)]
+    cam = Camera.looking_at(LON, LAT - 0.02, H + 600, (LON + 0.01, LAT, H), width=160, height=120)
+    cam = cam.with_clip(1.0, 2e4)
+    first = renderer.draw(cam, items)
+    renderer.draw(cam.moved(heading=cam.heading + 30), items[::-1], background=MAGENTA)
+    again = renderer.draw(cam, items)
+    with Renderer(160, 120, ctx=gl_ctx) as other:
+        for mesh in meshes:
+            other.upload(mesh)
+        fresh = other.draw(cam, items)
+    for a, b in ((first, again), (first, fresh)):
+        assert a[0].tobytes() == b[0].tobytes()
+        assert a[1].tobytes() == b[1].tobytes()
+
+
+def test_a_thousand_draws_leak_no_gl_objects(gl_ctx: Any) -> None:
+    textures = [np.full((32, 32, 3), 60 * k, np.uint8) for k in range(4)]
+    meshes = [
+        _patch(k, textures[k], lon=LON + 0.005 * k, segments=(8, 16)[k % 2]) for k in range(4)
+    ]
+    r = Renderer(64, 48, ctx=gl_ctx)
+    counts = []
+    for i in range(1000):
+        # a cycle of four: one mesh in, another out, a new camera, and the viewport size flips
+        r.upload(meshes[i % 4])
+        r.release(meshes[(i + 2) % 4].key)
+        size = (64, 48) if (i // 4) % 2 == 0 else (48, 64)
+        cam = Camera(
+            LON + 0.0005 * (i % 7),
+            LAT - 0.01,
+            H + 300.0 + i,
+            heading=(7.0 * i) % 360,
+            pitch=-35,
+            width=size[0],
+            height=size[1],
+        ).with_clip(1.0, 2e4)
+        r.draw(cam, [DrawItem(k, 5.0) for k in sorted(r.resident())])
+        if i % 4 == 3:
+            counts.append(r.live_objects())
+    assert gl_ctx.error == "GL_NO_ERROR"
+    # program + two index buffers + two tiles x (VBO, VAO, texture) + FBO with three attachments
+    assert counts == [1 + 2 + 2 * 3 + 4] * 250
+    r.close()
+    assert r.live_objects() == 0
+    r.close()  # idempotent
+    assert r.live_objects() == 0
+
+
+def test_drawing_a_key_never_uploaded_is_a_key_error(renderer: Renderer) -> None:
+    renderer.upload(_patch(5, _quadrant_texture()))
+    cam = Camera(LON, LAT, H + 500, pitch=-90, width=32, height=32).with_clip(1.0, 1e4)
+    with pytest.raises(KeyError, match="mesh 99 is not uploaded"):
+        renderer.draw(cam, [DrawItem(5, 0.0), DrawItem(99, 0.0)])
+    renderer.release(99)  # releasing an unknown key is harmless
+
+
+def test_uploads_are_idempotent_and_share_index_buffers(renderer: Renderer) -> None:
+    base = renderer.live_objects()
+    a, b = _patch(10, _quadrant_texture()), _patch(11, _quadrant_texture(), lon=LON + 0.01)
+    renderer.upload(a)
+    renderer.upload(a)
+    renderer.upload(b)
+    assert renderer.live_objects() == base + 1 + 2 * 3  # one index buffer for both (same S)
+    assert renderer.resident() == {10: a.nbytes, 11: b.nbytes}
+    renderer.release(10)
+    renderer.release(11)
+    assert renderer.live_objects() == base
+    assert renderer.resident() == {}
+
+
+def test_an_owned_context_is_created_and_released(gl_ctx: Any) -> None:
+    with Renderer(40, 30, background=MAGENTA) as r:
+        assert r.ctx is not gl_ctx
+        r.upload(_patch(1, _quadrant_texture()))
+        cam = Camera(LON, LAT, H + 3000, pitch=-90, width=40, height=30).with_clip(1.0, 1e4)
+        rgb, depth = r.draw(cam, [DrawItem(1, 0.0)])
+        # the background given at construction applies when a draw names none
+        assert tuple(rgb[0, 0]) == MAGENTA_U8
+        assert np.isinf(depth[0, 0])
+        assert r.ctx.error == "GL_NO_ERROR"
+    assert r.live_objects() == 0
+    with pytest.raises(RuntimeError, match="closed"):
+        r.upload(_patch(2, _quadrant_texture()))
