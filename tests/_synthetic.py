@@ -41,3 +41,40 @@ class AnalyticSource:
 
     def close(self) -> None:
         pass
+
+
+def fbm_heights(size: int, seed: int = 7, relief: float = 900.0) -> NDArray[np.float32]:
+    """Rough, realistic-looking relief: octaves of smooth noise (a test fixture, not data)."""
+    from scipy.ndimage import zoom
+
+    rng = np.random.default_rng(seed)
+    out = np.zeros((size, size), dtype=np.float64)
+    amp = 1.0
+    cells = 4
+    while cells < size:
+        coarse = rng.standard_normal((cells + 3, cells + 3))
+        fine = zoom(coarse, (size + 3 * size / cells) / (cells + 3), order=3)[:size, :size]
+        out += amp * fine
+        amp *= 0.55
+        cells *= 2
+    out -= out.min()
+    return (300.0 + relief * out / out.max()).astype(np.float32)
+
+
+def write_dem(path: str, heights: NDArray[np.floating], *, crs: str | None, west: float,
+              north: float, res: float, nodata: float | None = None) -> str:
+    """A real GeoTIFF on disk through rasterio."""
+    import rasterio
+    from rasterio.transform import Affine
+
+    profile = {
+        "driver": "GTiff", "height": heights.shape[0], "width": heights.shape[1], "count": 1,
+        "dtype": str(heights.dtype), "transform": Affine(res, 0.0, west, 0.0, -res, north),
+    }
+    if crs is not None:
+        profile["crs"] = crs
+    if nodata is not None:
+        profile["nodata"] = nodata
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(heights, 1)
+    return path

@@ -49,6 +49,10 @@ class FakeSource:
         valid = np.ones(shape, dtype=bool) if self.invalid is None else ~self.invalid(x, y)
         return h, valid
 
+    def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]:
+        xb, yb = np.broadcast_arrays(xm, ym)
+        return np.ones(xb.shape, dtype=bool) if self.invalid is None else ~self.invalid(xb, yb)
+
 
 def centre() -> tuple[float, float]:
     b = xy_bounds(Tile(X, Y, Z))
@@ -84,7 +88,7 @@ def saturation(rgb: NDArray[np.uint8]) -> NDArray[np.float64]:
 
 def test_texture_shape_dtype_and_default_size() -> None:
     src = FakeSource(cone())
-    img = TintImagery(src, (0.0, 3000.0)).texture(Z, X, Y)
+    img = TintImagery(src, (0.0, 3000.0)).rgb(Z, X, Y)
     assert img.shape == (256, 256, 3)
     assert img.dtype == np.uint8
     assert src.reads[-1][1] == (258, 258)
@@ -100,8 +104,8 @@ def test_tint_shape_and_dtype() -> None:
 
 def test_deterministic() -> None:
     imagery = TintImagery(FakeSource(cone()), (0.0, 3000.0), tile_size=T)
-    a = imagery.texture(Z, X, Y)
-    b = imagery.texture(Z, X, Y)
+    a = imagery.rgb(Z, X, Y)
+    b = imagery.rgb(Z, X, Y)
     assert a.tobytes() == b.tobytes()
 
 
@@ -110,7 +114,7 @@ def test_deterministic() -> None:
 
 def test_reads_vertices_on_texel_centres_with_a_border() -> None:
     src = FakeSource(plane(0.0, 0.0))
-    TintImagery(src, (0.0, 1.0), tile_size=T).texture(Z, X, Y)
+    TintImagery(src, (0.0, 1.0), tile_size=T).rgb(Z, X, Y)
     bounds, shape = src.reads[-1]
     assert shape == (T + 2, T + 2)
     xs, ys = grid(bounds, shape)
@@ -132,7 +136,7 @@ def test_each_texel_gets_the_height_of_its_centre(monkeypatch: pytest.MonkeyPatc
     b = xy_bounds(Tile(X, Y, Z))
     # heights linear in x and y with distinct rates; 1e-3 keeps float32 precise to millimetres
     src = FakeSource(lambda x, y: 1e-3 * (x - b.left) + 3e-3 * (b.top - y))
-    TintImagery(src, (0.0, 100.0), tile_size=T).texture(Z, X, Y)
+    TintImagery(src, (0.0, 100.0), tile_size=T).rgb(Z, X, Y)
     w = (b.right - b.left) / T
     j = np.arange(T)
     expect = 1e-3 * (j[None, :] + 0.5) * w + 3e-3 * (j[:, None] + 0.5) * w
@@ -155,14 +159,14 @@ def test_flat_surface_is_uniform_with_shade_sin_altitude() -> None:
     h = np.full((10, 10), 500.0, np.float32)
     np.testing.assert_allclose(hillshade(h, 30.0), math.sin(math.radians(45.0)))
     np.testing.assert_allclose(hillshade(h, 30.0, altitude=30.0), 0.5)
-    img = TintImagery(FakeSource(plane(0.0, 0.0)), (0.0, 3000.0), tile_size=T).texture(Z, X, Y)
+    img = TintImagery(FakeSource(plane(0.0, 0.0)), (0.0, 3000.0), tile_size=T).rgb(Z, X, Y)
     assert (img == img[0, 0]).all()
 
 
 def test_slope_facing_the_sun_is_brighter() -> None:
     # rising to the south-east, so the face looks north-west, towards the default sun (315°)
-    nw = TintImagery(FakeSource(plane(0.3, -0.3)), (0.0, 3000.0), tile_size=T).texture(Z, X, Y)
-    se = TintImagery(FakeSource(plane(-0.3, 0.3)), (0.0, 3000.0), tile_size=T).texture(Z, X, Y)
+    nw = TintImagery(FakeSource(plane(0.3, -0.3)), (0.0, 3000.0), tile_size=T).rgb(Z, X, Y)
+    se = TintImagery(FakeSource(plane(-0.3, 0.3)), (0.0, 3000.0), tile_size=T).rgb(Z, X, Y)
     # the planes share their centre height, so compare the centre texels' colour
     c = T // 2
     assert nw[c, c].astype(int).sum() > se[c, c].astype(int).sum() + 60
@@ -181,7 +185,7 @@ def test_hillshade_matches_horn_on_a_plane() -> None:
 
 
 def test_cone_is_lit_on_its_north_west_flank() -> None:
-    img = TintImagery(FakeSource(cone()), (0.0, 3000.0), tile_size=T).texture(Z, X, Y)
+    img = TintImagery(FakeSource(cone()), (0.0, 3000.0), tile_size=T).rgb(Z, X, Y)
     lum = img.astype(int).sum(axis=-1)
     q = T // 4
     assert lum[q, q] > lum[T - 1 - q, T - 1 - q] + 60  # north-west quarter vs south-east
@@ -194,7 +198,7 @@ def test_invalid_texels_are_grey_valid_keep_ramp_colour() -> None:
     cx, _ = centre()
     # height at 15 % of the range: the saturated light-green stop; no data west of the centre
     src = FakeSource(plane(0.0, 0.0, 150.0), invalid=lambda x, y: x < cx)
-    img = TintImagery(src, (0.0, 1000.0), tile_size=T).texture(Z, X, Y)
+    img = TintImagery(src, (0.0, 1000.0), tile_size=T).rgb(Z, X, Y)
     sat = saturation(img)
     west, east = sat[:, : T // 2 - 1], sat[:, T // 2 + 1 :]
     assert west.max() < 0.03
@@ -206,7 +210,7 @@ def test_invalid_texels_are_grey_valid_keep_ramp_colour() -> None:
 
 def test_equal_range_does_not_divide_by_zero() -> None:
     with np.errstate(all="raise"):
-        img = TintImagery(FakeSource(cone()), (700.0, 700.0), tile_size=T).texture(Z, X, Y)
+        img = TintImagery(FakeSource(cone()), (700.0, 700.0), tile_size=T).rgb(Z, X, Y)
     assert img.shape == (T, T, 3)
     flat = tint(np.full((5, 5), 700.0, np.float32), np.ones((5, 5), bool), 10.0, (700.0, 700.0))
     assert (flat == flat[0, 0]).all()
@@ -265,10 +269,19 @@ def test_non_finite_heights_become_no_data() -> None:
 )
 def test_adjacent_tiles_have_no_seam(field: Field) -> None:
     imagery = TintImagery(FakeSource(field), (0.0, 2500.0), tile_size=T)
-    west = imagery.texture(Z, X, Y).astype(int)
-    east = imagery.texture(Z, X + 1, Y).astype(int)
+    west = imagery.rgb(Z, X, Y).astype(int)
+    east = imagery.rgb(Z, X + 1, Y).astype(int)
     both = np.concatenate([west, east], axis=1)
     steps = np.abs(np.diff(both, axis=1)).max(axis=(0, 2))
     seam = steps[T - 1]  # between the west tile's last column and the east tile's first
     inside = np.delete(steps, T - 1)
     assert seam <= inside.max() + 1
+
+
+def test_alpha_marks_where_the_source_covers_the_tile() -> None:
+    cx, _ = centre()
+    src = FakeSource(lambda x, y: 0.0 * x + 100.0, invalid=lambda x, y: x > cx)
+    img = TintImagery(src, (0.0, 1000.0), tile_size=T).texture(Z, X, Y)
+    assert img.shape == (T, T, 4)
+    assert np.all(img[:, : T // 2, 3] == 255) and np.all(img[:, T // 2 :, 3] == 0)
+    assert np.array_equal(img[..., :3], TintImagery(src, (0.0, 1000.0), tile_size=T).rgb(Z, X, Y))

@@ -6,13 +6,13 @@ loads on first use of ``lodscape.open`` or ``lodscape.Scene``.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+import typing as _typing
 
 from lodscape.errors import CameraError, LodscapeError, SourceError
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import SelectOptions, Selection, select
 
-if TYPE_CHECKING:
+if _typing.TYPE_CHECKING:
     from lodscape.scene import FrameStats, Scene, SceneOptions, open
 
 __version__ = "0.1.0"
@@ -35,7 +35,7 @@ __all__ = [
 _LAZY = {"FrameStats", "Scene", "SceneOptions", "open"}
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> _typing.Any:
     if name in _LAZY:
         from lodscape import scene
 

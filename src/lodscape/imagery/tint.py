@@ -50,6 +50,8 @@ class HeightSourceLike(Protocol):
         self, bounds: Bbox, shape: tuple[int, int]
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
 
+    def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]: ...
+
 
 def ramp(t: ArrayLike) -> NDArray[np.float64]:
     """RGB (0..255 floats, shape ``t.shape + (3,)``) of normalised heights ``t`` (clamped)."""
@@ -164,7 +166,21 @@ class TintImagery:
         return (b.right - b.left) / self.tile_size * math.cos(math.radians(float(lat)))
 
     def texture(self, z: int, x: int, y: int) -> NDArray[np.uint8]:
-        """The (tile_size, tile_size, 3) RGB texture of tile z/x/y."""
+        """The (tile_size, tile_size, 4) RGBA texture of tile z/x/y; alpha 0 where the source
+        does not cover the texel (the terrain ends there; holes inside the data are filled)."""
+        rgb = self.rgb(z, x, y)
+        b = self.sample_bounds(z, x, y)
+        n = self.tile_size
+        step = (b.right - b.left) / (n + 1)
+        # texel centres: the inner samples of the bordered grid
+        xs = b.left + step * np.arange(1, n + 1)
+        ys = b.top - step * np.arange(1, n + 1)
+        inside = self.heights.covers(xs[None, :], ys[:, None])
+        alpha = np.where(inside, 255, 0).astype(np.uint8)
+        return np.dstack([rgb, np.broadcast_to(alpha, (n, n))])
+
+    def rgb(self, z: int, x: int, y: int) -> NDArray[np.uint8]:
+        """The (tile_size, tile_size, 3) RGB tint of tile z/x/y."""
         n = self.tile_size + 2
         heights, valid = self.heights.read(self.sample_bounds(z, x, y), (n, n))
         return tint(

@@ -65,7 +65,10 @@ layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
     // the imagery already carries its shading: no lighting here
-    f_color = vec4(texture(u_tex, v_uv).rgb, 1.0);
+    vec4 c = texture(u_tex, v_uv);
+    // alpha marks where the data covers the tile: the terrain ends at the data's edge
+    if (c.a < 0.5) discard;
+    f_color = vec4(c.rgb, 1.0);
     f_dist = v_dist;
 }
 """
@@ -170,8 +173,10 @@ class Renderer:
                 f"got {vertices.shape}"
             )
         texture = np.ascontiguousarray(mesh.texture, dtype=np.uint8)
-        if texture.ndim != 3 or texture.shape[2] != 3:
-            raise ValueError(f"mesh {mesh.key}: expected an (H, W, 3) texture, got {texture.shape}")
+        if texture.ndim != 3 or texture.shape[2] not in (3, 4):
+            raise ValueError(
+                f"mesh {mesh.key}: expected an (H, W, 3) or (H, W, 4) texture, got {texture.shape}"
+            )
         ibo = self._index_buffer(s)
         vbo = self._track(self.ctx.buffer(vertices))
         vao = self._track(
@@ -184,7 +189,8 @@ class Renderer:
         )
         # rows go up as written, so texture row 0 (north) is at t = 0, where v = 0 samples
         tex = self._track(
-            self.ctx.texture((texture.shape[1], texture.shape[0]), 3, texture, alignment=1)
+            self.ctx.texture((texture.shape[1], texture.shape[0]), texture.shape[2], texture,
+                             alignment=1)
         )
         tex.build_mipmaps()
         tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)

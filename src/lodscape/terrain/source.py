@@ -1,0 +1,556 @@
+"""Height sources: heights at Web Mercator points from a GDAL raster or a numpy array, any CRS.
+
+A source answers ``sample(xm, ym, spacing)``: bilinear heights at EPSG:3857 points, read from the
+resolution that fits ``spacing`` (the spacing of the caller's grid) so coarse grids do not alias:
+level k of the source is 2^k × 2^k pixels per sample, the file's own overview where it has one of
+that factor, otherwise a block mean over pixel blocks aligned to the source's global pixel grid.
+A point's height depends only on the point and ``spacing``, never on which call or window asked,
+so adjacent tiles get bit-identical shared edges.
+
+Points without data (nodata, NaN, masked, outside the raster) come back with ``valid`` False and a
+height filled from a coarse, hole-filled overview of the whole raster built once at open, so
+callers never see nodata values, NaN or spikes to 0. Heights are assumed to be metres (a band's
+scale and offset are applied); vertical units are not converted.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, Self
+
+import numpy as np
+import rasterio
+from numpy.typing import ArrayLike, NDArray
+from pyproj import CRS, Transformer
+from rasterio.errors import NotGeoreferencedWarning
+from rasterio.transform import Affine
+from rasterio.windows import Window
+from scipy.ndimage import distance_transform_edt
+
+from lodscape.errors import SourceError
+from lodscape.geo.tiles import MAX_LAT, ORIGIN, Bbox, lonlat_to_merc
+
+__all__ = ["COARSE_SIZE", "ArraySource", "HeightSource", "RasterSource"]
+
+#: Longest side (pixels) of the hole-filled whole-raster overview that fills invalid points.
+COARSE_SIZE = 1024
+#: Points per edge when projecting the footprint (edges curve in Web Mercator).
+_EDGE_POINTS = 64
+#: Level-0 pixels read per strip while building the coarse overview (bounds memory at open).
+_STRIP_PIXELS = 1 << 23
+
+F64 = NDArray[np.float64]
+B = NDArray[np.bool_]
+
+
+class HeightSource(Protocol):
+    """Heights (metres) at Web Mercator points, with a validity mask; see the module docstring."""
+
+    #: For messages: the file path, or "array".
+    name: str
+    #: The source CRS as WKT (provenance).
+    crs_wkt: str
+    #: Footprint of the data in EPSG:3857 metres, latitude clamped to ±MAX_LAT.
+    bounds_merc: Bbox
+    #: Native sample spacing in EPSG:3857 metres at the data's centre (the finer of x and y).
+    resolution_merc: float
+
+    def sample(
+        self, xm: NDArray[np.float64], ym: NDArray[np.float64], spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
+
+    def read(
+        self, bounds: Bbox, shape: tuple[int, int]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
+
+    def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class _Level:
+    """One resolution of the source: 2^k level-0 pixels per pixel (sx, sy exactly for overviews)."""
+
+    k: int
+    height: int
+    width: int
+    sx: float
+    sy: float
+    #: Index of the file's own overview, or None for level 0 / an aligned block mean.
+    overview: int | None
+
+
+def _one_line(exc: BaseException) -> str:
+    """The first line of the innermost message in an exception's chain, for SourceErrors."""
+    # rasterio wraps GDAL's specific error in "Read failed. See previous exception for details."
+    seen: list[BaseException] = []
+    cur: BaseException | None = exc
+    for _ in range(10):  # a bounded walk: chains can loop
+        if cur is None:
+            break
+        if str(cur).strip():
+            seen.append(cur)
+        cur = cur.__cause__ or cur.__context__
+    lines = [ln.strip() for ln in str(seen[-1] if seen else exc).splitlines() if ln.strip()]
+    text = lines[0] if lines else type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def _halve(a: F64) -> F64:
+    """Sums of 2×2 blocks (odd edges padded with zeros): one aligned step coarser."""
+    h, w = a.shape
+    if h % 2 or w % 2:
+        a = np.pad(a, ((0, h % 2), (0, w % 2)))
+    # a fixed element-wise order, so a block's sum never depends on the window it was read in
+    return a[0::2, 0::2] + a[0::2, 1::2] + a[1::2, 0::2] + a[1::2, 1::2]
+
+
+def _bilinear(vals: F64, ok: B, u: F64, v: F64) -> tuple[F64, B]:
+    """Bilinear values at pixel-centre coordinates (u column, v row) clamped into the array."""
+    h, w = vals.shape
+    u = np.clip(u, 0.0, w - 1.0)
+    v = np.clip(v, 0.0, h - 1.0)
+    j = np.minimum(np.floor(u).astype(np.intp), w - 2)
+    i = np.minimum(np.floor(v).astype(np.intp), h - 2)
+    fu = u - j
+    fv = v - i
+    gu = 1.0 - fu
+    gv = 1.0 - fv
+    out = gv * (gu * vals[i, j] + fu * vals[i, j + 1]) + fv * (
+        gu * vals[i + 1, j] + fu * vals[i + 1, j + 1]
+    )
+    # a pixel with zero weight does not contribute, so its nodata does not invalidate the point
+    good = (
+        (ok[i, j] | (fu >= 1.0) | (fv >= 1.0))
+        & (ok[i, j + 1] | (fu <= 0.0) | (fv >= 1.0))
+        & (ok[i + 1, j] | (fu >= 1.0) | (fv <= 0.0))
+        & (ok[i + 1, j + 1] | (fu <= 0.0) | (fv <= 0.0))
+    )
+    return out, good
+
+
+class _GridSource:
+    """Shared sampling over a north-up or rotated pixel grid; subclasses only read windows."""
+
+    name: str
+    crs_wkt: str
+    bounds_merc: Bbox
+    resolution_merc: float
+    #: (rows, cols) of the full-resolution grid.
+    shape: tuple[int, int]
+    #: Affine transform of pixel edges (col, row) to source CRS coordinates.
+    transform: Affine
+    _closed: bool
+
+    def _setup(
+        self,
+        name: str,
+        crs: CRS,
+        transform: Affine,
+        shape: tuple[int, int],
+        overviews: Sequence[tuple[int, int, int]] = (),
+    ) -> None:
+        """Validate georeferencing, project the footprint and build the coarse fill overview.
+
+        ``overviews`` lists the file's own overviews as (index, rows, cols).
+        """
+        self.name = name
+        self.crs_wkt = crs.to_wkt()
+        self.shape = shape
+        self.transform = transform
+        self._crs = crs
+        self._local = threading.local()
+        h, w = shape
+        coeffs = (transform.a, transform.b, transform.c, transform.d, transform.e, transform.f)
+        if not all(math.isfinite(c) for c in coeffs) or transform.determinant == 0.0:
+            raise SourceError(
+                f"{name}: geotransform {coeffs} is not invertible; fix the georeferencing"
+            )
+        self._inv = ~transform
+        self._kmax = (min(h, w) - 1).bit_length() - 1  # coarsest level still 2×2 pixels
+        self._native: dict[int, _Level] = {}
+        for index, oh, ow in overviews:
+            fx, fy = w / ow, h / oh
+            k = round(math.log2(fx)) if fx > 0 else -1
+            # only overviews at an exact power-of-two factor stand in for a level
+            exact = round(fx) == 1 << k and round(fy) == 1 << k
+            if 1 <= k <= self._kmax and exact and k not in self._native and min(oh, ow) >= 2:
+                self._native[k] = _Level(k, oh, ow, fx, fy, index)
+        self._levels: dict[int, _Level] = {}
+        self.bounds_merc = self._footprint()
+        self.resolution_merc = self._resolution()
+        self._build_coarse()
+
+    # --- projections ----------------------------------------------------------------------
+
+    def _transformer(self, key: str) -> Transformer:
+        """A per-thread pyproj Transformer: "to_src" (EPSG:3857 → source), "to_merc", "to_ll"."""
+        cache: dict[str, Transformer] | None = getattr(self._local, "cache", None)
+        if cache is None:
+            cache = self._local.cache = {}
+        t = cache.get(key)
+        if t is None:
+            merc, ll = CRS.from_epsg(3857), CRS.from_epsg(4326)
+            src, dst = {"to_src": (merc, self._crs), "to_merc": (self._crs, merc)}.get(
+                key, (self._crs, ll)
+            )
+            t = cache[key] = Transformer.from_crs(src, dst, always_xy=True)
+        return t
+
+    def _footprint(self) -> Bbox:
+        """EPSG:3857 bbox of the raster's densified edges, latitude clamped to ±MAX_LAT."""
+        h, w = self.shape
+        t = np.linspace(0.0, 1.0, _EDGE_POINTS + 1)
+        cols = np.concatenate([t * w, np.full_like(t, w), (1.0 - t) * w, np.zeros_like(t)])
+        rows = np.concatenate([np.zeros_like(t), t * h, np.full_like(t, h), (1.0 - t) * h])
+        a = self.transform
+        xs = a.a * cols + a.b * rows + a.c
+        ys = a.d * cols + a.e * rows + a.f
+        lon, lat = (np.asarray(v) for v in self._transformer("to_ll").transform(xs, ys))
+        finite = np.isfinite(lon) & np.isfinite(lat)
+        if not finite.any():
+            raise SourceError(f"{self.name}: footprint cannot be projected to longitude/latitude")
+        lo, hi = float(lat[finite].min()), float(lat[finite].max())
+        if lo >= MAX_LAT or hi <= -MAX_LAT:
+            raise SourceError(
+                f"{self.name}: data lies entirely outside Web Mercator's latitude range "
+                f"(±{MAX_LAT:.4f}°; data spans {lo:.4f}° to {hi:.4f}°)"
+            )
+        xm, ym = (np.asarray(v) for v in self._transformer("to_merc").transform(xs, ys))
+        # polar points overflow the projection: clamp to the square, or go through lon/lat
+        bad = ~(np.isfinite(xm) & np.isfinite(ym))
+        if bad.any():
+            xm2, ym2 = lonlat_to_merc(lon[bad], lat[bad])
+            xm, ym = xm.copy(), ym.copy()
+            xm[bad], ym[bad] = xm2, ym2
+        xm, ym = xm[finite], np.clip(ym[finite], -ORIGIN, ORIGIN)
+        return Bbox(float(xm.min()), float(ym.min()), float(xm.max()), float(ym.max()))
+
+    def _resolution(self) -> float:
+        """Native pixel steps projected to EPSG:3857 at the footprint's centre; the finer one."""
+        b = self.bounds_merc
+        cx, cy = (b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0
+        sx, sy = self._transformer("to_src").transform(cx, cy)
+        a = self.transform
+        xs = np.array([sx, sx + a.a, sx + a.b])
+        ys = np.array([sy, sy + a.d, sy + a.e])
+        xm, ym = (np.asarray(v) for v in self._transformer("to_merc").transform(xs, ys))
+        steps = np.hypot(xm[1:] - xm[0], ym[1:] - ym[0])
+        res = float(steps.min())
+        if not (math.isfinite(res) and res > 0.0):
+            raise SourceError(f"{self.name}: cannot work out the pixel size in Web Mercator")
+        return res
+
+    def _pixel_coords(self, xm: F64, ym: F64) -> tuple[F64, F64, B]:
+        """Level-0 pixel-edge coordinates (col, row) of EPSG:3857 points, and which are inside."""
+        xs, ys = self._transformer("to_src").transform(xm, ym)
+        xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
+        inv = self._inv
+        col = inv.a * xs + inv.b * ys + inv.c
+        row = inv.d * xs + inv.e * ys + inv.f
+        h, w = self.shape
+        # a hair of slack: footprint edges come back a few ulps outside after two projections
+        eps = 1e-6
+        inside = (col >= -eps) & (col <= w + eps) & (row >= -eps) & (row <= h + eps)  # not NaN
+        return col, row, inside
+
+    # --- levels -------------------------------------------------------------------------
+
+    def _build_coarse(self) -> None:
+        """Aligned block means of the whole raster at ≤ COARSE_SIZE px, and a hole-filled copy."""
+        h, w = self.shape
+        m = 0
+        while max(-(-h // (1 << m)), -(-w // (1 << m))) > COARSE_SIZE:
+            m += 1
+        f = 1 << m
+        strip = f * max(1, _STRIP_PIXELS // (w * f))  # a multiple of the block, so strips align
+        sums, counts = [], []
+        for r0 in range(0, h, strip):
+            vals, ok = self._read_raw(None, r0, min(r0 + strip, h), 0, w)
+            s, n = vals, ok.astype(np.float64)
+            for _ in range(m):
+                s, n = _halve(s), _halve(n)
+            sums.append(s)
+            counts.append(n)
+        self._m = m
+        self._sum = np.concatenate(sums, axis=0)
+        self._count = np.concatenate(counts, axis=0)
+        valid = self._count > 0.0
+        if not valid.any():
+            raise SourceError(f"{self.name}: every pixel is nodata")
+        coarse = self._sum / np.maximum(self._count, 1.0)
+        if not valid.all():
+            # nearest valid pixel: fills holes and nodata margins without inventing heights
+            idx = distance_transform_edt(~valid, return_distances=False, return_indices=True)
+            coarse = coarse[idx[0], idx[1]]
+        # bilinear sampling needs 2 pixels a side: a 1-pixel-thin overview repeats its edge
+        self._coarse = np.pad(coarse, ((0, coarse.shape[0] < 2), (0, coarse.shape[1] < 2)), "edge")
+        self._coarse_ok = np.ones(self._coarse.shape, dtype=bool)
+        # the block-mean geometry even where the file has an overview of this factor
+        ch, cw = self._coarse.shape
+        self._coarse_level = _Level(m, ch, cw, float(f), float(f), None)
+
+    def _level(self, k: int) -> _Level:
+        """Level k: the file's own overview of factor 2^k, else the aligned 2^k block mean."""
+        lv = self._levels.get(k)
+        if lv is None:
+            lv = self._native.get(k)
+            if lv is None:
+                h, w = self.shape
+                f = 1 << k
+                lv = _Level(k, -(-h // f), -(-w // f), float(f), float(f), None)
+            self._levels[k] = lv
+        return lv
+
+    def _level_for(self, spacing: float) -> _Level:
+        """The level whose pixels fit a sampling grid of ``spacing`` EPSG:3857 metres."""
+        ratio = spacing / self.resolution_merc
+        if not ratio >= 2.0:  # NaN included
+            k = 0
+        elif math.isinf(ratio):
+            k = self._kmax
+        else:
+            k = math.floor(math.log2(ratio))
+        return self._level(min(k, self._kmax))
+
+    def _window(self, lv: _Level, i0: int, i1: int, j0: int, j1: int) -> tuple[F64, B]:
+        """Values (0 where invalid) and validity of level pixels [i0:i1, j0:j1]."""
+        if lv.overview is not None:
+            return self._read_raw(lv.overview, i0, i1, j0, j1)
+        k, m = lv.k, self._m
+        if k >= m:
+            # from the cached level m, by the same 2×2 steps a full read would take
+            g = 1 << (k - m)
+            hm, wm = self._sum.shape
+            rows, cols = slice(i0 * g, min(i1 * g, hm)), slice(j0 * g, min(j1 * g, wm))
+            s, n = self._sum[rows, cols], self._count[rows, cols]
+            steps = k - m
+        else:
+            h, w = self.shape
+            f = 1 << k
+            s, ok = self._read_raw(None, i0 * f, min(i1 * f, h), j0 * f, min(j1 * f, w))
+            if k == 0:
+                return s, ok
+            n = ok.astype(np.float64)
+            steps = k
+        for _ in range(steps):
+            s, n = _halve(s), _halve(n)
+        return s / np.maximum(n, 1.0), n > 0.0
+
+    def _read_raw(self, overview: int | None, r0: int, r1: int, c0: int, c1: int) -> tuple[F64, B]:
+        """Heights (metres, 0 where invalid) and validity of pixels [r0:r1, c0:c1] of a level."""
+        raise NotImplementedError
+
+    # --- public API -----------------------------------------------------------------------
+
+    def sample(
+        self, xm: ArrayLike, ym: ArrayLike, spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """Bilinear heights at EPSG:3857 points (any shape), read at the level for ``spacing``."""
+        xb, yb = np.broadcast_arrays(
+            np.asarray(xm, dtype=np.float64), np.asarray(ym, dtype=np.float64)
+        )
+        if self._closed:
+            raise SourceError(f"{self.name}: source is closed")
+        shape = xb.shape
+        col, row, inside = self._pixel_coords(xb.ravel(), yb.ravel())
+        heights = np.zeros(col.shape, dtype=np.float64)
+        valid = np.zeros(col.shape, dtype=bool)
+        idx = np.flatnonzero(inside)
+        if idx.size:
+            lv = self._level_for(float(spacing))
+            u = np.clip(col[idx] / lv.sx - 0.5, 0.0, lv.width - 1.0)
+            v = np.clip(row[idx] / lv.sy - 0.5, 0.0, lv.height - 1.0)
+            # the smallest window holding every point's 2×2 neighbourhood
+            j0 = min(int(np.floor(u.min())), lv.width - 2)
+            i0 = min(int(np.floor(v.min())), lv.height - 2)
+            j1 = min(int(np.floor(u.max())) + 2, lv.width)
+            i1 = min(int(np.floor(v.max())) + 2, lv.height)
+            vals, ok = self._window(lv, i0, i1, j0, j1)
+            heights[idx], valid[idx] = _bilinear(vals, ok, u - j0, v - i0)
+        bad = np.flatnonzero(~valid)
+        if bad.size:
+            heights[bad] = self._fill(col[bad], row[bad])
+        return heights.astype(np.float32).reshape(shape), valid.reshape(shape)
+
+    def covers(self, xm: ArrayLike, ym: ArrayLike) -> NDArray[np.bool_]:
+        """Which EPSG:3857 points (broadcast together) fall on the raster, nodata holes included."""
+        xb, yb = np.broadcast_arrays(
+            np.asarray(xm, dtype=np.float64), np.asarray(ym, dtype=np.float64)
+        )
+        _, _, inside = self._pixel_coords(xb.ravel(), yb.ravel())
+        return inside.reshape(xb.shape)
+
+    def _fill(self, col: F64, row: F64) -> F64:
+        """Heights of the coarse hole-filled overview, clamped to the raster (edges extended)."""
+        h, w = self.shape
+        lv = self._coarse_level
+        col = np.clip(np.nan_to_num(col), 0.0, float(w))
+        row = np.clip(np.nan_to_num(row), 0.0, float(h))
+        out, _ = _bilinear(self._coarse, self._coarse_ok, col / lv.sx - 0.5, row / lv.sy - 0.5)
+        return out
+
+    def read(
+        self, bounds: Bbox, shape: tuple[int, int]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """Heights on the vertices of a (rows, cols) grid spanning ``bounds`` (row 0 north)."""
+        rows, cols = shape
+        if rows < 2 or cols < 2:
+            raise ValueError(f"Expected a grid of at least 2×2 vertices, got {rows}×{cols}")
+        left, bottom, right, top = (float(v) for v in bounds)
+        x = left + np.arange(cols) * (right - left) / (cols - 1)
+        y = top - np.arange(rows) * (top - bottom) / (rows - 1)
+        # the far edges exactly, so neighbouring windows share bit-equal edge coordinates
+        x[-1], y[-1] = right, bottom
+        xx, yy = np.meshgrid(x, y)
+        return self.sample(xx, yy, (right - left) / (cols - 1))
+
+    def close(self) -> None:
+        """Release the data; further samples raise SourceError."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        h, w = self.shape
+        return f"{type(self).__name__}({self.name!r}, {w}×{h} px, {self.resolution_merc:.3g} m)"
+
+
+class RasterSource(_GridSource):
+    """One band of any GDAL raster read through rasterio, in any CRS; heights in metres."""
+
+    def __init__(self, path: str | os.PathLike[str], band: int = 1) -> None:
+        self.path = os.fspath(path)
+        name = self.path
+        self._lock = threading.Lock()
+        self._closed = False
+        self._band = band
+        self._overview_ds: list[Any] = []
+        try:
+            with warnings.catch_warnings():
+                # a raster without georeferencing is reported below, as a SourceError
+                warnings.simplefilter("ignore", NotGeoreferencedWarning)
+                self._ds: Any = rasterio.open(self.path)
+        except Exception as exc:  # rasterio/GDAL raise several unrelated classes here
+            if not self.path.startswith("/vsi") and not os.path.exists(self.path):
+                raise SourceError(f"{name}: no such file") from None
+            reason = _one_line(exc).replace(f"'{self.path}' ", "").replace(self.path, "file")
+            raise SourceError(f"{name}: not a raster that GDAL can read ({reason})") from None
+        try:
+            self._init_dataset(name, band)
+        except BaseException:
+            self.close()
+            raise
+
+    def _init_dataset(self, name: str, band: int) -> None:
+        ds = self._ds
+        if not 1 <= band <= ds.count:
+            raise SourceError(f"{name}: band {band} does not exist (the raster has {ds.count})")
+        dtype = np.dtype(ds.dtypes[band - 1])
+        if dtype.kind not in "iuf":
+            raise SourceError(f"{name}: band {band} holds {dtype} values; need integers or floats")
+        if ds.width < 2 or ds.height < 2:
+            raise SourceError(f"{name}: raster is {ds.width}×{ds.height} pixels; need at least 2×2")
+        if ds.crs is None:
+            raise SourceError(
+                f"{name}: raster has no CRS; georeference it first "
+                f"(e.g. gdal_edit.py -a_srs EPSG:4326 {name})"
+            )
+        try:
+            crs = CRS.from_wkt(ds.crs.to_wkt())
+        except Exception as exc:  # pyproj's CRSError, or rasterio's on export
+            raise SourceError(f"{name}: unusable CRS ({_one_line(exc)})") from None
+        self._scale = float(ds.scales[band - 1] if ds.scales else 1.0)
+        self._offset = float(ds.offsets[band - 1] if ds.offsets else 0.0)
+        overviews = []
+        for index, _factor in enumerate(ds.overviews(band)):
+            try:
+                ov = rasterio.open(self.path, overview_level=index)
+            except Exception:  # an overview GDAL cannot open is simply not used
+                continue
+            self._overview_ds.append(ov)
+            overviews.append((len(self._overview_ds) - 1, ov.height, ov.width))
+        self._setup(name, crs, ds.transform, (ds.height, ds.width), overviews)
+
+    def _read_raw(self, overview: int | None, r0: int, r1: int, c0: int, c1: int) -> tuple[F64, B]:
+        """Heights (metres, 0 where invalid) and validity of pixels [r0:r1, c0:c1] of a level."""
+        window = Window(c0, r0, c1 - c0, r1 - r0)
+        with self._lock:
+            if self._closed:
+                raise SourceError(f"{self.name}: source is closed")
+            ds = self._ds if overview is None else self._overview_ds[overview]
+            try:
+                data = ds.read(self._band, window=window, masked=True)
+            except Exception as exc:  # GDAL errors surface as several rasterio classes
+                raise SourceError(f"{self.name}: read failed: {_one_line(exc)}") from None
+        vals = np.ma.getdata(data).astype(np.float64)
+        ok = ~np.ma.getmaskarray(data)
+        if self._scale != 1.0 or self._offset != 0.0:
+            vals = vals * self._scale + self._offset
+        ok &= np.isfinite(vals)
+        vals[~ok] = 0.0
+        return vals, ok
+
+    def close(self) -> None:
+        """Close the dataset and its overviews; further samples raise SourceError."""
+        with self._lock:
+            self._closed = True
+            for ds in [getattr(self, "_ds", None), *self._overview_ds]:
+                if ds is not None:
+                    ds.close()
+            self._overview_ds = []
+
+
+class ArraySource(_GridSource):
+    """In-memory heights (metres, row 0 at the transform's origin) with an affine transform."""
+
+    def __init__(
+        self,
+        heights: ArrayLike,
+        transform: Affine | Sequence[float],
+        crs: Any = "EPSG:3857",
+        nodata: float | None = None,
+    ) -> None:
+        name = "array"
+        a = np.asarray(heights)
+        if a.ndim != 2 or a.dtype.kind not in "iuf":
+            raise SourceError(
+                f"{name}: expected a 2-D array of integers or floats, got {a.dtype} {a.shape}"
+            )
+        if a.shape[0] < 2 or a.shape[1] < 2:
+            raise SourceError(
+                f"{name}: raster is {a.shape[1]}×{a.shape[0]} pixels; need at least 2×2"
+            )
+        if not isinstance(transform, Affine):
+            transform = Affine(*(float(v) for v in list(transform)[:6]))
+        try:
+            crs_obj = CRS.from_user_input(crs)
+        except Exception as exc:  # pyproj's CRSError on anything it cannot parse
+            raise SourceError(f"{name}: unusable CRS {crs!r} ({_one_line(exc)})") from None
+        vals = a.astype(np.float64)  # a copy: later edits to the caller's array do not leak in
+        ok = np.isfinite(vals)
+        if nodata is not None:
+            ok &= vals != nodata
+        vals[~ok] = 0.0
+        self._values, self._ok = vals, ok
+        self._closed = False
+        self._setup(name, crs_obj, transform, (a.shape[0], a.shape[1]))
+
+    def _read_raw(self, overview: int | None, r0: int, r1: int, c0: int, c1: int) -> tuple[F64, B]:
+        """Heights (0 where invalid) and validity of pixels [r0:r1, c0:c1]."""
+        if self._closed:
+            raise SourceError(f"{self.name}: source is closed")
+        return self._values[r0:r1, c0:c1], self._ok[r0:r1, c0:c1]
+
+    def close(self) -> None:
+        """Mark the source closed; further samples raise SourceError."""
+        self._closed = True
