@@ -47,9 +47,19 @@ def spectral_fbm(n: int, hurst: float = 0.8, seed: int = 0, relief: float = 1200
 
 def write(path: Path, n: int) -> None:
     heights = spectral_fbm(n)
-    profile = {"driver": "GTiff", "height": n, "width": n, "count": 1, "dtype": "float32",
-               "crs": "EPSG:32617", "transform": Affine(5.0, 0.0, 700000.0, 0.0, -5.0, 4070000.0),
-               "tiled": True, "blockxsize": 256, "blockysize": 256, "compress": "deflate"}
+    profile = {
+        "driver": "GTiff",
+        "height": n,
+        "width": n,
+        "count": 1,
+        "dtype": "float32",
+        "crs": "EPSG:32617",
+        "transform": Affine(5.0, 0.0, 700000.0, 0.0, -5.0, 4070000.0),
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "compress": "deflate",
+    }
     with rasterio.open(path, "w", **profile) as dst:
         dst.write(heights, 1)
 
@@ -92,33 +102,45 @@ def main() -> None:
         print(f"DEM {n}x{n} written in {time.perf_counter() - t:.1f} s")
         t = time.perf_counter()
         scene = lodscape.open(path)
-        print(f"tile tree (levels {scene.tree.zmin}..{scene.tree.zmax}) in "
-              f"{time.perf_counter() - t:.1f} s")
+        print(
+            f"tile tree (levels {scene.tree.zmin}..{scene.tree.zmax}) in "
+            f"{time.perf_counter() - t:.1f} s"
+        )
         rows = []
         for name, cam in views(scene).items():
             c = scene.prepare(cam)
             sel = select(scene.options.select, c, scene.tree)
             t_vec = timed(lambda c=c: select(scene.options.select, c, scene.tree), args.repeat)
-            t_ref = timed(lambda c=c: select_reference(scene.options.select, c, scene.tree),
-                          max(3, args.repeat // 5))
+            t_ref = timed(
+                lambda c=c: select_reference(scene.options.select, c, scene.tree),
+                max(3, args.repeat // 5),
+            )
             t = time.perf_counter()
             scene.render(cam)
             first = time.perf_counter() - t
             t_frame = timed(lambda cam=cam: scene.render(cam), max(3, args.repeat // 3))
             share = sel.triangles / full
             rows.append((name, sel.count, sel.triangles, share, t_vec, t_ref, first, t_frame))
-            print(f"{name:>9}: tiles {sel.count:4d}  triangles {sel.triangles:9,d} "
-                  f"({100 * share:.2f} % of {full:,d})  max SSE {sel.max_sse:.2f} px  "
-                  f"select {1e3 * t_vec:.2f} ms vs naive {1e3 * t_ref:.1f} ms "
-                  f"(×{t_ref / t_vec:.0f})  first frame {first:.2f} s  frame {1e3 * t_frame:.0f} ms")
+            print(
+                f"{name:>9}: tiles {sel.count:4d}  triangles {sel.triangles:9,d} "
+                f"({100 * share:.2f} % of {full:,d})  max SSE {sel.max_sse:.2f} px  "
+                f"select {1e3 * t_vec:.2f} ms vs naive {1e3 * t_ref:.1f} ms "
+                f"(×{t_ref / t_vec:.0f})  first frame {first:.2f} s  frame {1e3 * t_frame:.0f} ms"
+            )
         scene.close()
     med = statistics.median
-    print(f"median triangle share {100 * med(r[3] for r in rows):.2f} % "
-          f"(max {100 * max(r[3] for r in rows):.2f} %), goal <= 3 %")
-    print(f"median selection speed-up ×{med(r[5] / r[4] for r in rows):.0f} "
-          f"(vectorised {1e3 * med(r[4] for r in rows):.2f} ms), goal >= 10×")
-    print(f"median headless frame {1e3 * med(r[7] for r in rows):.0f} ms at 1280x720 "
-          f"(first frame with loading {med(r[6] for r in rows):.2f} s)")
+    print(
+        f"median triangle share {100 * med(r[3] for r in rows):.2f} % "
+        f"(max {100 * max(r[3] for r in rows):.2f} %), goal <= 3 %"
+    )
+    print(
+        f"median selection speed-up ×{med(r[5] / r[4] for r in rows):.0f} "
+        f"(vectorised {1e3 * med(r[4] for r in rows):.2f} ms), goal >= 10×"
+    )
+    print(
+        f"median headless frame {1e3 * med(r[7] for r in rows):.0f} ms at 1280x720 "
+        f"(first frame with loading {med(r[6] for r in rows):.2f} s)"
+    )
 
 
 if __name__ == "__main__":

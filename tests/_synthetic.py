@@ -14,25 +14,37 @@ class AnalyticSource:
     name = "analytic"
     crs_wkt = "EPSG:3857"
 
-    def __init__(self, west: float = -84.4, south: float = 36.45, east: float = -84.1,
-                 north: float = 36.73, resolution: float = 20.0, relief: float = 300.0) -> None:
+    def __init__(
+        self,
+        west: float = -84.4,
+        south: float = 36.45,
+        east: float = -84.1,
+        north: float = 36.73,
+        resolution: float = 20.0,
+        relief: float = 300.0,
+    ) -> None:
         (left, right), (bottom, top) = lonlat_to_merc([west, east], [south, north])
         self.bounds_merc = Bbox(float(left), float(bottom), float(right), float(top))
         self.resolution_merc = resolution
         self.relief = relief
 
-    def sample(self, xm: NDArray[np.float64], ym: NDArray[np.float64],
-               spacing: float) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    def sample(
+        self, xm: NDArray[np.float64], ym: NDArray[np.float64], spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         xm, ym = np.asarray(xm, np.float64), np.asarray(ym, np.float64)
-        h = (500.0 + self.relief * np.sin(xm / 3000.0) * np.cos(ym / 2500.0)
-             + 0.3 * self.relief * np.abs(np.sin(xm / 700.0 + ym / 900.0))
-             + 0.05 * self.relief * np.sin(xm / 150.0) * np.sin(ym / 170.0))
+        h = (
+            500.0
+            + self.relief * np.sin(xm / 3000.0) * np.cos(ym / 2500.0)
+            + 0.3 * self.relief * np.abs(np.sin(xm / 700.0 + ym / 900.0))
+            + 0.05 * self.relief * np.sin(xm / 150.0) * np.sin(ym / 170.0)
+        )
         b = self.bounds_merc
         valid = (xm >= b.left) & (xm <= b.right) & (ym >= b.bottom) & (ym <= b.top)
         return h.astype(np.float32), valid
 
-    def read(self, bounds: Bbox, shape: tuple[int, int]) -> tuple[NDArray[np.float32],
-                                                                   NDArray[np.bool_]]:
+    def read(
+        self, bounds: Bbox, shape: tuple[int, int]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         rows, cols = shape
         xs = np.linspace(bounds.left, bounds.right, cols)
         ys = np.linspace(bounds.top, bounds.bottom, rows)
@@ -61,15 +73,27 @@ def fbm_heights(size: int, seed: int = 7, relief: float = 900.0) -> NDArray[np.f
     return (300.0 + relief * out / out.max()).astype(np.float32)
 
 
-def write_dem(path: str, heights: NDArray[np.floating], *, crs: str | None, west: float,
-              north: float, res: float, nodata: float | None = None) -> str:
+def write_dem(
+    path: str,
+    heights: NDArray[np.floating],
+    *,
+    crs: str | None,
+    west: float,
+    north: float,
+    res: float,
+    nodata: float | None = None,
+) -> str:
     """A real GeoTIFF on disk through rasterio."""
     import rasterio
     from rasterio.transform import Affine
 
     profile = {
-        "driver": "GTiff", "height": heights.shape[0], "width": heights.shape[1], "count": 1,
-        "dtype": str(heights.dtype), "transform": Affine(res, 0.0, west, 0.0, -res, north),
+        "driver": "GTiff",
+        "height": heights.shape[0],
+        "width": heights.shape[1],
+        "count": 1,
+        "dtype": str(heights.dtype),
+        "transform": Affine(res, 0.0, west, 0.0, -res, north),
     }
     if crs is not None:
         profile["crs"] = crs

@@ -1,4 +1,4 @@
-"""The public surface stays small and every exported name resolves (httpx's exported-members test)."""
+"""The public surface stays small and every exported name resolves (httpx exported-members)."""
 
 from __future__ import annotations
 
@@ -10,15 +10,27 @@ def test_exported_members_resolve() -> None:
         assert getattr(lodscape, name) is not None, name
     public = {n for n in dir(lodscape) if not n.startswith("_")}
     # sub-packages may show up once imported; nothing else is public by accident
-    assert public - set(lodscape.__all__) <= {"errors", "lod", "geo", "scene", "terrain",
-                                               "imagery", "render", "data", "cli", "annotations"}
+    assert public - set(lodscape.__all__) <= {
+        "errors",
+        "lod",
+        "geo",
+        "scene",
+        "terrain",
+        "imagery",
+        "render",
+        "data",
+        "cli",
+        "annotations",
+    }
 
 
 def test_pure_layers_import_without_gl_or_rasterio() -> None:
     import subprocess
     import sys
 
-    code = ("import sys, lodscape, lodscape.geo, lodscape.lod; "
-            "print(any(m in sys.modules for m in ('moderngl', 'rasterio')))")
+    code = (
+        "import sys, lodscape, lodscape.geo, lodscape.lod; "
+        "print(any(m in sys.modules for m in ('moderngl', 'rasterio')))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

@@ -60,7 +60,10 @@ def test_frustum_contains_what_is_ahead_only() -> None:
     beyond = 2e5 * cam.forward
     side = 5000.0 * cam.rotation[0]
     inside = lambda p: bool(np.all(planes[:, :3] @ p + planes[:, 3] >= 0))  # noqa: E731
-    assert inside(ahead) and not inside(behind) and not inside(beyond) and not inside(side)
+    assert inside(ahead)
+    assert not inside(behind)
+    assert not inside(beyond)
+    assert not inside(side)
     # the frustum corners lie on the planes
     ty = math.tan(math.radians(30))
     corner = 100.0 * (cam.forward + ty * cam.aspect * cam.rotation[0] + ty * cam.rotation[1])
@@ -73,7 +76,7 @@ def test_view_projection_centres_the_target() -> None:
     clip = cam.view_projection(target) @ np.array([0, 0, 0, 1.0])
     assert clip[:2] / clip[3] == pytest.approx([0.0, 0.0], abs=1e-9)
     look = Camera.looking_at(-84.2, 36.6, 2000.0, (-84.1, 36.7, 300.0))
-    e, n, u = enu_basis(-84.2, 36.6) @ (geodetic_to_ecef(-84.1, 36.7, 300.0) - look.position)
+    e, n, _ = enu_basis(-84.2, 36.6) @ (geodetic_to_ecef(-84.1, 36.7, 300.0) - look.position)
     assert look.heading == pytest.approx(math.degrees(math.atan2(e, n)) % 360)
 
 

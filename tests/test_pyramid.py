@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _synthetic import AnalyticSource
 
+from _synthetic import AnalyticSource
 from lodscape.terrain.mesh import build_mesh, grid_coordinates, grid_indices, ring_indices
 from lodscape.terrain.pyramid import TileTree, _upsample, build_tree
 
@@ -54,7 +54,8 @@ def test_recorded_error_bounds_the_real_error(tree: TileTree) -> None:
                 checked += 1
             # the box holds every height of the full-resolution data under the tile
             data = truth[ok]
-            assert lv.min_h[ys[i], xs[i]] <= data.min() and data.max() <= lv.max_h[ys[i], xs[i]]
+            assert lv.min_h[ys[i], xs[i]] <= data.min()
+            assert data.max() <= lv.max_h[ys[i], xs[i]]
     assert checked >= 4 * len(tree.grids)
 
 
@@ -74,7 +75,8 @@ def test_grid_indices_cover_every_cell_once() -> None:
     assert grid.max() == (s + 1) ** 2 - 1
     # each cell's two triangles share its NW-SE diagonal
     a, c, d = grid[0]
-    assert (a, c, d) == (0, s + 1, s + 2) and tuple(grid[1]) == (0, s + 2, 1)
+    assert (a, c, d) == (0, s + 1, s + 2)
+    assert tuple(grid[1]) == (0, s + 2, 1)
     skirt = tri[2 * s * s :]
     assert skirt.max() == (s + 1) ** 2 + 4 * s - 1
     assert set(ring_indices(s).tolist()) == {

@@ -3,13 +3,11 @@ determinism and GL hygiene."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
-from _synthetic import fbm_heights, write_dem
 
 import lodscape
+from _synthetic import fbm_heights, write_dem
 from lodscape import Camera, SceneOptions
 from lodscape.errors import CameraError
 
@@ -23,8 +21,9 @@ EAST, NORTH = 700000.0, 4060000.0
 @pytest.fixture(scope="module")
 def dem(tmp_path_factory: pytest.TempPathFactory) -> str:
     path = tmp_path_factory.mktemp("dem") / "utm.tif"
-    return write_dem(str(path), fbm_heights(1025), crs="EPSG:32617", west=EAST, north=NORTH,
-                     res=10.0)
+    return write_dem(
+        str(path), fbm_heights(1025), crs="EPSG:32617", west=EAST, north=NORTH, res=10.0
+    )
 
 
 @pytest.fixture(scope="module")
@@ -47,10 +46,12 @@ def _views(scene: lodscape.Scene) -> dict[str, Camera]:
     hi = scene.tree.height_range[1]
     return {
         "down": Camera(lon, lat, g + 2500.0, pitch=-90, width=640, height=360),
-        "oblique": Camera(lon, lat - 0.02, hi + 800.0, heading=10, pitch=-30, width=640,
-                          height=360),
-        "low": Camera(lon - 0.01, lat - 0.015, hi + 150.0, heading=35, pitch=-12, width=640,
-                      height=360),
+        "oblique": Camera(
+            lon, lat - 0.02, hi + 800.0, heading=10, pitch=-30, width=640, height=360
+        ),
+        "low": Camera(
+            lon - 0.01, lat - 0.015, hi + 150.0, heading=35, pitch=-12, width=640, height=360
+        ),
         "steep-near": Camera(lon, lat, g + 300.0, heading=200, pitch=-55, width=640, height=360),
     }
 
@@ -107,7 +108,8 @@ def test_depth_is_distance_along_the_view(scene: lodscape.Scene) -> None:
     assert g is not None
     cam = Camera(lon, lat, g + 1000.0, pitch=-90, width=320, height=240)
     rgb, depth = scene.render(cam)
-    assert rgb.shape == (240, 320, 3) and depth.shape == (240, 320)
+    assert rgb.shape == (240, 320, 3)
+    assert depth.shape == (240, 320)
     assert depth[120, 160] == pytest.approx(1000.0, rel=0.02)
     sky = scene.render(Camera(lon, lat, g + 1000.0, pitch=10, width=320, height=240))[1]
     assert np.isinf(sky[0]).all()
@@ -141,8 +143,15 @@ def test_no_gl_object_leaks_over_1000_renders(dem: str) -> None:
     counts = []
     for i in range(1000):
         a = 2 * np.pi * i / 250
-        cam = Camera(lon + 0.03 * np.cos(a), lat + 0.02 * np.sin(a), hi + 400 + 300 * np.sin(a / 3),
-                     heading=float(np.degrees(a)) % 360, pitch=-25, width=64, height=48)
+        cam = Camera(
+            lon + 0.03 * np.cos(a),
+            lat + 0.02 * np.sin(a),
+            hi + 400 + 300 * np.sin(a / 3),
+            heading=float(np.degrees(a)) % 360,
+            pitch=-25,
+            width=64,
+            height=48,
+        )
         s.render(cam)
         renderer = s._renderer
         assert renderer is not None

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _synthetic import AnalyticSource
 
+from _synthetic import AnalyticSource
 from lodscape.geo.tiles import tile_id_array
 from lodscape.lod._reference import select_reference
 from lodscape.lod.camera import Camera
-from lodscape.lod.select import SelectOptions, Selection, select
+from lodscape.lod.select import Selection, SelectOptions, select
 from lodscape.terrain.pyramid import TileTree, build_tree
 
 OPTS = SelectOptions()
@@ -25,8 +25,9 @@ CAMERAS = {
     "oblique-low": Camera(-84.30, 36.55, 900.0, heading=60, pitch=-10),
     "down": Camera(-84.25, 36.6, 3000.0, pitch=-90),
     "far": Camera(-84.25, 36.0, 30000.0, heading=0, pitch=-30),
-    "horizon": Camera(-84.35, 36.47, 1500.0, heading=45, pitch=0, fov_y=75, width=1920,
-                      height=1080),
+    "horizon": Camera(
+        -84.35, 36.47, 1500.0, heading=45, pitch=0, fov_y=75, width=1920, height=1080
+    ),
 }
 
 
@@ -35,8 +36,9 @@ def _clip(cam: Camera) -> Camera:
 
 
 def _tiles(sel: Selection) -> list[tuple[int, int, int, int]]:
-    return sorted(zip(sel.z.tolist(), sel.x.tolist(), sel.y.tolist(), sel.grid.tolist(),
-                      strict=True))
+    return sorted(
+        zip(sel.z.tolist(), sel.x.tolist(), sel.y.tolist(), sel.grid.tolist(), strict=True)
+    )
 
 
 @pytest.mark.parametrize("name", CAMERAS)
@@ -119,7 +121,8 @@ def test_same_inputs_same_selection(tree: TileTree) -> None:
 
 def test_looking_at_the_sky_draws_nothing(tree: TileTree) -> None:
     sel = select(OPTS, _clip(Camera(-84.25, 36.6, 3000.0, pitch=80)), tree)
-    assert sel.count == 0 and sel.culled > 0
+    assert sel.count == 0
+    assert sel.culled > 0
 
 
 def test_missing_tiles_fall_back_to_resident_ancestors(tree: TileTree) -> None:
@@ -146,8 +149,9 @@ def test_select_needs_clip_distances(tree: TileTree) -> None:
         select(OPTS, CAMERAS["down"], tree)
 
 
-@pytest.mark.parametrize(("kw", "msg"), [({"merge": 2.0}, "merge < split"),
-                                         ({"max_sse": 0.0}, "max_sse")])
+@pytest.mark.parametrize(
+    ("kw", "msg"), [({"merge": 2.0}, "merge < split"), ({"max_sse": 0.0}, "max_sse")]
+)
 def test_bad_options(kw: dict[str, float], msg: str) -> None:
     with pytest.raises(ValueError, match=msg):
         SelectOptions(**kw)

@@ -48,10 +48,15 @@ def test_parent_of_children(t: Tile) -> None:
     # children tile their parent exactly
     b = T.xy_bounds(t)
     kb = [T.xy_bounds(k) for k in kids]
-    assert min(k.left for k in kb) == b.left and max(k.right for k in kb) == b.right
-    assert min(k.bottom for k in kb) == b.bottom and max(k.top for k in kb) == b.top
-    assert math.isclose(sum((k.right - k.left) * (k.top - k.bottom) for k in kb),
-                        (b.right - b.left) * (b.top - b.bottom), rel_tol=1e-12)
+    assert min(k.left for k in kb) == b.left
+    assert max(k.right for k in kb) == b.right
+    assert min(k.bottom for k in kb) == b.bottom
+    assert max(k.top for k in kb) == b.top
+    assert math.isclose(
+        sum((k.right - k.left) * (k.top - k.bottom) for k in kb),
+        (b.right - b.left) * (b.top - b.bottom),
+        rel_tol=1e-12,
+    )
 
 
 @given(lons, lats, st.integers(0, 24))
@@ -66,8 +71,7 @@ def test_point_in_its_tile(lon: float, lat: float, z: int) -> None:
 
 def _on_edge(lon: float, lat: float, t: Tile) -> bool:
     b = T.bounds(t)
-    return min(abs(lon - b.left), abs(lon - b.right), abs(lat - b.bottom),
-               abs(lat - b.top)) < 1e-9
+    return min(abs(lon - b.left), abs(lon - b.right), abs(lat - b.bottom), abs(lat - b.top)) < 1e-9
 
 
 @given(tiles(max_z=28 - 2))
@@ -84,14 +88,16 @@ def test_merc_round_trip(lon: float, lat: float) -> None:
     assert math.isclose(float(lon2), lon, abs_tol=1e-9)
     assert math.isclose(float(lat2), lat, abs_tol=1e-9)
     rx, ry = mercantile.xy(lon, lat)
-    assert math.isclose(float(x), rx, abs_tol=1e-6) and math.isclose(float(y), ry, abs_tol=1e-6)
+    assert math.isclose(float(x), rx, abs_tol=1e-6)
+    assert math.isclose(float(y), ry, abs_tol=1e-6)
 
 
 @given(tiles(max_z=20))
 def test_neighbours_are_mutual(t: Tile) -> None:
     for nb in T.neighbours(t):
         assert t in T.neighbours(nb)
-        assert nb.z == t.z and nb != t
+        assert nb.z == t.z
+        assert nb != t
 
 
 def test_array_versions_equal_scalar_over_a_whole_level() -> None:
@@ -107,10 +113,12 @@ def test_array_versions_equal_scalar_over_a_whole_level() -> None:
         assert qks[i] == T.quadkey(t)
     cz, cx, cy = T.children_array(np.full(x.size, z), x, y)
     pz, px, py = T.parent_array(cz, cx, cy)
-    assert np.array_equal(px, np.repeat(x, 4)) and np.array_equal(py, np.repeat(y, 4))
+    assert np.array_equal(px, np.repeat(x, 4))
+    assert np.array_equal(py, np.repeat(y, 4))
     assert np.all(pz == z)
     tx, ty = T.tiles_array((left + right) / 2, (bottom + top) / 2, z)
-    assert np.array_equal(tx, x) and np.array_equal(ty, y)
+    assert np.array_equal(tx, x)
+    assert np.array_equal(ty, y)
 
 
 @pytest.mark.parametrize(

@@ -283,5 +283,6 @@ def test_alpha_marks_where_the_source_covers_the_tile() -> None:
     src = FakeSource(lambda x, y: 0.0 * x + 100.0, invalid=lambda x, y: x > cx)
     img = TintImagery(src, (0.0, 1000.0), tile_size=T).texture(Z, X, Y)
     assert img.shape == (T, T, 4)
-    assert np.all(img[:, : T // 2, 3] == 255) and np.all(img[:, T // 2 :, 3] == 0)
+    assert np.all(img[:, : T // 2, 3] == 255)
+    assert np.all(img[:, T // 2 :, 3] == 0)
     assert np.array_equal(img[..., :3], TintImagery(src, (0.0, 1000.0), tile_size=T).rgb(Z, X, Y))

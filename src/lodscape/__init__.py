@@ -10,7 +10,7 @@ import typing as _typing
 
 from lodscape.errors import CameraError, LodscapeError, SourceError
 from lodscape.lod.camera import Camera
-from lodscape.lod.select import SelectOptions, Selection, select
+from lodscape.lod.select import Selection, SelectOptions, select
 
 if _typing.TYPE_CHECKING:
     from lodscape.scene import FrameStats, Scene, SceneOptions, open

@@ -87,6 +87,7 @@ def _save_depth(path: Path, depth: NDArray[np.float32]) -> None:
 
     suffix = path.suffix.lower()
     if suffix == ".npy":
+
         def write_npy(tmp: Path) -> None:
             with tmp.open("wb") as f:
                 np.save(f, depth)
@@ -105,8 +106,9 @@ def _print_stats(scene: Scene) -> None:
         typer.echo(f"{key:>18}: {value}")
 
 
-def _render(scene: Scene, camera: Camera, output: Path, depth_path: Path | None,
-            quiet: bool) -> None:
+def _render(
+    scene: Scene, camera: Camera, output: Path, depth_path: Path | None, quiet: bool
+) -> None:
     rgb, depth = scene.render(camera)
     _save_image(output, rgb)
     if depth_path is not None:
@@ -120,19 +122,27 @@ def _render(scene: Scene, camera: Camera, output: Path, depth_path: Path | None,
 def render(
     source: Annotated[str, typer.Argument(help="A DEM: GeoTIFF or any GDAL raster, any CRS.")],
     output: OutOpt = Path("view.png"),
-    lon: Annotated[float | None, typer.Option(callback=_finite, help="Camera longitude, °.")] = None,
+    lon: Annotated[
+        float | None, typer.Option(callback=_finite, help="Camera longitude, °.")
+    ] = None,
     lat: Annotated[float | None, typer.Option(callback=_finite, help="Camera latitude, °.")] = None,
-    alt: Annotated[float | None, typer.Option(
-        callback=_finite, help="Camera altitude, metres above sea level.")] = None,
-    heading: Annotated[float, typer.Option(
-        callback=_finite, help="Degrees clockwise from north.")] = 0.0,
-    pitch: Annotated[float, typer.Option(
-        callback=_finite, help="Degrees; negative looks down.")] = -30.0,
+    alt: Annotated[
+        float | None,
+        typer.Option(callback=_finite, help="Camera altitude, metres above sea level."),
+    ] = None,
+    heading: Annotated[
+        float, typer.Option(callback=_finite, help="Degrees clockwise from north.")
+    ] = 0.0,
+    pitch: Annotated[
+        float, typer.Option(callback=_finite, help="Degrees; negative looks down.")
+    ] = -30.0,
     roll: Annotated[float, typer.Option(callback=_finite, help="Degrees; banks right.")] = 0.0,
     fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 60.0,
     size: SizeOpt = "1280x720",
-    depth: Annotated[Path | None, typer.Option(
-        help="Also write depth (metres along the view axis) as .npy or .tif.")] = None,
+    depth: Annotated[
+        Path | None,
+        typer.Option(help="Also write depth (metres along the view axis) as .npy or .tif."),
+    ] = None,
     max_sse: SseOpt = 2.0,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
 ) -> None:
@@ -146,8 +156,9 @@ def render(
         else:
             if lon is None or lat is None or alt is None:
                 raise LodscapeError("give all of --lon, --lat and --alt, or none of them")
-            camera = Camera(lon, lat, alt, heading=heading, pitch=pitch, roll=roll, fov_y=fov,
-                            width=w, height=h)
+            camera = Camera(
+                lon, lat, alt, heading=heading, pitch=pitch, roll=roll, fov_y=fov, width=w, height=h
+            )
         _render(scene, camera, output, depth, quiet)
 
 
@@ -176,11 +187,15 @@ def info(source: Annotated[str, typer.Argument(help="A DEM: any GDAL raster.")])
         typer.echo(f"{'resolution':>14}: {src.resolution_merc:.3f} m (Web Mercator)")
         lo, hi = tree.height_range
         typer.echo(f"{'heights':>14}: {lo:.1f} .. {hi:.1f} m")
-        typer.echo(f"{'levels':>14}: {tree.zmin} .. {tree.zmax}"
-                   + (f" (coarsened by {tree.coarsened})" if tree.coarsened else ""))
+        typer.echo(
+            f"{'levels':>14}: {tree.zmin} .. {tree.zmax}"
+            + (f" (coarsened by {tree.coarsened})" if tree.coarsened else "")
+        )
         for lv in tree.levels:
-            typer.echo(f"{'z' + str(lv.z):>14}: {int(lv.exists.sum())} tiles, "
-                       f"max error {float(lv.error[0].max()):.2f} m at 16 segments")
+            typer.echo(
+                f"{'z' + str(lv.z):>14}: {int(lv.exists.sum())} tiles, "
+                f"max error {float(lv.error[0].max()):.2f} m at 16 segments"
+            )
 
 
 def _usage_errors() -> tuple[type[Exception], ...]:

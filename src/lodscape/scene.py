@@ -27,7 +27,7 @@ from lodscape.geo.frames import WGS84_A
 from lodscape.geo.tiles import lonlat_to_merc, merc_to_lonlat, tile_from_id, tile_size
 from lodscape.imagery import TintImagery
 from lodscape.lod.camera import Camera
-from lodscape.lod.select import SelectOptions, Selection, select, tile_boxes
+from lodscape.lod.select import Selection, SelectOptions, select, tile_boxes
 from lodscape.render import DrawItem, Renderer
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import TileTree, build_tree
@@ -78,8 +78,13 @@ class FrameStats:
 class Scene:
     """A height source ready to render from any camera."""
 
-    def __init__(self, source: HeightSource, options: SceneOptions | None = None,
-                 *, tree: TileTree | None = None) -> None:
+    def __init__(
+        self,
+        source: HeightSource,
+        options: SceneOptions | None = None,
+        *,
+        tree: TileTree | None = None,
+    ) -> None:
         self.source = source
         self.options = options or SceneOptions()
         self.tree = tree if tree is not None else build_tree(source)
@@ -99,8 +104,7 @@ class Scene:
         h, valid = self.source.sample(xm, ym, self.source.resolution_merc)
         return float(h[0]) if bool(valid[0]) else None
 
-    def overview_camera(self, width: int = 1280, height: int = 720,
-                        fov_y: float = 60.0) -> Camera:
+    def overview_camera(self, width: int = 1280, height: int = 720, fov_y: float = 60.0) -> Camera:
         """A camera south of the data looking north at its centre, seeing all of it."""
         b = self.source.bounds_merc
         (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
@@ -110,8 +114,9 @@ class Scene:
         back = 0.75 * extent
         cam_lat = lat - math.degrees(back / WGS84_A)
         alt = hi + 0.55 * extent
-        return Camera.looking_at(lon, cam_lat, alt, (lon, lat, (lo + hi) / 2.0),
-                                 fov_y=fov_y, width=width, height=height)
+        return Camera.looking_at(
+            lon, cam_lat, alt, (lon, lat, (lo + hi) / 2.0), fov_y=fov_y, width=width, height=height
+        )
 
     def prepare(self, camera: Camera) -> Camera:
         """The camera with clip distances fitted to the terrain; refuses one under the ground."""
@@ -130,11 +135,13 @@ class Scene:
         lv = self.tree.level(self.tree.zmin)
         _, idx = lv.index(x, y)
         probe = camera.with_clip(1.0, 2.0)
-        boxes = tile_boxes(probe, self.tree.zmin, x, y, lv.min_h.ravel()[idx],
-                           lv.max_h.ravel()[idx])
+        boxes = tile_boxes(
+            probe, self.tree.zmin, x, y, lv.min_h.ravel()[idx], lv.max_h.ravel()[idx]
+        )
         # everything in the data lies within its root boxes; the horizon bounds it on a planet
         horizon = math.sqrt(max(camera.alt - lo, 1.0) * 2.0 * WGS84_A) + math.sqrt(
-            max(hi - lo, 1.0) * 2.0 * WGS84_A)
+            max(hi - lo, 1.0) * 2.0 * WGS84_A
+        )
         far = max(min(float(boxes.dist_far.max()), horizon), near * 10.0) * 1.01
         return camera.with_clip(near, far)
 
@@ -142,8 +149,7 @@ class Scene:
 
     def select(self, camera: Camera) -> Selection:
         """This frame's selection as if everything were resident (no loading, no drawing)."""
-        return select(self.options.select, self.prepare(camera), self.tree,
-                      previous=self._previous)
+        return select(self.options.select, self.prepare(camera), self.tree, previous=self._previous)
 
     def render(self, camera: Camera) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """RGB (H, W, 3) uint8 and depth (H, W) float32 metres along the view axis (inf: sky)."""
@@ -165,12 +171,20 @@ class Scene:
         self._previous = sel
         self._evict(renderer, sel)
         res_mb = sum(renderer.resident().values()) / 2**20
-        self.last = FrameStats(sel.stats(), renderer.last_stats.draw_calls, loaded, res_mb,
-                               (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3)
+        self.last = FrameStats(
+            sel.stats(),
+            renderer.last_stats.draw_calls,
+            loaded,
+            res_mb,
+            (t1 - t0) * 1e3,
+            (t2 - t1) * 1e3,
+            (t3 - t2) * 1e3,
+        )
         return rgb, depth
 
-    def frames(self, cameras: Iterator[Camera]) -> Iterator[tuple[NDArray[np.uint8],
-                                                                    NDArray[np.float32]]]:
+    def frames(
+        self, cameras: Iterator[Camera]
+    ) -> Iterator[tuple[NDArray[np.uint8], NDArray[np.float32]]]:
         for cam in cameras:
             yield self.render(cam)
 
@@ -178,8 +192,9 @@ class Scene:
 
     def _renderer_for(self, camera: Camera) -> Renderer:
         if self._renderer is None:
-            self._renderer = Renderer(camera.width, camera.height,
-                                      background=self.options.background)
+            self._renderer = Renderer(
+                camera.width, camera.height, background=self.options.background
+            )
         return self._renderer
 
     def mesh(self, key: int) -> TileMesh:
@@ -237,7 +252,7 @@ class Scene:
         self.close()
 
 
-def open(  # noqa: A001 - mirrors rasterio.open / the builtin on purpose
+def open(
     source: str | PathLike[str] | HeightSource | NDArray[np.floating],
     options: SceneOptions | None = None,
     **array_kwargs: Any,

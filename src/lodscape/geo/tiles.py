@@ -31,10 +31,10 @@ __all__ = [
     "quadkey_to_tile",
     "quadkeys_array",
     "tile",
-    "tile_id",
-    "tile_id_array",
     "tile_from_id",
     "tile_from_id_array",
+    "tile_id",
+    "tile_id_array",
     "tile_size",
     "tiles_array",
     "xy_bounds",
@@ -94,9 +94,7 @@ def lonlat_to_merc(
     return x, y
 
 
-def merc_to_lonlat(
-    x: ArrayLike, y: ArrayLike
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def merc_to_lonlat(x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Web Mercator metres to degrees."""
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
@@ -113,8 +111,12 @@ def xy_bounds(t: Tile) -> Bbox:
     _check(t)
     size = 2.0 * ORIGIN / (1 << t.z)
     # each edge from its own integer index, so a parent's and its children's edges are bit-equal
-    return Bbox(-ORIGIN + t.x * size, ORIGIN - (t.y + 1) * size, -ORIGIN + (t.x + 1) * size,
-                ORIGIN - t.y * size)
+    return Bbox(
+        -ORIGIN + t.x * size,
+        ORIGIN - (t.y + 1) * size,
+        -ORIGIN + (t.x + 1) * size,
+        ORIGIN - t.y * size,
+    )
 
 
 def bounds(t: Tile) -> Bbox:

@@ -8,10 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from lodscape.geo.tiles import tile_id
-from lodscape.geo.tiles import Tile
+from lodscape.geo.tiles import Tile, tile_id
 from lodscape.lod.camera import Camera
-from lodscape.lod.select import SelectOptions, Selection, TreeLike, tile_boxes
+from lodscape.lod.select import Selection, SelectOptions, TreeLike, tile_boxes
 
 __all__ = ["select_reference"]
 
@@ -26,8 +25,9 @@ def select_reference(
     t = tree.tile_size
     zmax = tree.zmax if options.max_level is None else min(tree.zmax, options.max_level)
     was = set(previous.refined.tolist()) if previous is not None else set()
-    grid_before = ({int(k) >> 3: int(k) & 7 for k in previous.keys.tolist()}
-                   if previous is not None else {})
+    grid_before = (
+        {int(k) >> 3: int(k) & 7 for k in previous.keys.tolist()} if previous is not None else {}
+    )
     out: list[tuple[int, int, int, int]] = []
 
     def metrics(z: int, x: int, y: int) -> tuple[bool, bool, float, np.ndarray, float] | None:
@@ -36,13 +36,18 @@ def select_reference(
         if not ok[0]:
             return None
         i = int(idx[0])
-        ny, nx = lv.min_h.shape
-        box = tile_boxes(camera, z, np.array([x]), np.array([y]),
-                         lv.min_h.ravel()[i:i + 1], lv.max_h.ravel()[i:i + 1])
+        nx = lv.min_h.shape[1]
+        box = tile_boxes(
+            camera,
+            z,
+            np.array([x]),
+            np.array([y]),
+            lv.min_h.ravel()[i : i + 1],
+            lv.max_h.ravel()[i : i + 1],
+        )
         eff = max(float(box.dist_near[0]), near)
         ground = float(box.ground[0])
-        return bool(box.inside[0]), True, ground * d / eff, lv.error[:, i // nx, i % nx], \
-            ground
+        return bool(box.inside[0]), True, ground * d / eff, lv.error[:, i // nx, i % nx], ground
 
     def visit(z: int, x: int, y: int) -> None:
         m = metrics(z, x, y)
@@ -54,14 +59,22 @@ def select_reference(
         refine = z < zmax and (px > options.split * t or k is None)
         if z < zmax and not refine and tile_id(Tile(x, y, z)) in was:
             refine = True
-            for cx, cy in ((2 * x, 2 * y), (2 * x + 1, 2 * y), (2 * x, 2 * y + 1),
-                           (2 * x + 1, 2 * y + 1)):
+            for cx, cy in (
+                (2 * x, 2 * y),
+                (2 * x + 1, 2 * y),
+                (2 * x, 2 * y + 1),
+                (2 * x + 1, 2 * y + 1),
+            ):
                 c = metrics(z + 1, cx, cy)
                 if c is not None and c[0] and c[2] < options.merge * t:
                     refine = False
         if refine:
-            for cx, cy in ((2 * x, 2 * y), (2 * x + 1, 2 * y), (2 * x, 2 * y + 1),
-                           (2 * x + 1, 2 * y + 1)):
+            for cx, cy in (
+                (2 * x, 2 * y),
+                (2 * x + 1, 2 * y),
+                (2 * x, 2 * y + 1),
+                (2 * x + 1, 2 * y + 1),
+            ):
                 visit(z + 1, cx, cy)
         else:
             k = len(err) - 1 if k is None else k

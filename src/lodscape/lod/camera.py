@@ -1,9 +1,9 @@
-"""The camera: a frozen value that owns the screen-space formulas (paper 000, cesium-native ViewState).
+"""The camera: a frozen value owning the screen-space formulas (paper 000, cesium-native ViewState).
 
 Position is geodetic (lon°, lat°, metres above sea level, taken as the ellipsoid: lodscape ignores
-the geoid, so terrain heights and camera altitudes share one datum). Orientation is heading (degrees
-clockwise from north), pitch (degrees, negative looking down) and roll (degrees, positive banks right),
-in the local east-north-up frame at the camera. Everything is float64.
+the geoid, so terrain heights and camera altitudes share one datum). Orientation is heading
+(degrees clockwise from north), pitch (degrees, negative looking down) and roll (degrees, positive
+banks right), in the local east-north-up frame at the camera. Everything is float64.
 """
 
 from __future__ import annotations
@@ -52,7 +52,9 @@ class Camera:
         for name in ("width", "height"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= 16384:
-                raise CameraError(f"camera {name} must be a whole number of pixels 1..16384, got {value!r}")
+                raise CameraError(
+                    f"camera {name} must be a whole number of pixels 1..16384, got {value!r}"
+                )
         for name in ("near", "far"):
             value = getattr(self, name)
             if value is not None and (not math.isfinite(value) or value <= 0.0):
@@ -95,7 +97,7 @@ class Camera:
 
     @cached_property
     def rotation(self) -> NDArray[np.float64]:
-        """World (ECEF) to view rotation: rows right, up, back (the view looks down -Z, as in GL)."""
+        """World (ECEF) to view rotation: rows right, up, back (the view looks down -Z as in GL)."""
         h, p, r = (math.radians(a) for a in (self.heading, self.pitch, self.roll))
         fwd = np.array([math.sin(h) * math.cos(p), math.cos(h) * math.cos(p), math.sin(p)])
         right = np.array([math.cos(h), -math.sin(h), 0.0])

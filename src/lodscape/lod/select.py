@@ -25,7 +25,7 @@ from lodscape.geo.frames import enu_basis, geodetic_to_ecef
 from lodscape.geo.tiles import bounds_array, merc_to_lonlat, tile_id_array
 from lodscape.lod.camera import Camera
 
-__all__ = ["LevelLike", "SelectOptions", "Selection", "TreeLike", "tile_boxes", "select"]
+__all__ = ["LevelLike", "SelectOptions", "Selection", "TreeLike", "select", "tile_boxes"]
 
 _EMPTY_U = np.zeros(0, dtype=np.uint64)
 _EMPTY_I = np.zeros(0, dtype=np.int64)
@@ -182,9 +182,12 @@ def tile_boxes(
     basis = enu_basis(clon, clat)
     lo_h = np.asarray(min_h, np.float64)[:, None, None]
     hi_h = np.asarray(max_h, np.float64)[:, None, None]
-    pts = np.concatenate(
-        [geodetic_to_ecef(lon, lat, lo_h), geodetic_to_ecef(lon, lat, hi_h)], axis=1
-    ).reshape(len(x), -1, 3) - camera.position
+    pts = (
+        np.concatenate(
+            [geodetic_to_ecef(lon, lat, lo_h), geodetic_to_ecef(lon, lat, hi_h)], axis=1
+        ).reshape(len(x), -1, 3)
+        - camera.position
+    )
     local = np.einsum("nij,npj->npi", basis, pts)
     ground = (right - left) * np.cos(np.radians(clat))
     margin = (1e-3 * ground)[:, None]
@@ -204,7 +207,10 @@ def tile_boxes(
 
 
 def _grid_choice(
-    options: SelectOptions, camera: Camera, err: NDArray[np.float32], scale: NDArray[np.float64],
+    options: SelectOptions,
+    camera: Camera,
+    err: NDArray[np.float32],
+    scale: NDArray[np.float64],
     band_scale: NDArray[np.float64],
 ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
     """Coarsest grid meeting the bound at max(real, band-top) scale; and whether none does."""
@@ -264,15 +270,27 @@ def select(
         kd = k[draw]
         errd = err[kd, np.nonzero(draw)[0]]
         drawn.append(
-            (np.full(kd.size, z), x[draw], y[draw], kd, px[draw], errd * d / eff[draw],
-             dn[draw], df[draw], errd.astype(np.float64))
+            (
+                np.full(kd.size, z),
+                x[draw],
+                y[draw],
+                kd,
+                px[draw],
+                errd * d / eff[draw],
+                dn[draw],
+                df[draw],
+                errd.astype(np.float64),
+            )
         )
         cx = (2 * x[refine][:, None] + np.array([0, 1, 0, 1])).ravel()
         cy = (2 * y[refine][:, None] + np.array([0, 0, 1, 1])).ravel()
         x, y = cx, cy
 
-    cols = [np.concatenate(c) if c else np.zeros(0) for c in zip(*drawn, strict=True)] if drawn \
+    cols = (
+        [np.concatenate(c) if c else np.zeros(0) for c in zip(*drawn, strict=True)]
+        if drawn
         else [np.zeros(0)] * 9
+    )
     dz, dx, dy, dk, dpx, dsse, ddn, ddf, derr = cols
     dz, dx, dy, dk = (a.astype(np.int64) for a in (dz, dx, dy, dk))
     ids = tile_id_array(dz, dx, dy)
@@ -289,9 +307,23 @@ def select(
     skirt = derr + np.maximum(options.max_sse * ddf / d, worst)
     refined = np.unique(np.concatenate(refined_ids)) if refined_ids else _EMPTY_U
     return Selection(
-        z=dz, x=dx, y=dy, grid=dk, keys=keys, screen_px=dpx, sse=dsse, dist_near=ddn,
-        skirt=skirt, fallback=fallback, refined=refined, loads=loads, visited=visited,
-        culled=culled, magnified=magnified, texture_size=tsize, grids=tuple(tree.grids),
+        z=dz,
+        x=dx,
+        y=dy,
+        grid=dk,
+        keys=keys,
+        screen_px=dpx,
+        sse=dsse,
+        dist_near=ddn,
+        skirt=skirt,
+        fallback=fallback,
+        refined=refined,
+        loads=loads,
+        visited=visited,
+        culled=culled,
+        magnified=magnified,
+        texture_size=tsize,
+        grids=tuple(tree.grids),
     )
 
 
@@ -320,8 +352,13 @@ def _member(a: NDArray[np.uint64], sorted_b: NDArray[np.uint64]) -> NDArray[np.b
 
 
 def _children_hold(
-    options: SelectOptions, camera: Camera, tree: TreeLike, z: int,
-    x: NDArray[np.int64], y: NDArray[np.int64], tsize: int,
+    options: SelectOptions,
+    camera: Camera,
+    tree: TreeLike,
+    z: int,
+    x: NDArray[np.int64],
+    y: NDArray[np.int64],
+    tsize: int,
 ) -> NDArray[np.bool_]:
     """For tiles split last frame: does every visible child still cover merge·T pixels?"""
     lv = tree.level(z + 1)
@@ -336,10 +373,19 @@ def _children_hold(
 
 
 def _fall_back(
-    camera: Camera, tree: TreeLike, resident: NDArray[np.uint64],
-    dz: NDArray[np.int64], dx: NDArray[np.int64], dy: NDArray[np.int64], dk: NDArray[np.int64],
-    dpx: NDArray[np.float64], dsse: NDArray[np.float64], ddn: NDArray[np.float64],
-    ddf: NDArray[np.float64], derr: NDArray[np.float64], keys: NDArray[np.uint64],
+    camera: Camera,
+    tree: TreeLike,
+    resident: NDArray[np.uint64],
+    dz: NDArray[np.int64],
+    dx: NDArray[np.int64],
+    dy: NDArray[np.int64],
+    dk: NDArray[np.int64],
+    dpx: NDArray[np.float64],
+    dsse: NDArray[np.float64],
+    ddn: NDArray[np.float64],
+    ddf: NDArray[np.float64],
+    derr: NDArray[np.float64],
+    keys: NDArray[np.uint64],
 ) -> tuple[NDArray[np.generic], ...]:
     """Draw each tile that is not resident from its nearest resident ancestor (no holes)."""
     present = _member(keys, resident)
@@ -383,10 +429,18 @@ def _fall_back(
     del fdepth
     cat = np.concatenate
     return (
-        cat([dz[keep], uz]), cat([dx[keep], ux]), cat([dy[keep], uy]), cat([dk[keep], fk]),
-        cat([dpx[keep], fpx]), cat([dsse[keep], fsse]), cat([ddn[keep], fdn]),
-        cat([ddf[keep], fdf]), cat([derr[keep], ferr]), cat([keys[keep], fkeys]),
-        cat([np.zeros(int(keep.sum()), np.int64), depth]), loads,
+        cat([dz[keep], uz]),
+        cat([dx[keep], ux]),
+        cat([dy[keep], uy]),
+        cat([dk[keep], fk]),
+        cat([dpx[keep], fpx]),
+        cat([dsse[keep], fsse]),
+        cat([ddn[keep], fdn]),
+        cat([ddf[keep], fdf]),
+        cat([derr[keep], ferr]),
+        cat([keys[keep], fkeys]),
+        cat([np.zeros(int(keep.sum()), np.int64), depth]),
+        loads,
     )
 
 
@@ -396,8 +450,12 @@ def _unpack(ids: NDArray[np.uint64]) -> tuple[NDArray[np.uint64], ...]:
 
 
 def _metrics_many(
-    camera: Camera, tree: TreeLike, z: NDArray[np.int64], x: NDArray[np.int64],
-    y: NDArray[np.int64], k: NDArray[np.int64],
+    camera: Camera,
+    tree: TreeLike,
+    z: NDArray[np.int64],
+    x: NDArray[np.int64],
+    y: NDArray[np.int64],
+    k: NDArray[np.int64],
 ) -> tuple[NDArray[np.float64], ...]:
     """Screen metrics of tiles of mixed levels (the few fallback tiles), one numpy call a level."""
     n = z.size
@@ -407,8 +465,7 @@ def _metrics_many(
         m = z == lvl
         lv = tree.level(int(lvl))
         _, idx = lv.index(x[m], y[m])
-        box = tile_boxes(camera, int(lvl), x[m], y[m], lv.min_h.ravel()[idx],
-                         lv.max_h.ravel()[idx])
+        box = tile_boxes(camera, int(lvl), x[m], y[m], lv.min_h.ravel()[idx], lv.max_h.ravel()[idx])
         eff = np.maximum(box.dist_near, near)
         e = lv.error[k[m], idx // lv.min_h.shape[1], idx % lv.min_h.shape[1]]
         px[m] = box.ground * camera.scale / eff

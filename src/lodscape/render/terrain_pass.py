@@ -189,8 +189,9 @@ class Renderer:
         )
         # rows go up as written, so texture row 0 (north) is at t = 0, where v = 0 samples
         tex = self._track(
-            self.ctx.texture((texture.shape[1], texture.shape[0]), texture.shape[2], texture,
-                             alignment=1)
+            self.ctx.texture(
+                (texture.shape[1], texture.shape[0]), texture.shape[2], texture, alignment=1
+            )
         )
         tex.build_mipmaps()
         tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)

@@ -1,4 +1,4 @@
-"""Tile meshes: a regular grid of heights per tile with skirts, vertices relative to the tile centre.
+"""Tile meshes: a regular grid of heights per tile, with skirts; vertices relative to the centre.
 
 Grid constants (indices) depend only on the segment count, so they are built once per size and
 shared by every tile (STYLE 1, 7). Each grid cell is split along the diagonal from its north-west

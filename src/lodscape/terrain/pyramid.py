@@ -137,8 +137,9 @@ def _upsample(h: NDArray[np.float32]) -> NDArray[np.float32]:
     return out
 
 
-def _pool(child: NDArray[np.floating], off: tuple[int, int], shape: tuple[int, int],
-          fill: float, op: str) -> NDArray[np.float32]:
+def _pool(
+    child: NDArray[np.floating], off: tuple[int, int], shape: tuple[int, int], fill: float, op: str
+) -> NDArray[np.float32]:
     """Reduce a child level's per-tile array onto its parents (2×2 blocks), missing = fill."""
     ny, nx = shape
     full = np.full((2 * ny, 2 * nx), fill, dtype=np.float32)
@@ -148,8 +149,9 @@ def _pool(child: NDArray[np.floating], off: tuple[int, int], shape: tuple[int, i
     return getattr(blocks, op)(axis=(1, 3)).astype(np.float32)  # type: ignore[no-any-return]
 
 
-def build_tree(source: SampleSource, *, tile_size: int = 256,
-               grids: tuple[int, ...] = GRIDS) -> TileTree:
+def build_tree(
+    source: SampleSource, *, tile_size: int = 256, grids: tuple[int, ...] = GRIDS
+) -> TileTree:
     """Walk the source once, bottom-up, and return its tile tree."""
     if grids[0] != _BASE or any(g != _BASE << k for k, g in enumerate(grids)):
         raise ValueError(f"Expected grids {_BASE}·2^k, got {grids}")
@@ -188,7 +190,7 @@ def build_tree(source: SampleSource, *, tile_size: int = 256,
         e16 = np.zeros((ny, nx), dtype=np.float32)
         if child is not None:
             hc, crng, clv = child
-            cx0, cy0, cnx, cny = crng
+            cx0, cy0 = crng[0], crng[1]
             ox, oy = cx0 - 2 * x0, cy0 - 2 * y0
             up = _upsample(h)
             sub = up[oy * _BASE : oy * _BASE + hc.shape[0], ox * _BASE : ox * _BASE + hc.shape[1]]
