@@ -27,7 +27,10 @@ def _heights(z: int, x: int, y: int, segments: int, *, valid: bool = False) -> n
 
 def test_levels_span_the_data(tree: TileTree) -> None:
     # 20 m data: 256 texels of ≤ 20 m need level 13 (tiles of 4.9 km, texels of 19 m)
-    assert tree.zmax == 13
+    assert tree.texture_zmax == 13
+    # and 64-segment meshes need two levels more to sample every texel
+    assert tree.zmax == 13 + 2
+    assert tree.grids[-1] << (tree.zmax - tree.texture_zmax) == tree.tile_size
     root = tree.level(tree.zmin)
     assert max(root.exists.shape) <= 2
     lo, hi = tree.height_range
@@ -86,9 +89,8 @@ def test_grid_indices_cover_every_cell_once() -> None:
 
 def test_neighbour_meshes_share_their_edges() -> None:
     z, x, y, s = 12, 1090, 1600, 16
-    tex = np.zeros((4, 4, 3), np.uint8)
-    west = build_mesh(1, z, x, y, _heights(z, x, y, s), tex)
-    east = build_mesh(2, z, x + 1, y, _heights(z, x + 1, y, s), tex)
+    west = build_mesh(1, z, x, y, _heights(z, x, y, s))
+    east = build_mesh(2, z, x + 1, y, _heights(z, x + 1, y, s))
     n = s + 1
     w_edge = west.center + west.vertices[: n * n, :3].astype(np.float64).reshape(n, n, 3)[:, -1]
     e_edge = east.center + east.vertices[: n * n, :3].astype(np.float64).reshape(n, n, 3)[:, 0]

@@ -33,9 +33,24 @@ def _quadrant_texture(size: int = 64) -> NDArray[np.uint8]:
     return tex
 
 
+#: Tests upload each patch's texture under the patch's key plus this.
+TEX = 1000
+
+
+def _item(key: int, skirt: float = 0.0) -> DrawItem:
+    return DrawItem(key, key + TEX, skirt)
+
+
+def _put(r: Renderer, key: int, texture: NDArray[np.uint8], **kw: Any) -> TileMesh:
+    """Upload a patch and its texture (under key + TEX); the mesh, for the test's geometry."""
+    mesh = _patch(key, **kw)
+    r.upload(mesh)
+    r.upload_texture(key + TEX, texture)
+    return mesh
+
+
 def _patch(
     key: int,
-    texture: NDArray[np.uint8],
     *,
     lon: float = LON,
     lat: float = LAT,
@@ -56,7 +71,7 @@ def _patch(
     skirt[:, 5] = 1.0
     vertices = np.concatenate([grid, skirt]).astype(np.float32)
     center = geodetic_to_ecef(lon, lat, h)
-    return TileMesh(key, s, vertices, center, basis[2].astype(np.float32), texture)
+    return TileMesh(key, s, vertices, center, basis[2].astype(np.float32))
 
 
 def _pixel(camera: Camera, point: NDArray[np.float64]) -> tuple[float, float]:
@@ -85,10 +100,10 @@ def renderer(gl_ctx: Any) -> Any:
 
 
 def test_flat_patch_from_above_fills_its_pixels_with_the_texture(renderer: Renderer) -> None:
-    renderer.upload(_patch(1, _quadrant_texture()))
+    _put(renderer, 1, _quadrant_texture())
     height = 2000.0
     cam = Camera(LON, LAT, H + height, pitch=-90, width=320, height=240).with_clip(1.0, 1e4)
-    rgb, depth = renderer.draw(cam, [DrawItem(1, 0.0)], background=MAGENTA)
+    rgb, depth = renderer.draw(cam, [_item(1, 0.0)], background=MAGENTA)
     assert rgb.shape == (240, 320, 3)
     assert rgb.dtype == np.uint8
     assert depth.shape == (240, 320)
@@ -118,19 +133,18 @@ def test_patch_far_from_the_origin_does_not_jitter(renderer: Renderer) -> None:
     rng = np.random.default_rng(7)
     noise = rng.integers(0, 256, (128, 128, 3), dtype=np.uint8)
     lon, lat = 10.0, 30.0
-    mesh = _patch(2, noise, lon=lon, lat=lat, h=0.0, segments=16)
+    mesh = _put(renderer, 2, noise, lon=lon, lat=lat, h=0.0, segments=16)
     assert np.linalg.norm(mesh.center) > 6.0e6
-    renderer.upload(mesh)
     base = Camera(lon, lat - 0.0005, 100.0, pitch=-50, width=320, height=240).with_clip(1.0, 5e3)
 
     def frame(cam: Camera) -> NDArray[np.float64]:
-        return renderer.draw(cam, [DrawItem(2, 0.0)], background=MAGENTA)[0].astype(np.float64)
+        return renderer.draw(cam, [_item(2, 0.0)], background=MAGENTA)[0].astype(np.float64)
 
     still = frame(base)
     assert not np.all(still == MAGENTA_U8, axis=2).any()  # the patch fills the view
     # every pixel's view distance matches a float64 ray cast to within a centimetre per 100 m,
     # where float32 ECEF would be off by up to half a metre
-    depth = renderer.draw(base, [DrawItem(2, 0.0)])[1]
+    depth = renderer.draw(base, [_item(2, 0.0)])[1]
     np.testing.assert_allclose(depth, _plane_distance(base, mesh), rtol=1e-4)
     nudged = frame(base.moved(alt=100.001))  # 1 mm: far below a pixel
     moved = frame(base.moved(alt=100.5))  # 0.5 m: a few pixels
@@ -142,12 +156,12 @@ def test_patch_far_from_the_origin_does_not_jitter(renderer: Renderer) -> None:
 
 
 def test_skirts_hang_below_the_edge_only_when_asked(renderer: Renderer) -> None:
-    renderer.upload(_patch(3, np.full((16, 16, 3), (200, 120, 40), np.uint8)))
+    _put(renderer, 3, np.full((16, 16, 3), (200, 120, 40), np.uint8))
     south = LAT - 2000.0 / 111_200.0  # about 2 km south of the patch centre
     cam = Camera.looking_at(LON, south, H + 200.0, (LON, LAT, H), width=320, height=240)
     cam = cam.with_clip(1.0, 1e4)
-    flat, flat_depth = renderer.draw(cam, [DrawItem(3, 0.0)], background=MAGENTA)
-    hung, hung_depth = renderer.draw(cam, [DrawItem(3, 100.0)], background=MAGENTA)
+    flat, flat_depth = renderer.draw(cam, [_item(3, 0.0)], background=MAGENTA)
+    hung, hung_depth = renderer.draw(cam, [_item(3, 100.0)], background=MAGENTA)
 
     col = 160
     covered = ~np.all(flat[:, col] == MAGENTA_U8, axis=1)
@@ -172,18 +186,17 @@ def test_skirts_hang_below_the_edge_only_when_asked(renderer: Renderer) -> None:
 
 
 def test_same_inputs_give_byte_identical_frames(renderer: Renderer, gl_ctx: Any) -> None:
-    meshes = [_patch(k, _quadrant_texture(), lon=LON + 0.01 * k) for k in range(3)]
-    for mesh in meshes:
-        renderer.upload(mesh)
-    items = [DrawItem(k, 20.0 * k) for k in range(3)]
+    for k in range(3):
+        _put(renderer, k, _quadrant_texture(), lon=LON + 0.01 * k)
+    items = [_item(k, 20.0 * k) for k in range(3)]
     cam = Camera.looking_at(LON, LAT - 0.02, H + 600, (LON + 0.01, LAT, H), width=160, height=120)
     cam = cam.with_clip(1.0, 2e4)
     first = renderer.draw(cam, items)
     renderer.draw(cam.moved(heading=cam.heading + 30), items[::-1], background=MAGENTA)
     again = renderer.draw(cam, items)
     with Renderer(160, 120, ctx=gl_ctx) as other:
-        for mesh in meshes:
-            other.upload(mesh)
+        for k in range(3):
+            _put(other, k, _quadrant_texture(), lon=LON + 0.01 * k)
         fresh = other.draw(cam, items)
     for a, b in ((first, again), (first, fresh)):
         assert a[0].tobytes() == b[0].tobytes()
@@ -192,15 +205,15 @@ def test_same_inputs_give_byte_identical_frames(renderer: Renderer, gl_ctx: Any)
 
 def test_a_thousand_draws_leak_no_gl_objects(gl_ctx: Any) -> None:
     textures = [np.full((32, 32, 3), 60 * k, np.uint8) for k in range(4)]
-    meshes = [
-        _patch(k, textures[k], lon=LON + 0.005 * k, segments=(8, 16)[k % 2]) for k in range(4)
-    ]
+    meshes = [_patch(k, lon=LON + 0.005 * k, segments=(8, 16)[k % 2]) for k in range(4)]
     r = Renderer(64, 48, ctx=gl_ctx)
     counts = []
     for i in range(1000):
         # a cycle of four: one mesh in, another out, a new camera, and the viewport size flips
         r.upload(meshes[i % 4])
+        r.upload_texture(i % 4 + TEX, textures[i % 4])
         r.release(meshes[(i + 2) % 4].key)
+        r.release((i + 2) % 4 + TEX)
         size = (64, 48) if (i // 4) % 2 == 0 else (48, 64)
         cam = Camera(
             LON + 0.0005 * (i % 7),
@@ -211,7 +224,7 @@ def test_a_thousand_draws_leak_no_gl_objects(gl_ctx: Any) -> None:
             width=size[0],
             height=size[1],
         ).with_clip(1.0, 2e4)
-        r.draw(cam, [DrawItem(k, 5.0) for k in sorted(r.resident())])
+        r.draw(cam, [_item(k, 5.0) for k in sorted(r.resident()) if k < TEX])
         if i % 4 == 3:
             counts.append(r.live_objects())
     assert gl_ctx.error == "GL_NO_ERROR"
@@ -224,23 +237,29 @@ def test_a_thousand_draws_leak_no_gl_objects(gl_ctx: Any) -> None:
 
 
 def test_drawing_a_key_never_uploaded_is_a_key_error(renderer: Renderer) -> None:
-    renderer.upload(_patch(5, _quadrant_texture()))
+    _put(renderer, 5, _quadrant_texture())
     cam = Camera(LON, LAT, H + 500, pitch=-90, width=32, height=32).with_clip(1.0, 1e4)
     with pytest.raises(KeyError, match="mesh 99 is not uploaded"):
-        renderer.draw(cam, [DrawItem(5, 0.0), DrawItem(99, 0.0)])
+        renderer.draw(cam, [_item(5, 0.0), _item(99, 0.0)])
+    with pytest.raises(KeyError, match="texture 7 is not uploaded"):
+        renderer.draw(cam, [DrawItem(5, 7)])
     renderer.release(99)  # releasing an unknown key is harmless
 
 
 def test_uploads_are_idempotent_and_share_index_buffers(renderer: Renderer) -> None:
     base = renderer.live_objects()
-    a, b = _patch(10, _quadrant_texture()), _patch(11, _quadrant_texture(), lon=LON + 0.01)
+    a, b = _patch(10), _patch(11, lon=LON + 0.01)
+    tex = _quadrant_texture()
     renderer.upload(a)
     renderer.upload(a)
     renderer.upload(b)
-    assert renderer.live_objects() == base + 1 + 2 * 3  # one index buffer for both (same S)
-    assert renderer.resident() == {10: a.nbytes, 11: b.nbytes}
-    renderer.release(10)
-    renderer.release(11)
+    renderer.upload_texture(12, tex)
+    renderer.upload_texture(12, tex)
+    # one index buffer for both meshes (same S), a VBO and a VAO each, one texture
+    assert renderer.live_objects() == base + 1 + 2 * 2 + 1
+    assert renderer.resident() == {10: a.nbytes, 11: b.nbytes, 12: tex.nbytes * 4 // 3}
+    for key in (10, 11, 12):
+        renderer.release(key)
     assert renderer.live_objects() == base
     assert renderer.resident() == {}
 
@@ -248,13 +267,24 @@ def test_uploads_are_idempotent_and_share_index_buffers(renderer: Renderer) -> N
 def test_an_owned_context_is_created_and_released(gl_ctx: Any) -> None:
     with Renderer(40, 30, background=MAGENTA) as r:
         assert r.ctx is not gl_ctx
-        r.upload(_patch(1, _quadrant_texture()))
+        _put(r, 1, _quadrant_texture())
         cam = Camera(LON, LAT, H + 3000, pitch=-90, width=40, height=30).with_clip(1.0, 1e4)
-        rgb, depth = r.draw(cam, [DrawItem(1, 0.0)])
+        rgb, depth = r.draw(cam, [_item(1, 0.0)])
         # the background given at construction applies when a draw names none
         assert tuple(rgb[0, 0]) == MAGENTA_U8
         assert np.isinf(depth[0, 0])
         assert r.ctx.error == "GL_NO_ERROR"
     assert r.live_objects() == 0
     with pytest.raises(RuntimeError, match="closed"):
-        r.upload(_patch(2, _quadrant_texture()))
+        _put(r, 2, _quadrant_texture())
+
+
+def test_a_texture_window_stretches_one_quadrant_over_the_tile(renderer: Renderer) -> None:
+    """A tile textured from its parent shows only its quarter of the parent's image."""
+    _put(renderer, 6, _quadrant_texture())
+    cam = Camera(LON, LAT, H + 2000, pitch=-90, width=64, height=64).with_clip(1.0, 1e4)
+    # the north-east quarter: u from 0.5, v from 0 (row 0 is north), half the image
+    rgb, _ = renderer.draw(cam, [DrawItem(6, 6 + TEX, 0.0, (0.5, 0.0, 0.5))], background=MAGENTA)
+    half = int(500.0 * cam.scale / 2000)  # the patch's half width in pixels
+    core = rgb[32 - half + 2 : 32 + half - 2, 32 - half + 2 : 32 + half - 2]
+    assert np.all(core == QUADRANTS["ne"])

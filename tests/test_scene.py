@@ -3,6 +3,8 @@ determinism and GL hygiene."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -80,7 +82,7 @@ def test_no_cracks_across_levels(scene: lodscape.Scene) -> None:
 
 def test_cracks_would_show_without_skirts(scene: lodscape.Scene) -> None:
     """The crack detector is not vacuous: with skirts forced to zero, gaps appear."""
-    from lodscape.render import DrawItem
+    from lodscape.scene import draw_items
 
     cam = scene.prepare(_views(scene)["low"])
     scene.render(cam)
@@ -88,18 +90,26 @@ def test_cracks_would_show_without_skirts(scene: lodscape.Scene) -> None:
     assert sel is not None
     renderer = scene._renderer
     assert renderer is not None
-    rgb, _ = renderer.draw(cam, [DrawItem(int(k), 0.0) for k in sel.keys], background=MAGENTA)
+    items = [replace(item, skirt=0.0) for item in draw_items(sel)]
+    rgb, _ = renderer.draw(cam, items, background=MAGENTA)
     assert _cracks(rgb) > 0
 
 
 def test_pixel_rule_and_sse_on_a_real_raster(scene: lodscape.Scene) -> None:
-    for cam in _views(scene).values():
+    tree = scene.tree
+    for name, cam in _views(scene).items():
         c = scene.prepare(cam)
         sel = scene.select(cam)
-        ratio = sel.screen_px / sel.texture_size
-        exempt = (sel.z == scene.tree.zmax) | (sel.dist_near < c.near) | (sel.z == scene.tree.zmin)
-        assert np.all((ratio[~exempt] >= 0.5) & (ratio[~exempt] <= 1.5))
-        assert sel.max_sse <= 2.0
+        ratio = sel.px_per_texel
+        tex_z = sel.z - sel.texture_up
+        assert c.near is not None
+        # above the band only with the data's finest texture, or where the near plane cuts in
+        high = ratio > 1.5
+        assert np.all((tex_z[high] == tree.texture_zmax) | (sel.dist_near[high] < c.near)), name
+        # below it only with a root's texture: the whole data is small on screen
+        low = ratio < 0.5
+        assert np.all(tex_z[low] == tree.zmin), name
+        assert sel.max_sse <= 2.0, name
 
 
 def test_depth_is_distance_along_the_view(scene: lodscape.Scene) -> None:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from _synthetic import AnalyticSource
-from lodscape.geo.tiles import tile_id_array
+from lodscape.geo.tiles import tile_from_id_array, tile_id_array
 from lodscape.lod._reference import select_reference
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
@@ -25,6 +25,8 @@ CAMERAS = {
     "oblique-low": Camera(-84.30, 36.55, 900.0, heading=60, pitch=-10),
     "down": Camera(-84.25, 36.6, 3000.0, pitch=-90),
     "far": Camera(-84.25, 36.0, 30000.0, heading=0, pitch=-30),
+    # a small viewport: far siblings of split tiles fall under the band
+    "small": Camera(-84.22, 36.72, 2280.0, heading=180, pitch=-23, width=320, height=240),
     "horizon": Camera(
         -84.35, 36.47, 1500.0, heading=45, pitch=0, fov_y=75, width=1920, height=1080
     ),
@@ -35,10 +37,9 @@ def _clip(cam: Camera) -> Camera:
     return cam.with_clip(max(cam.alt * 0.05, 1.0), 3e5)
 
 
-def _tiles(sel: Selection) -> list[tuple[int, int, int, int]]:
-    return sorted(
-        zip(sel.z.tolist(), sel.x.tolist(), sel.y.tolist(), sel.grid.tolist(), strict=True)
-    )
+def _tiles(sel: Selection) -> list[tuple[int, int, int, int, int]]:
+    cols = (sel.z, sel.x, sel.y, sel.grid, sel.texture_up)
+    return sorted(zip(*(c.tolist() for c in cols), strict=True))
 
 
 @pytest.mark.parametrize("name", CAMERAS)
@@ -56,12 +57,15 @@ def test_vectorised_equals_naive_reference(tree: TileTree, name: str) -> None:
 def test_pixel_rule_and_error_bound(tree: TileTree, name: str) -> None:
     cam = _clip(CAMERAS[name])
     sel = select(OPTS, cam, tree)
-    ratio = sel.screen_px / sel.texture_size
-    exempt = (sel.z == tree.zmax) | (sel.dist_near < cam.near)  # type: ignore[operator]
+    ratio = sel.px_per_texel
+    assert cam.near is not None
+    # above the band only where the data has no finer level or the near plane cuts the tile
+    exempt = (sel.z - sel.texture_up == tree.texture_zmax) | (sel.dist_near < cam.near)
     assert np.all(ratio[~exempt] <= OPTS.split)
-    # below the band only where the tree has no coarser level to merge into
-    low = (ratio < OPTS.merge) & ~exempt
-    assert np.all(sel.z[low] == tree.zmin), ratio[low]
+    # below it only where the texture is already a root's: the data is small on screen
+    low = ratio < OPTS.merge
+    assert np.all(sel.z[low] - sel.texture_up[low] == tree.zmin), ratio[low]
+    assert sel.magnified == int((~(ratio <= OPTS.split)).sum())
     assert sel.max_sse <= OPTS.max_sse
     assert sel.stats()["max_sse_px"] <= OPTS.max_sse
 
@@ -129,10 +133,11 @@ def test_missing_tiles_fall_back_to_resident_ancestors(tree: TileTree) -> None:
     cam = _clip(CAMERAS["oblique-low"])
     wanted = select(OPTS, cam, tree)
     roots = select(SelectOptions(max_level=tree.zmin), cam, tree)
-    resident = np.sort(roots.keys)
+    resident = np.sort(np.concatenate([roots.keys, roots.texture_keys]))
     sel = select(OPTS, cam, tree, resident=resident)
     # everything wanted and absent is requested, coarse levels first
-    assert set(sel.loads.tolist()) == set(wanted.keys.tolist()) - set(resident.tolist())
+    want = set(wanted.keys.tolist()) | set(wanted.texture_keys.tolist())
+    assert set(sel.loads.tolist()) == want - set(resident.tolist())
     lz = (sel.loads >> np.uint64(3)) >> np.uint64(52)
     assert np.all(np.diff(lz.astype(np.int64)) >= 0)
     # no hole: each wanted tile is drawn or covered by a drawn ancestor
@@ -142,6 +147,27 @@ def test_missing_tiles_fall_back_to_resident_ancestors(tree: TileTree) -> None:
         assert chain & drawn
     assert sel.fallback.max() > 0
     assert np.all(np.isin(sel.keys, resident))
+    assert np.all(np.isin(sel.texture_keys, resident))
+
+
+def test_far_siblings_take_an_ancestors_texture(tree: TileTree) -> None:
+    """A tile under the band (a far sibling of one that had to split) is textured from an
+    ancestor, and the texture it gets is the one its ancestor's tile would have drawn."""
+    found = False
+    for cam in map(_clip, CAMERAS.values()):
+        sel = select(OPTS, cam, tree)
+        # tiles below the finest texture level borrow textures anyway: leave them out
+        up = sel.texture_up > np.maximum(sel.z - tree.texture_zmax, 0)
+        if not up.any():
+            continue
+        found = True
+        tz, tx, ty = tile_from_id_array(sel.texture_keys[up] >> np.uint64(3))
+        assert np.array_equal(tz, sel.z[up] - sel.texture_up[up])
+        assert np.array_equal(tx, sel.x[up] >> sel.texture_up[up])
+        assert np.array_equal(ty, sel.y[up] >> sel.texture_up[up])
+        assert np.all(sel.screen_px[up] < OPTS.merge * sel.texture_size)
+        assert np.all(sel.px_per_texel[up] >= OPTS.merge)
+    assert found
 
 
 def test_select_needs_clip_distances(tree: TileTree) -> None:

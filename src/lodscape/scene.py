@@ -27,7 +27,7 @@ from lodscape.geo.frames import WGS84_A
 from lodscape.geo.tiles import lonlat_to_merc, merc_to_lonlat, tile_from_id, tile_size
 from lodscape.imagery import TintImagery
 from lodscape.lod.camera import Camera
-from lodscape.lod.select import Selection, SelectOptions, select, tile_boxes
+from lodscape.lod.select import TEXTURE, Selection, SelectOptions, select, tile_boxes
 from lodscape.render import DrawItem, Renderer
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import TileTree, build_tree
@@ -92,7 +92,6 @@ class Scene:
         self._renderer: Renderer | None = None
         self._previous: Selection | None = None
         self._used: OrderedDict[int, None] = OrderedDict()
-        self._textures: OrderedDict[int, NDArray[np.uint8]] = OrderedDict()
         self._pool = ThreadPoolExecutor(max(1, self.options.workers), "lodscape-load")
         self.last: FrameStats | None = None
 
@@ -165,7 +164,7 @@ class Scene:
             resident = np.array(sorted(renderer.resident()), dtype=np.uint64)
             sel = select(self.options.select, cam, self.tree, self._previous, resident)
         t2 = time.perf_counter()
-        items = [DrawItem(int(k), float(s)) for k, s in zip(sel.keys, sel.skirt, strict=True)]
+        items = draw_items(sel)
         rgb, depth = renderer.draw(cam, items, background=self.options.background)
         t3 = time.perf_counter()
         self._previous = sel
@@ -198,29 +197,31 @@ class Scene:
         return self._renderer
 
     def mesh(self, key: int) -> TileMesh:
-        """Heights, texture and mesh of one resource key (worker-thread safe, no GL)."""
+        """The mesh of one resource key (worker-thread safe, no GL)."""
         t = tile_from_id(key >> 3)
         segments = self.tree.grids[key & 7]
         xs, ys = grid_coordinates(t.z, t.x, t.y, segments)
         xx, yy = np.meshgrid(xs, ys)
         heights, _ = self.source.sample(xx, yy, float(tile_size(t.z)) / segments)
-        return build_mesh(key, t.z, t.x, t.y, heights, self._texture(key >> 3))
+        return build_mesh(key, t.z, t.x, t.y, heights)
 
-    def _texture(self, tid: int) -> NDArray[np.uint8]:
-        tex = self._textures.get(tid)
-        if tex is None:
-            t = tile_from_id(tid)
-            tex = self.imagery.texture(t.z, t.x, t.y)
-            self._textures[tid] = tex
-            while len(self._textures) > 256:
-                self._textures.popitem(last=False)
-        return tex
+    def texture(self, key: int) -> NDArray[np.uint8]:
+        """The RGBA texture of one texture key (worker-thread safe, no GL)."""
+        t = tile_from_id(key >> 3)
+        return self.imagery.texture(t.z, t.x, t.y)
+
+    def _prepare(self, key: int) -> TileMesh | NDArray[np.uint8]:
+        return self.texture(key) if key & 7 == TEXTURE else self.mesh(key)
 
     def _load(self, renderer: Renderer, keys: NDArray[np.uint64]) -> int:
-        # textures are shared by a tile's grid sizes: make them first, once per tile
-        for mesh in self._pool.map(self.mesh, (int(k) for k in keys)):
-            renderer.upload(mesh)
-        return int(keys.size)
+        # workers read, mesh and shade; this thread, which owns the GL context, uploads
+        todo = [int(k) for k in keys]
+        for key, made in zip(todo, self._pool.map(self._prepare, todo), strict=True):
+            if isinstance(made, TileMesh):
+                renderer.upload(made)
+            else:
+                renderer.upload_texture(key, made)
+        return len(todo)
 
     def _evict(self, renderer: Renderer, sel: Selection) -> None:
         for k in sel.keys:
@@ -250,6 +251,20 @@ class Scene:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def draw_items(sel: Selection) -> list[DrawItem]:
+    """The renderer's draw list for a selection: each tile's mesh, its texture and the window of
+    that texture it covers (a half per level up), and its skirt."""
+    up = sel.texture_up
+    scale = np.exp2(-up.astype(np.float64))
+    u = (sel.x & ((1 << up) - 1)) * scale
+    v = (sel.y & ((1 << up) - 1)) * scale
+    cols = zip(sel.keys, sel.texture_keys, sel.skirt, u, v, scale, strict=True)
+    return [
+        DrawItem(int(k), int(t), float(sk), (float(a), float(b), float(c)))
+        for k, t, sk, a, b, c in cols
+    ]
 
 
 def open(

@@ -7,7 +7,7 @@ whole levels as numpy arrays in one call. Tile ``y`` grows southwards, as on OSM
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -200,8 +200,12 @@ _U = np.uint64
 
 
 def tile_id_array(z: ArrayLike, x: ArrayLike, y: ArrayLike) -> NDArray[np.uint64]:
-    z = np.asarray(z, dtype=_U)
-    return (z << _U(52)) | (np.asarray(y, dtype=_U) << _U(26)) | np.asarray(x, dtype=_U)
+    ids = (
+        (np.asarray(z, dtype=_U) << _U(52))
+        | (np.asarray(y, dtype=_U) << _U(26))
+        | np.asarray(x, dtype=_U)
+    )
+    return cast("NDArray[np.uint64]", ids)
 
 
 def tile_from_id_array(

@@ -173,8 +173,8 @@ class TintImagery:
         n = self.tile_size
         step = (b.right - b.left) / (n + 1)
         # texel centres: the inner samples of the bordered grid
-        xs = b.left + step * np.arange(1, n + 1)
-        ys = b.top - step * np.arange(1, n + 1)
+        xs = b.left + step * np.arange(1, n + 1, dtype=np.float64)
+        ys = b.top - step * np.arange(1, n + 1, dtype=np.float64)
         inside = self.heights.covers(xs[None, :], ys[:, None])
         alpha = np.where(inside, 255, 0).astype(np.uint8)
         return np.dstack([rgb, np.broadcast_to(alpha, (n, n))])

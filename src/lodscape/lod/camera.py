@@ -109,7 +109,8 @@ class Camera:
 
     @property
     def forward(self) -> NDArray[np.float64]:
-        return -self.rotation[2]
+        fwd: NDArray[np.float64] = -self.rotation[2]
+        return fwd
 
     @property
     def scale(self) -> float:

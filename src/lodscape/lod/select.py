@@ -1,51 +1,92 @@
-"""Tile selection: which tiles to draw this frame, at which grid size, and which to load.
+"""Tile selection: which tiles to draw this frame, with which mesh and texture, and what to load.
 
 ``select`` is a pure function (cesium-native's ViewUpdateResult, not CesiumJS's queue-editing
 visitTile): it walks the quadtree one level per step with numpy, returns the render list, the load
 requests and the counters, and touches no IO and no GPU.
 
-The rules, per tile, with H = h·d/dist (paper 000) the pixels its texture covers:
-- culled when its oriented box (its min/max heights included) lies outside a frustum plane;
-- split when H > split·T (T texels per tile side), kept split while the previous frame had it
-  split and every child still covers merge·T pixels or more (hysteresis, no flicker);
+The rules, per tile, with H = h·d/dist (paper 000) the pixels its side covers on screen and T the
+texels per tile side:
+- culled when its box (its min/max heights included) lies outside a frustum plane;
+- split when H > split·T; kept split while the previous frame had it split and every child still
+  covers merge·T pixels or more (hysteresis, no flicker);
 - split when even its finest grid cannot keep the screen-space error within ``max_sse``;
 - otherwise drawn, with the coarsest grid whose error stays within ``max_sse`` at the larger of its
   real screen scale and the top of the pixel band, so the mesh follows the terrain's roughness.
+
+Textures are chosen apart from meshes. A drawn tile covering H < merge·T pixels (a far sibling of a
+tile that had to split) takes the texture of the ancestor k levels up for the smallest k with
+H·2^k >= merge·T: it covers the tile with T/2^k texels, so every drawn texture stays inside the
+band (paper 000's 128..384 px for 256 px tiles) instead of being minified.
+
+Resources are keyed ``tile_id << 3 | slot``: slots 0..len(grids)-1 are the tile's meshes, slot 7
+(``TEXTURE``) its texture.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.frames import enu_basis, geodetic_to_ecef
-from lodscape.geo.tiles import bounds_array, merc_to_lonlat, tile_id_array
+from lodscape.geo.frames import WGS84_A, enu_basis, geodetic_to_ecef
+from lodscape.geo.tiles import (
+    ORIGIN,
+    bounds_array,
+    merc_to_lonlat,
+    tile_from_id_array,
+    tile_id_array,
+)
 from lodscape.lod.camera import Camera
 
-__all__ = ["LevelLike", "SelectOptions", "Selection", "TreeLike", "select", "tile_boxes"]
+__all__ = [
+    "TEXTURE",
+    "LevelLike",
+    "SelectOptions",
+    "Selection",
+    "TreeLike",
+    "select",
+    "texture_key",
+    "tile_boxes",
+]
 
+I64 = NDArray[np.int64]
+U64 = NDArray[np.uint64]
+F64 = NDArray[np.float64]
+
+#: The key slot of a tile's texture (slots below it are the tile's mesh grids).
+TEXTURE = 7
+_SLOT = np.uint64(7)
+_THREE = np.uint64(3)
 _EMPTY_U = np.zeros(0, dtype=np.uint64)
-_EMPTY_I = np.zeros(0, dtype=np.int64)
-_EMPTY_F = np.zeros(0, dtype=np.float64)
+#: Slack around each tile's box, as a share of its side.
+_MARGIN = 1e-3
 
 
 class LevelLike(Protocol):
-    z: int
-    min_h: NDArray[np.float32]
-    max_h: NDArray[np.float32]
-    error: NDArray[np.float32]
+    @property
+    def z(self) -> int: ...
 
-    def index(
-        self, x: NDArray[np.int64], y: NDArray[np.int64]
-    ) -> tuple[NDArray[np.bool_], NDArray[np.int64]]: ...
+    @property
+    def min_h(self) -> NDArray[np.float32]: ...
+
+    @property
+    def max_h(self) -> NDArray[np.float32]: ...
+
+    @property
+    def error(self) -> NDArray[np.float32]: ...
+
+    def index(self, x: I64, y: I64) -> tuple[NDArray[np.bool_], I64]: ...
 
 
 class TreeLike(Protocol):
-    grids: tuple[int, ...]
-    tile_size: int
+    @property
+    def grids(self) -> tuple[int, ...]: ...
+
+    @property
+    def tile_size(self) -> int: ...
 
     @property
     def zmin(self) -> int: ...
@@ -53,9 +94,12 @@ class TreeLike(Protocol):
     @property
     def zmax(self) -> int: ...
 
+    @property
+    def texture_zmax(self) -> int | None: ...
+
     def level(self, z: int) -> LevelLike: ...
 
-    def roots(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]: ...
+    def roots(self) -> tuple[I64, I64]: ...
 
 
 @dataclass(frozen=True)
@@ -70,39 +114,56 @@ class SelectOptions:
     max_sse: float = 2.0
     #: Deepest level to use (None: the tree's finest).
     max_level: int | None = None
+    #: A tile split for its error merges back only when its finest grid's error falls below
+    #: this share of ``max_sse`` (hysteresis, as ``merge`` is for the pixel band).
+    sse_merge: float = 0.75
 
     def __post_init__(self) -> None:
         if not 0.0 < self.merge < self.split:
             raise ValueError(f"Expected 0 < merge < split, got {self.merge} and {self.split}")
+        if not 2.0 * self.merge <= self.split:
+            # a texture one level up doubles the pixels per texel: the band must hold both
+            raise ValueError(f"Expected split >= 2·merge, got {self.merge} and {self.split}")
         if not self.max_sse > 0.0:
             raise ValueError(f"Expected a positive max_sse, got {self.max_sse}")
+        if not 0.0 < self.sse_merge <= 1.0:
+            raise ValueError(f"Expected 0 < sse_merge <= 1, got {self.sse_merge}")
+
+
+def texture_key(z: I64, x: I64, y: I64) -> U64:
+    """Resource keys of the textures of tiles (z, x, y)."""
+    return (tile_id_array(z, x, y) << _THREE) | _SLOT
 
 
 @dataclass(frozen=True, eq=False)
 class Selection:
     """A frame's render list, load requests and counters. Arrays run over the drawn tiles."""
 
-    z: NDArray[np.int64]
-    x: NDArray[np.int64]
-    y: NDArray[np.int64]
+    z: I64
+    x: I64
+    y: I64
     #: Index into the tree's grids of the grid each tile is drawn with.
-    grid: NDArray[np.int64]
-    #: Resource keys (tile id << 3 | grid index) of the drawn tiles.
-    keys: NDArray[np.uint64]
-    screen_px: NDArray[np.float64]
-    sse: NDArray[np.float64]
-    dist_near: NDArray[np.float64]
+    grid: I64
+    #: Mesh resource keys (tile id << 3 | grid index) of the drawn tiles.
+    keys: U64
+    #: Texture resource keys; the texture of the ancestor ``texture_up`` levels up.
+    texture_keys: U64
+    texture_up: I64
+    screen_px: F64
+    sse: F64
+    dist_near: F64
     #: Metres to hang each tile's skirt: its own error plus what a neighbour's may be.
-    skirt: NDArray[np.float64]
+    skirt: F64
     #: Levels each drawn tile stands above the one wanted (0: drawn as wanted).
-    fallback: NDArray[np.int64]
+    fallback: I64
     #: Ids of the tiles refined this frame, sorted (the next frame's hysteresis).
-    refined: NDArray[np.uint64]
+    refined: U64
     #: Keys wanted but not resident, most urgent first (coarse levels, then near tiles).
-    loads: NDArray[np.uint64]
+    loads: U64
     visited: int = 0
     culled: int = 0
-    #: Tiles drawn above split·T because the data has no finer level or the near plane cuts them.
+    #: Tiles whose texture is drawn above split × its size: the data has no finer texture, or
+    #: the near plane cuts the tile.
     magnified: int = 0
     texture_size: int = 256
     grids: tuple[int, ...] = field(default=(16, 32, 64, 128, 256))
@@ -125,15 +186,19 @@ class Selection:
         return int((2 * s * s + 8 * s).sum())
 
     @property
-    def px_per_texel(self) -> tuple[float, float]:
-        """Range over drawn tiles of screen pixels per texel (1 is the texture's own size)."""
+    def px_per_texel(self) -> F64:
+        """Screen pixels per texel of each drawn tile's texture (1: the texture's own size)."""
+        return self.screen_px * np.exp2(self.texture_up) / self.texture_size
+
+    @property
+    def px_per_texel_range(self) -> tuple[float, float]:
         if not self.z.size:
             return (0.0, 0.0)
-        r = self.screen_px / self.texture_size
+        r = self.px_per_texel
         return float(r.min()), float(r.max())
 
     def stats(self) -> dict[str, float | int]:
-        lo, hi = self.px_per_texel
+        lo, hi = self.px_per_texel_range
         return {
             "tiles": self.count,
             "visited": self.visited,
@@ -145,6 +210,7 @@ class Selection:
             "px_per_texel_max": round(hi, 3),
             "magnified": self.magnified,
             "triangles": self.triangles,
+            "textures": int(np.unique(self.texture_keys).size),
             "loads": int(self.loads.size),
             "fallback_max": int(self.fallback.max()) if self.fallback.size else 0,
         }
@@ -155,26 +221,29 @@ class Boxes:
     """Oriented boxes of tiles, relative to the camera, with their screen metrics."""
 
     inside: NDArray[np.bool_]
-    dist_near: NDArray[np.float64]
-    dist_far: NDArray[np.float64]
-    ground: NDArray[np.float64]
+    dist_near: F64
+    dist_far: F64
+    ground: F64
 
 
 def tile_boxes(
     camera: Camera,
     z: int,
-    x: NDArray[np.int64],
-    y: NDArray[np.int64],
+    x: I64,
+    y: I64,
     min_h: NDArray[np.floating],
     max_h: NDArray[np.floating],
 ) -> Boxes:
     """Frustum test and distances for N tiles of one level, each boxed in its local ENU frame.
 
-    The box holds a 5×5 lattice of the tile at its min and max height; for the coarse levels,
-    where the Earth's curve bulges between lattice points, the margin below covers it.
+    The box holds an n×n lattice of the tile at its min and max height, with n chosen per level so
+    that the Earth's curve bulges less between lattice points than the box's margin.
     """
     left, bottom, right, top = bounds_array(z, x, y)
-    f = np.linspace(0.0, 1.0, 5)
+    side = 2.0 * ORIGIN / (1 << z)
+    # a chord of length L sags L²/(8R) below the sphere: keep that under the margin
+    n = min(2 + math.ceil(math.sqrt(side / (8.0 * WGS84_A * _MARGIN))), 33)
+    f = np.linspace(0.0, 1.0, n)
     xs = left[:, None] + f * (right - left)[:, None]
     ys = bottom[:, None] + f * (top - bottom)[:, None]
     lon, lat = merc_to_lonlat(xs[:, None, :], ys[:, :, None])
@@ -190,7 +259,7 @@ def tile_boxes(
     )
     local = np.einsum("nij,npj->npi", basis, pts)
     ground = (right - left) * np.cos(np.radians(clat))
-    margin = (1e-3 * ground)[:, None]
+    margin = (_MARGIN * ground)[:, None]
     lo = local.min(axis=1) - margin
     hi = local.max(axis=1) + margin
     # the camera sits at the origin of these camera-relative coordinates
@@ -206,17 +275,38 @@ def tile_boxes(
     return Boxes(inside, dist_near, dist_far, ground)
 
 
+@dataclass(frozen=True, eq=False)
+class _Metrics:
+    """Screen metrics of N tiles of one level: what both the traversal and fallbacks need."""
+
+    boxes: Boxes
+    idx: I64
+    #: (len(grids), N) geometric error of each grid, metres.
+    err: NDArray[np.float32]
+    #: Pixels per metre at each tile's nearest point.
+    scale: F64
+
+    @property
+    def px(self) -> F64:
+        return self.boxes.ground * self.scale
+
+
+def _metrics(camera: Camera, lv: LevelLike, x: I64, y: I64, idx: I64) -> _Metrics:
+    box = tile_boxes(camera, lv.z, x, y, lv.min_h.ravel()[idx], lv.max_h.ravel()[idx])
+    nx = lv.min_h.shape[1]
+    err = lv.error[:, idx // nx, idx % nx]
+    scale = camera.scale / np.maximum(box.dist_near, camera.near or 0.0)
+    return _Metrics(box, idx, err, scale)
+
+
 def _grid_choice(
-    options: SelectOptions,
-    camera: Camera,
-    err: NDArray[np.float32],
-    scale: NDArray[np.float64],
-    band_scale: NDArray[np.float64],
-) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-    """Coarsest grid meeting the bound at max(real, band-top) scale; and whether none does."""
-    fits = err * np.maximum(scale, band_scale) <= options.max_sse
-    k = np.where(fits.any(axis=0), fits.argmax(axis=0), err.shape[0] - 1)
-    return k.astype(np.int64), ~fits.any(axis=0)
+    options: SelectOptions, err: NDArray[np.float32], scale: F64
+) -> tuple[I64, NDArray[np.bool_]]:
+    """Coarsest grid meeting the error bound at each tile's nearest point; whether none does."""
+    fits = err * scale <= options.max_sse
+    anyfit = np.asarray(fits.any(axis=0), dtype=bool)
+    k = np.where(anyfit, fits.argmax(axis=0), err.shape[0] - 1).astype(np.int64)
+    return k, ~anyfit
 
 
 def select(
@@ -224,19 +314,25 @@ def select(
     camera: Camera,
     tree: TreeLike,
     previous: Selection | None = None,
-    resident: NDArray[np.uint64] | None = None,
+    resident: U64 | None = None,
 ) -> Selection:
-    """The tiles to draw for ``camera``; ``resident`` (sorted keys) None means everything is."""
+    """The tiles to draw for ``camera``.
+
+    ``previous`` is last frame's selection (hysteresis). ``resident`` (sorted keys) lists the
+    meshes and textures that can be drawn now; None means everything can. Wanted resources that
+    are not resident come back as ``loads``, and are drawn meanwhile from their nearest resident
+    ancestor, so no hole opens.
+    """
     if camera.near is None or camera.far is None:
         raise ValueError("select needs a camera with near/far set (Camera.with_clip)")
-    near = camera.near
-    d = camera.scale
     tsize = tree.tile_size
     zmax = tree.zmax if options.max_level is None else min(tree.zmax, options.max_level)
+    # below the finest texture level a tile splits for its geometric error alone
+    ztex = tree.zmax if tree.texture_zmax is None else tree.texture_zmax
     prev = previous.refined if previous is not None else _EMPTY_U
     drawn: list[tuple[NDArray[np.generic], ...]] = []
-    refined_ids: list[NDArray[np.uint64]] = []
-    visited = culled = magnified = 0
+    refined_ids: list[U64] = []
+    visited = culled = 0
 
     x, y = tree.roots()
     for z in range(tree.zmin, zmax + 1):
@@ -246,29 +342,31 @@ def select(
         ok, idx = lv.index(x, y)
         x, y, idx = x[ok], y[ok], idx[ok]
         visited += int(x.size)
-        box = tile_boxes(camera, z, x, y, lv.min_h.ravel()[idx], lv.max_h.ravel()[idx])
-        culled += int((~box.inside).sum())
-        keep = box.inside
-        x, y, idx = x[keep], y[keep], idx[keep]
-        dn, df, ground = box.dist_near[keep], box.dist_far[keep], box.ground[keep]
-        eff = np.maximum(dn, near)
-        px = ground * d / eff
-        err = lv.error[:, idx // lv.min_h.shape[1], idx % lv.min_h.shape[1]]
-        k, too_rough = _grid_choice(options, camera, err, d / eff, options.split * tsize / ground)
+        m = _metrics(camera, lv, x, y, idx)
+        culled += int((~m.boxes.inside).sum())
+        keep = m.boxes.inside
+        x, y = x[keep], y[keep]
+        ground, scale, err = m.boxes.ground[keep], m.scale[keep], m.err[:, keep]
+        px = ground * scale
+        k, too_rough = _grid_choice(options, err, scale)
         ids = tile_id_array(z, x, y)
         can = z < zmax
-        refine = can & ((px > options.split * tsize) | too_rough)
+        big = (px > options.split * tsize) & (z < ztex)
+        refine = can & (big | too_rough)
         if can and prev.size:
             was = _member(ids, prev) & ~refine
             if was.any():
-                refine[was] = _children_hold(options, camera, tree, z, x[was], y[was], tsize)
+                rough = err[-1, was] * scale[was] > options.sse_merge * options.max_sse
+                hold = np.zeros(rough.shape, dtype=bool)
+                if z < ztex:
+                    hold = _children_hold(options, camera, tree, z, x[was], y[was])
+                refine[was] = rough | hold
         refined_ids.append(ids[refine])
         draw = ~refine
         if previous is not None:
             k = _keep_finer_grid(ids, k, previous.keys)
-        magnified += int(((px > options.split * tsize) & draw).sum())
         kd = k[draw]
-        errd = err[kd, np.nonzero(draw)[0]]
+        errd = err[kd, np.nonzero(draw)[0]].astype(np.float64)
         drawn.append(
             (
                 np.full(kd.size, z),
@@ -276,48 +374,49 @@ def select(
                 y[draw],
                 kd,
                 px[draw],
-                errd * d / eff[draw],
-                dn[draw],
-                df[draw],
-                errd.astype(np.float64),
+                errd * scale[draw],
+                m.boxes.dist_near[keep][draw],
+                m.boxes.dist_far[keep][draw],
+                errd,
             )
         )
-        cx = (2 * x[refine][:, None] + np.array([0, 1, 0, 1])).ravel()
-        cy = (2 * y[refine][:, None] + np.array([0, 0, 1, 1])).ravel()
-        x, y = cx, cy
+        x = (2 * x[refine][:, None] + np.array([0, 1, 0, 1])).ravel()
+        y = (2 * y[refine][:, None] + np.array([0, 0, 1, 1])).ravel()
 
-    cols = (
-        [np.concatenate(c) if c else np.zeros(0) for c in zip(*drawn, strict=True)]
-        if drawn
-        else [np.zeros(0)] * 9
-    )
-    dz, dx, dy, dk, dpx, dsse, ddn, ddf, derr = cols
-    dz, dx, dy, dk = (a.astype(np.int64) for a in (dz, dx, dy, dk))
-    ids = tile_id_array(dz, dx, dy)
-    keys = (ids << np.uint64(3)) | dk.astype(np.uint64)
-    fallback = np.zeros(dz.size, dtype=np.int64)
+    cols = [np.concatenate(c) for c in zip(*drawn, strict=True)] if drawn else [np.zeros(0)] * 9
+    ints = [a.astype(np.int64) for a in cols[:4]]
+    floats = [a.astype(np.float64) for a in cols[4:]]
+    i, f = ints, floats
+    t = _Drawn(i[0], i[1], i[2], i[3], f[0], f[1], f[2], f[3], f[4], np.zeros_like(i[0]))
+    tex_up = _texture_levels(options, tree, t, previous)
     loads = _EMPTY_U
     if resident is not None:
-        (dz, dx, dy, dk, dpx, dsse, ddn, ddf, derr, keys, fallback, loads) = _fall_back(
-            camera, tree, resident, dz, dx, dy, dk, dpx, dsse, ddn, ddf, derr, keys
-        )
+        # what the wanted tiles need; then what stands in for it while it loads
+        loads = _missing(resident, t, tex_up)
+        t = _fall_back(camera, tree, resident, t)
+        tex_up = _texture_levels(options, tree, t, previous)
+        tex_up, unresolved = _texture_fall_back(tree, resident, t, tex_up)
+        loads = _order_loads(np.concatenate([loads, unresolved[~_member(unresolved, loads)]]))
+    magnified = int((t.px * np.exp2(tex_up) > options.split * tsize).sum())
     # a neighbour's edge may sit up to its own error away: at most max_sse pixels seen from
     # no farther than our far side, or a fallback tile's whole error
-    worst = float(derr[fallback > 0].max()) if (fallback > 0).any() else 0.0
-    skirt = derr + np.maximum(options.max_sse * ddf / d, worst)
-    refined = np.unique(np.concatenate(refined_ids)) if refined_ids else _EMPTY_U
+    back = t.fallback > 0
+    worst = float(t.err[back].max()) if back.any() else 0.0
+    skirt = t.err + np.maximum(options.max_sse * t.dist_far / camera.scale, worst)
     return Selection(
-        z=dz,
-        x=dx,
-        y=dy,
-        grid=dk,
-        keys=keys,
-        screen_px=dpx,
-        sse=dsse,
-        dist_near=ddn,
+        z=t.z,
+        x=t.x,
+        y=t.y,
+        grid=t.k,
+        keys=(tile_id_array(t.z, t.x, t.y) << _THREE) | t.k.astype(np.uint64),
+        texture_keys=texture_key(t.z - tex_up, t.x >> tex_up, t.y >> tex_up),
+        texture_up=tex_up,
+        screen_px=t.px,
+        sse=t.sse,
+        dist_near=t.dist_near,
         skirt=skirt,
-        fallback=fallback,
-        refined=refined,
+        fallback=t.fallback,
+        refined=np.unique(np.concatenate(refined_ids)) if refined_ids else _EMPTY_U,
         loads=loads,
         visited=visited,
         culled=culled,
@@ -327,148 +426,196 @@ def select(
     )
 
 
-def _keep_finer_grid(
-    ids: NDArray[np.uint64], k: NDArray[np.int64], prev_keys: NDArray[np.uint64]
-) -> NDArray[np.int64]:
+@dataclass(frozen=True, eq=False)
+class _Drawn:
+    """Columns of the drawn tiles, as the traversal and the fallback pass them along."""
+
+    z: I64
+    x: I64
+    y: I64
+    k: I64
+    px: F64
+    sse: F64
+    dist_near: F64
+    dist_far: F64
+    err: F64
+    fallback: I64
+
+    def take(self, m: NDArray[np.bool_] | I64) -> _Drawn:
+        return _Drawn(*(getattr(self, f)[m] for f in _DRAWN_FIELDS))
+
+    @staticmethod
+    def concat(a: _Drawn, b: _Drawn) -> _Drawn:
+        return _Drawn(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in _DRAWN_FIELDS))
+
+
+_DRAWN_FIELDS = tuple(_Drawn.__dataclass_fields__)
+
+
+def _texture_levels(
+    options: SelectOptions, tree: TreeLike, t: _Drawn, previous: Selection | None
+) -> I64:
+    """Levels up to each tile's texture: the fewest that bring it to merge·T pixels or more.
+
+    Last frame's choice stands while it is still inside the band, so textures do not flicker.
+    """
+    low = options.merge * tree.tile_size
+    # smallest k >= 0 with px·2^k >= low (px is positive for every drawn tile)
+    k = np.ceil(np.log2(low / np.maximum(t.px, 1e-300))).clip(min=0.0).astype(np.int64)
+    ztex = tree.zmax if tree.texture_zmax is None else tree.texture_zmax
+    # no texture below the finest texture level; none above the roots
+    up = np.minimum(np.maximum(k, t.z - ztex), t.z - tree.zmin)
+    if previous is None or previous.count == 0:
+        return up
+    pid = tile_id_array(previous.z, previous.x, previous.y)
+    order = np.argsort(pid)
+    pid, pup = pid[order], previous.texture_up[order]
+    ids = tile_id_array(t.z, t.x, t.y)
+    pos = np.clip(np.searchsorted(pid, ids), 0, pid.size - 1)
+    hit = pid[pos] == ids
+    before = pup[pos]
+    ratio = t.px * np.exp2(before)
+    stays = hit & (ratio >= low) & (ratio <= options.split * tree.tile_size)
+    return np.where(stays, np.minimum(before, t.z - tree.zmin), up)
+
+
+def _keep_finer_grid(ids: U64, k: I64, prev_keys: U64) -> I64:
     """Grid hysteresis: a tile keeps last frame's grid while the one it needs is one step coarser
     (a finer grid only lowers the error), so a camera that hovers does not reload meshes."""
     if prev_keys.size == 0:
         return k
-    order = np.argsort(prev_keys)
-    pk = prev_keys[order]
-    pid = pk >> np.uint64(3)
+    pk = np.sort(prev_keys)
+    pid = pk >> _THREE
     pos = np.clip(np.searchsorted(pid, ids), 0, pid.size - 1)
     hit = pid[pos] == ids
-    kprev = (pk[pos] & np.uint64(7)).astype(np.int64)
+    kprev = (pk[pos] & _SLOT).astype(np.int64)
     return np.where(hit & (kprev == k + 1), kprev, k)
 
 
-def _member(a: NDArray[np.uint64], sorted_b: NDArray[np.uint64]) -> NDArray[np.bool_]:
+def _member(a: U64, sorted_b: U64) -> NDArray[np.bool_]:
     """a ∈ b for a sorted b, vectorised."""
     if sorted_b.size == 0:
         return np.zeros(a.shape, dtype=bool)
     pos = np.clip(np.searchsorted(sorted_b, a), 0, sorted_b.size - 1)
-    return sorted_b[pos] == a
+    found: NDArray[np.bool_] = sorted_b[pos] == a
+    return found
 
 
 def _children_hold(
-    options: SelectOptions,
-    camera: Camera,
-    tree: TreeLike,
-    z: int,
-    x: NDArray[np.int64],
-    y: NDArray[np.int64],
-    tsize: int,
+    options: SelectOptions, camera: Camera, tree: TreeLike, z: int, x: I64, y: I64
 ) -> NDArray[np.bool_]:
     """For tiles split last frame: does every visible child still cover merge·T pixels?"""
     lv = tree.level(z + 1)
     cx = (2 * x[:, None] + np.array([0, 1, 0, 1])).ravel()
     cy = (2 * y[:, None] + np.array([0, 0, 1, 1])).ravel()
     ok, idx = lv.index(cx, cy)
-    box = tile_boxes(camera, z + 1, cx, cy, lv.min_h.ravel()[idx], lv.max_h.ravel()[idx])
-    px = box.ground * camera.scale / np.maximum(box.dist_near, camera.near or 0.0)
+    m = _metrics(camera, lv, cx, cy, idx)
     # absent or culled children do not hold their parent back
-    small = ok & box.inside & (px < options.merge * tsize)
-    return ~small.reshape(-1, 4).any(axis=1)
+    small = ok & m.boxes.inside & (m.px < options.merge * tree.tile_size)
+    held = ~np.asarray(small.reshape(-1, 4).any(axis=1), dtype=bool)
+    return held
 
 
-def _fall_back(
-    camera: Camera,
-    tree: TreeLike,
-    resident: NDArray[np.uint64],
-    dz: NDArray[np.int64],
-    dx: NDArray[np.int64],
-    dy: NDArray[np.int64],
-    dk: NDArray[np.int64],
-    dpx: NDArray[np.float64],
-    dsse: NDArray[np.float64],
-    ddn: NDArray[np.float64],
-    ddf: NDArray[np.float64],
-    derr: NDArray[np.float64],
-    keys: NDArray[np.uint64],
-) -> tuple[NDArray[np.generic], ...]:
-    """Draw each tile that is not resident from its nearest resident ancestor (no holes)."""
-    present = _member(keys, resident)
-    order = np.lexsort((ddn[~present], dz[~present]))
-    loads = keys[~present][order]
-    if present.all():
-        return dz, dx, dy, dk, dpx, dsse, ddn, ddf, derr, keys, np.zeros(dz.size, np.int64), loads
-    res_ids = np.unique(resident >> np.uint64(3))
-    mz, mx, my = dz[~present], dx[~present], dy[~present]
-    found = np.zeros(mz.size, dtype=bool)
-    az, ax, ay = mz.copy(), mx.copy(), my.copy()
-    up = np.zeros(mz.size, dtype=np.int64)
-    for step in range(1, int(mz.max() - tree.zmin) + 1 if mz.size else 1):
-        todo = ~found & (mz - step >= tree.zmin)
+def _nearest_resident(
+    z: I64, x: I64, y: I64, have: U64, zmin: int, first: int | I64
+) -> tuple[NDArray[np.bool_], I64]:
+    """For each tile, the fewest levels up, ``first`` or more, to an ancestor (or itself, at 0)
+    whose id is in the sorted ``have``; (found, steps). One numpy pass per level, not per tile."""
+    found = np.zeros(z.size, dtype=bool)
+    steps = np.zeros(z.size, dtype=np.int64)
+    first = np.broadcast_to(np.asarray(first, dtype=np.int64), z.shape)
+    top = int(z.max()) - zmin if z.size else -1
+    for s in range(int(first.min()) if z.size else 0, top + 1):
+        todo = ~found & (z - s >= zmin) & (s >= first)
         if not todo.any():
             break
-        pz, px_, py = mz[todo] - step, mx[todo] >> step, my[todo] >> step
-        hit = _member(tile_id_array(pz, px_, py), res_ids)
-        sel = np.nonzero(todo)[0][hit]
-        az[sel], ax[sel], ay[sel], up[sel] = pz[hit], px_[hit], py[hit], step
-        found[sel] = True
-    fz, fx, fy, fup = az[found], ax[found], ay[found], up[found]
-    fid = np.unique(tile_id_array(fz, fx, fy))
-    # keep present tiles that no drawn ancestor already covers
-    keep = present.copy()
-    for step in range(1, int(dz.max() - tree.zmin) + 1 if dz.size else 1):
-        anc = tile_id_array(dz - step, dx >> step, dy >> step)
-        keep &= ~((dz - step >= tree.zmin) & _member(anc, fid))
-    uz, ux, uy = (a.astype(np.int64) for a in _unpack(fid))
-    # the fallback's resident key with the finest grid
-    rk = resident[_member(resident >> np.uint64(3), fid)]
-    rk = rk[np.argsort(rk)]
-    rid = rk >> np.uint64(3)
-    last = np.searchsorted(rid, fid, side="right") - 1
-    fkeys = rk[last]
-    fk = (fkeys & np.uint64(7)).astype(np.int64)
-    fpx, fsse, fdn, fdf, ferr, fdepth = _metrics_many(camera, tree, uz, ux, uy, fk)
+        i = np.nonzero(todo)[0]
+        hit = _member(tile_id_array(z[i] - s, x[i] >> s, y[i] >> s), have)
+        found[i[hit]] = True
+        steps[i[hit]] = s
+    return found, steps
+
+
+def _missing(resident: U64, t: _Drawn, tex_up: I64) -> U64:
+    """The meshes and textures the wanted tiles need that are not resident, most urgent first."""
+    mesh = (tile_id_array(t.z, t.x, t.y) << _THREE) | t.k.astype(np.uint64)
+    tex = texture_key(t.z - tex_up, t.x >> tex_up, t.y >> tex_up)
+    keys = np.concatenate([tex, mesh])
+    dist = np.concatenate([t.dist_near, t.dist_near])
+    m = ~_member(keys, resident)
+    return _order_loads(keys[m], dist[m])
+
+
+def _fall_back(camera: Camera, tree: TreeLike, resident: U64, t: _Drawn) -> _Drawn:
+    """Draw each tile whose mesh is not resident from the nearest resident mesh: the same tile at
+    another grid, or its nearest ancestor (no holes)."""
+    keys = (tile_id_array(t.z, t.x, t.y) << _THREE) | t.k.astype(np.uint64)
+    present = _member(keys, resident)
+    if present.all():
+        return t
+    meshes = resident[(resident & _SLOT) != _SLOT]
+    mesh_ids = np.unique(meshes >> _THREE)
+    miss = t.take(~present)
+    found, up = _nearest_resident(miss.z, miss.x, miss.y, mesh_ids, tree.zmin, 0)
+    # tiles with no resident mesh anywhere above them stay as wanted: the caller must load them
+    up = up[found]
+    anc = tile_id_array(miss.z[found] - up, miss.x[found] >> up, miss.y[found] >> up)
+    fid = np.unique(anc)
     # how many levels each fallback stands in for: the deepest of the tiles it replaces
     depth = np.zeros(fid.size, dtype=np.int64)
-    np.maximum.at(depth, np.searchsorted(fid, tile_id_array(fz, fx, fy)), fup)
-    del fdepth
-    cat = np.concatenate
-    return (
-        cat([dz[keep], uz]),
-        cat([dx[keep], ux]),
-        cat([dy[keep], uy]),
-        cat([dk[keep], fk]),
-        cat([dpx[keep], fpx]),
-        cat([dsse[keep], fsse]),
-        cat([ddn[keep], fdn]),
-        cat([ddf[keep], fdf]),
-        cat([derr[keep], ferr]),
-        cat([keys[keep], fkeys]),
-        cat([np.zeros(int(keep.sum()), np.int64), depth]),
-        loads,
-    )
-
-
-def _unpack(ids: NDArray[np.uint64]) -> tuple[NDArray[np.uint64], ...]:
-    m = np.uint64(0x3FFFFFF)
-    return ids >> np.uint64(52), ids & m, (ids >> np.uint64(26)) & m
+    np.maximum.at(depth, np.searchsorted(fid, anc), up)
+    # drop wanted tiles, present or not, that a fallback ancestor already covers
+    covered, _ = _nearest_resident(t.z, t.x, t.y, fid, tree.zmin, 1)
+    stays = present.copy()
+    stays[~present] = ~found
+    keep = stays & ~covered
+    # each fallback tile is drawn with its finest resident grid
+    mk = np.sort(meshes)
+    last = np.searchsorted(mk >> _THREE, fid, side="right") - 1
+    fk = (mk[last] & _SLOT).astype(np.int64)
+    uz, ux, uy = tile_from_id_array(fid)
+    back = _metrics_many(camera, tree, uz, ux, uy, fk, depth)
+    return _Drawn.concat(t.take(keep), back)
 
 
 def _metrics_many(
-    camera: Camera,
-    tree: TreeLike,
-    z: NDArray[np.int64],
-    x: NDArray[np.int64],
-    y: NDArray[np.int64],
-    k: NDArray[np.int64],
-) -> tuple[NDArray[np.float64], ...]:
+    camera: Camera, tree: TreeLike, z: I64, x: I64, y: I64, k: I64, fallback: I64
+) -> _Drawn:
     """Screen metrics of tiles of mixed levels (the few fallback tiles), one numpy call a level."""
     n = z.size
     px, sse, dn, df, err = (np.zeros(n) for _ in range(5))
-    near = camera.near or 0.0
     for lvl in np.unique(z):
         m = z == lvl
         lv = tree.level(int(lvl))
         _, idx = lv.index(x[m], y[m])
-        box = tile_boxes(camera, int(lvl), x[m], y[m], lv.min_h.ravel()[idx], lv.max_h.ravel()[idx])
-        eff = np.maximum(box.dist_near, near)
-        e = lv.error[k[m], idx // lv.min_h.shape[1], idx % lv.min_h.shape[1]]
-        px[m] = box.ground * camera.scale / eff
-        sse[m] = e * camera.scale / eff
-        dn[m], df[m], err[m] = box.dist_near, box.dist_far, e
-    return px, sse, dn, df, err, np.zeros(n)
+        mt = _metrics(camera, lv, x[m], y[m], idx)
+        e = mt.err[k[m], np.arange(int(m.sum()))].astype(np.float64)
+        px[m], sse[m] = mt.px, e * mt.scale
+        dn[m], df[m], err[m] = mt.boxes.dist_near, mt.boxes.dist_far, e
+    return _Drawn(z, x, y, k, px, sse, dn, df, err, fallback)
+
+
+def _texture_fall_back(tree: TreeLike, resident: U64, t: _Drawn, up: I64) -> tuple[I64, U64]:
+    """Each drawn tile's nearest resident texture at or above the level it wants. A tile with
+    none resident keeps the one it wants, which is returned to be loaded."""
+    want = texture_key(t.z - up, t.x >> up, t.y >> up)
+    m = ~_member(want, resident)
+    if not m.any():
+        return up, _EMPTY_U
+    tex_ids = np.sort(resident[(resident & _SLOT) == _SLOT] >> _THREE)
+    # only from the wanted level up: a texture finer than the band asks for is not used
+    found, steps = _nearest_resident(t.z[m], t.x[m], t.y[m], tex_ids, tree.zmin, up[m])
+    new = up.copy()
+    new[np.nonzero(m)[0][found]] = steps[found]
+    return new, np.unique(want[m][~found])
+
+
+def _order_loads(keys: U64, dist: F64 | None = None) -> U64:
+    """Keys once each, coarse levels first, then nearest first (then in the order given)."""
+    z, _, _ = tile_from_id_array(keys >> _THREE)
+    d = np.zeros(keys.size) if dist is None else dist
+    order = np.lexsort((d, z))
+    ordered = keys[order]
+    _, first = np.unique(ordered, return_index=True)
+    result: U64 = ordered[np.sort(first)]
+    return result

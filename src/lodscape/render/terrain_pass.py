@@ -42,6 +42,7 @@ uniform mat3 u_rot;      // world → view rotation
 uniform vec3 u_offset;   // view-space position of the tile centre
 uniform vec3 u_up;       // direction skirts hang from (ellipsoid normal at the centre)
 uniform float u_skirt;   // metres to lower skirt vertices in this draw
+uniform vec3 u_uv;       // texture window: offset (u, v) and scale (an ancestor's texture)
 in vec3 in_pos;
 in vec2 in_uv;
 in float in_skirt;
@@ -50,7 +51,7 @@ out float v_dist;
 void main() {
     vec3 p = in_pos - in_skirt * u_skirt * u_up;
     gl_Position = u_mvp * vec4(p, 1.0);
-    v_uv = in_uv;
+    v_uv = u_uv.xy + u_uv.z * in_uv;
     // linear in view space, so perspective-correct interpolation keeps it exact per fragment
     v_dist = -(u_offset + u_rot * p).z;
 }
@@ -81,11 +82,15 @@ _NONE = (False, False, False, False)
 
 @dataclass(frozen=True)
 class DrawItem:
-    """One tile in a frame: an uploaded mesh and how far its skirts hang this frame."""
+    """One tile in a frame: an uploaded mesh, the uploaded texture it wears, and how far its
+    skirts hang this frame."""
 
     key: int
+    texture: int
     #: Metres to lower skirt vertices (0 hides them inside the tile's edge).
-    skirt: float
+    skirt: float = 0.0
+    #: The window of the texture the tile covers: offset u, offset v, scale (1: all of it).
+    uv: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -100,7 +105,6 @@ class DrawStats:
 class _Tile:
     vbo: moderngl.Buffer
     vao: moderngl.VertexArray
-    texture: moderngl.Texture
     segments: int
     triangles: int
     nbytes: int
@@ -141,6 +145,7 @@ class Renderer:
         self.last_stats = DrawStats()
         self._live = 0
         self._tiles: dict[int, _Tile] = {}
+        self._textures: dict[int, tuple[moderngl.Texture, int]] = {}
         # one index buffer per segment count, shared by its tiles and freed with the last of them
         self._indices: dict[int, tuple[moderngl.Buffer, int]] = {}
         make_current(self.ctx)
@@ -152,6 +157,7 @@ class Renderer:
         self._u_offset = self._uniform("u_offset")
         self._u_up = self._uniform("u_up")
         self._u_skirt = self._uniform("u_skirt")
+        self._u_uv = self._uniform("u_uv")
         self._uniform("u_tex").value = 0
         # 1 turns it off: on llvmpipe any anisotropic filtering triples the cost of a frame
         self._anisotropy = max(1.0, min(float(self.ctx.max_anisotropy), float(anisotropy)))
@@ -172,11 +178,6 @@ class Renderer:
                 f"mesh {mesh.key}: expected {(s + 1) ** 2 + 4 * s}x6 vertices for {s} segments, "
                 f"got {vertices.shape}"
             )
-        texture = np.ascontiguousarray(mesh.texture, dtype=np.uint8)
-        if texture.ndim != 3 or texture.shape[2] not in (3, 4):
-            raise ValueError(
-                f"mesh {mesh.key}: expected an (H, W, 3) or (H, W, 4) texture, got {texture.shape}"
-            )
         ibo = self._index_buffer(s)
         vbo = self._track(self.ctx.buffer(vertices))
         vao = self._track(
@@ -187,21 +188,9 @@ class Renderer:
                 index_element_size=4,
             )
         )
-        # rows go up as written, so texture row 0 (north) is at t = 0, where v = 0 samples
-        tex = self._track(
-            self.ctx.texture(
-                (texture.shape[1], texture.shape[0]), texture.shape[2], texture, alignment=1
-            )
-        )
-        tex.build_mipmaps()
-        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-        tex.repeat_x = tex.repeat_y = False
-        if self._anisotropy > 1.0:
-            tex.anisotropy = self._anisotropy
         self._tiles[mesh.key] = _Tile(
             vbo,
             vao,
-            tex,
             s,
             mesh.triangles,
             mesh.nbytes,
@@ -209,13 +198,39 @@ class Renderer:
             np.asarray(mesh.up, dtype=np.float32).tobytes(),
         )
 
-    def release(self, key: int) -> None:
-        """Free the GL objects of ``key`` (a key that is not resident is ignored)."""
+    def upload_texture(self, key: int, image: NDArray[np.uint8]) -> None:
+        """Make ``image`` ((H, W, 3) RGB or (H, W, 4) RGBA, row 0 north; alpha 0 where there is
+        no terrain) usable under ``key``, with mipmaps; uploading a key again is a no-op."""
         self._use()
+        if key in self._textures:
+            return
+        image = np.ascontiguousarray(image, dtype=np.uint8)
+        if image.ndim != 3 or image.shape[2] not in (3, 4):
+            raise ValueError(
+                f"texture {key}: expected an (H, W, 3) or (H, W, 4) image, got {image.shape}"
+            )
+        # rows go up as written, so image row 0 (north) is at t = 0, where v = 0 samples
+        tex = self._track(
+            self.ctx.texture((image.shape[1], image.shape[0]), image.shape[2], image, alignment=1)
+        )
+        tex.build_mipmaps()
+        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        tex.repeat_x = tex.repeat_y = False
+        if self._anisotropy > 1.0:
+            tex.anisotropy = self._anisotropy
+        # a full mip chain adds a third to the base level
+        self._textures[key] = (tex, image.nbytes * 4 // 3)
+
+    def release(self, key: int) -> None:
+        """Free the GL objects of mesh or texture ``key`` (one not resident is ignored)."""
+        self._use()
+        texture = self._textures.pop(key, None)
+        if texture is not None:
+            self._free(texture[0])
         tile = self._tiles.pop(key, None)
         if tile is None:
             return
-        for obj in (tile.vao, tile.vbo, tile.texture):
+        for obj in (tile.vao, tile.vbo):
             self._free(obj)
         ibo, users = self._indices[tile.segments]
         if users > 1:
@@ -225,8 +240,10 @@ class Renderer:
             self._free(ibo)
 
     def resident(self) -> dict[int, int]:
-        """GPU bytes (vertices + texture with mips) of every uploaded key."""
-        return {key: tile.nbytes for key, tile in self._tiles.items()}
+        """GPU bytes of every uploaded mesh (its vertices) and texture (with its mips)."""
+        out = {key: tile.nbytes for key, tile in self._tiles.items()}
+        out.update((key, nbytes) for key, (_, nbytes) in self._textures.items())
+        return out
 
     def live_objects(self) -> int:
         """GL objects this renderer holds now (programs, buffers, VAOs, textures, FBO parts)."""
@@ -241,14 +258,15 @@ class Renderer:
         distance (H, W) float32 in metres along the view axis, +inf where nothing was drawn."""
         self._use()
         # resolve every key before touching GL state, so a bad frame changes nothing
-        tiles = []
+        tiles, textures = [], []
         for item in items:
             tile = self._tiles.get(item.key)
-            if tile is None:
-                raise KeyError(
-                    f"mesh {item.key} is not uploaded to this renderer (upload it before drawing)"
-                )
+            texture = self._textures.get(item.texture)
+            if tile is None or texture is None:
+                what = f"mesh {item.key}" if tile is None else f"texture {item.texture}"
+                raise KeyError(f"{what} is not uploaded to this renderer (upload it first)")
             tiles.append(tile)
+            textures.append(texture[0])
         rot = camera.rotation
         view_projections = [camera.view_projection(tile.center) for tile in tiles]
         target = self._target_for(camera.width, camera.height)
@@ -269,13 +287,14 @@ class Renderer:
 
         self._u_rot.write(np.ascontiguousarray(rot.T, dtype=np.float32))
         triangles = 0
-        for item, tile, mvp in zip(items, tiles, view_projections, strict=True):
+        for item, tile, tex, mvp in zip(items, tiles, textures, view_projections, strict=True):
             # GLSL matrices are column-major: upload the transpose of the row-major numpy one
             self._u_mvp.write(np.ascontiguousarray(mvp.T, dtype=np.float32))
             self._u_offset.write(np.asarray(_view_offset(rot, tile.center, camera), np.float32))
             self._u_up.write(tile.up)
             self._u_skirt.value = float(item.skirt)
-            tile.texture.use(0)
+            self._u_uv.value = item.uv
+            tex.use(0)
             tile.vao.render(moderngl.TRIANGLES)
             triangles += tile.triangles
         self.last_stats = DrawStats(len(tiles), triangles)
@@ -298,7 +317,7 @@ class Renderer:
         if self._closed:
             return
         self._use()
-        for key in list(self._tiles):
+        for key in [*self._tiles, *self._textures]:
             self.release(key)
         if self._target is not None:
             self._free_target(self._target)

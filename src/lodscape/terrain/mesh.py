@@ -25,8 +25,9 @@ __all__ = [
     "ring_indices",
 ]
 
-#: Segment counts a tile grid may have, coarsest first (grid k has 16·2^k segments).
-GRIDS: tuple[int, ...] = (16, 32, 64, 128, 256)
+#: Segment counts a tile grid may have, coarsest first (grid k has 16·2^k segments). Finer detail
+#: comes from smaller tiles, which adapt to the distance better than finer grids would.
+GRIDS: tuple[int, ...] = (16, 32, 64)
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,8 +40,6 @@ class TileMesh:
     vertices: NDArray[np.float32]
     center: NDArray[np.float64]
     up: NDArray[np.float32]
-    #: (T, T, 3) uint8, row 0 north.
-    texture: NDArray[np.uint8]
 
     @property
     def triangles(self) -> int:
@@ -48,8 +47,7 @@ class TileMesh:
 
     @property
     def nbytes(self) -> int:
-        # a full mip chain adds a third to the base level
-        return int(self.vertices.nbytes + self.texture.nbytes * 4 // 3)
+        return int(self.vertices.nbytes)
 
 
 @cache
@@ -106,7 +104,6 @@ def build_mesh(
     x: int,
     y: int,
     heights: NDArray[np.floating],
-    texture: NDArray[np.uint8],
 ) -> TileMesh:
     """The tile's mesh from its (S+1)² heights (row 0 north), vertices relative to its centre."""
     s = heights.shape[0] - 1
@@ -125,4 +122,4 @@ def build_mesh(
     skirt[:, 5] = 1.0
     vertices = np.concatenate([grid, skirt]).astype(np.float32)
     up = up_vector(clon, clat).astype(np.float32)
-    return TileMesh(key, s, vertices, center, up, np.ascontiguousarray(texture, dtype=np.uint8))
+    return TileMesh(key, s, vertices, center, up)

@@ -73,7 +73,11 @@ class Level:
 
 @dataclass(frozen=True, eq=False)
 class TileTree:
-    """The quadtree a selection walks: levels zmin..zmax, each with per-tile statistics."""
+    """The quadtree a selection walks: levels zmin..zmax, each with per-tile statistics.
+
+    Textures exist down to ``texture_zmax``, where a texel is as fine as the data; the levels below
+    it carry geometry only (their meshes reach the data's own resolution with coarse grids).
+    """
 
     levels: tuple[Level, ...]
     grids: tuple[int, ...]
@@ -81,6 +85,8 @@ class TileTree:
     height_range: tuple[float, float]
     #: Levels the data's resolution was coarsened by to fit MAX_SAMPLES (0: full detail).
     coarsened: int = 0
+    #: The finest level that has its own texture (None: every level).
+    texture_zmax: int | None = None
 
     @property
     def zmin(self) -> int:
@@ -155,14 +161,20 @@ def build_tree(
     """Walk the source once, bottom-up, and return its tile tree."""
     if grids[0] != _BASE or any(g != _BASE << k for k, g in enumerate(grids)):
         raise ValueError(f"Expected grids {_BASE}·2^k, got {grids}")
+    texel_levels = round(math.log2(tile_size / _BASE)) if tile_size >= _BASE else -1
+    if texel_levels < 0 or _BASE << texel_levels != tile_size:
+        raise ValueError(f"Expected a tile size of {_BASE}·2^k texels, got {tile_size}")
     depth = len(grids) - 1
+    if depth > texel_levels:
+        raise ValueError(f"Expected grids no finer than the {tile_size} texels of a tile")
     bounds = source.bounds_merc
     res = source.resolution_merc
+    # the finest texture level: its texels as fine as the data
     zmax = math.ceil(math.log2(2.0 * ORIGIN / (tile_size * res)))
-    zmax = min(max(zmax, 0), MAX_ZOOM - depth)
+    zmax = min(max(zmax, 0), MAX_ZOOM - texel_levels)
     coarsened = 0
     while zmax > 0:
-        _, _, nx, ny = level_range(bounds, zmax + depth)
+        _, _, nx, ny = level_range(bounds, zmax + texel_levels)
         if (nx * _BASE + 1) * (ny * _BASE + 1) <= MAX_SAMPLES:
             break
         zmax -= 1
@@ -175,7 +187,11 @@ def build_tree(
     levels: dict[int, tuple[Level, NDArray[np.float32], tuple[int, int, int, int]]] = {}
     height_range = (0.0, 0.0)
     child: tuple[NDArray[np.float32], tuple[int, int, int, int], Level] | None = None
-    for z in range(zmax + depth, zmin - 1, -1):
+    # the truth: the level whose 16-segment grid samples the finest texture level's texels;
+    # meshes reach it through levels below zmax that carry geometry only
+    truth = zmax + texel_levels
+    zgeo = truth - depth
+    for z in range(truth, zmin - 1, -1):
         rng = level_range(bounds, z)
         x0, y0, nx, ny = rng
         h, valid = _level_grid(source, z, rng)
@@ -186,7 +202,7 @@ def build_tree(
             height_range = (float(hv.min()), float(hv.max()))
         mn = _blocks(h).min(axis=(2, 3)).astype(np.float32)
         mx = _blocks(h).max(axis=(2, 3)).astype(np.float32)
-        exists = _blocks(valid).any(axis=(2, 3))
+        exists = np.asarray(_blocks(valid).any(axis=(2, 3)), dtype=bool)
         e16 = np.zeros((ny, nx), dtype=np.float32)
         if child is not None:
             hc, crng, clv = child
@@ -206,7 +222,7 @@ def build_tree(
         child = (h, rng, lv)
 
     out = []
-    for z in range(zmin, zmax + 1):
+    for z in range(zmin, zgeo + 1):
         lv, _, rng = levels[z]
         x0, y0, nx, ny = rng
         errs = []
@@ -219,7 +235,7 @@ def build_tree(
             err = full.reshape(ny, f, nx, f).max(axis=(1, 3))
             errs.append(err + _sag(z, grids[k], y0, ny))
         out.append(Level(z, x0, y0, lv.exists, lv.min_h, lv.max_h, np.stack(errs)))
-    return TileTree(tuple(out), grids, tile_size, height_range, coarsened)
+    return TileTree(tuple(out), grids, tile_size, height_range, coarsened, zmax)
 
 
 def _sag(z: int, segments: int, y0: int, ny: int) -> NDArray[np.float32]:
