@@ -42,6 +42,12 @@ class AnalyticSource:
         valid = (xm >= b.left) & (xm <= b.right) & (ym >= b.bottom) & (ym <= b.top)
         return h.astype(np.float32), valid
 
+    def sample_grid(
+        self, xs: NDArray[np.float64], ys: NDArray[np.float64], spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        xx, yy = np.meshgrid(xs, ys)
+        return self.sample(xx, yy, spacing)
+
     def read(
         self, bounds: Bbox, shape: tuple[int, int]
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:

@@ -404,3 +404,27 @@ def test_array_source_errors() -> None:
         ArraySource(np.ones((1, 5)), from_origin(0, 0, 1, 1))
     with pytest.raises(SourceError, match=r"^array: unusable CRS"):
         ArraySource(np.ones((4, 4)), from_origin(0, 0, 1, 1), crs="EPSG:999999")
+
+
+@pytest.mark.parametrize("crs", ["EPSG:32617", "EPSG:4326", "EPSG:3857"])
+def test_sample_grid_matches_sample_within_a_thousandth_of_a_pixel(crs: str) -> None:
+    """The lattice projection of large grids (the tile tree's build) stays within its stated
+    tolerance of the exact per-point projection."""
+    rng = np.random.default_rng(5)
+    data = rng.normal(0.0, 1.0, (600, 700)).cumsum(axis=0).cumsum(axis=1).astype(np.float32)
+    pixel = 1e-4 if crs == "EPSG:4326" else 10.0
+    west, north = (-81.2, 35.1) if crs == "EPSG:4326" else (500000.0, 3900000.0)
+    if crs == "EPSG:3857":
+        west, north = -9.0e6, 4.2e6
+    src = ArraySource(data, from_origin(west, north, pixel, pixel), crs)
+    b = src.bounds_merc
+    xs = np.linspace(b.left, b.right, 513)
+    ys = np.linspace(b.top, b.bottom, 385)
+    xx, yy = np.meshgrid(xs, ys)
+    h, v = src.sample(xx, yy, src.resolution_merc)
+    hg, vg = src.sample_grid(xs, ys, src.resolution_merc)
+    assert hg.shape == (385, 513)
+    # a height moves by at most the pixel shift times the steepest rise between pixels
+    rise = max(np.abs(np.diff(data, axis=0)).max(), np.abs(np.diff(data, axis=1)).max())
+    assert np.abs(hg - h).max() <= 1e-3 * rise * 2 + 1e-4
+    assert np.mean(v != vg) < 1e-3

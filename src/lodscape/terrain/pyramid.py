@@ -30,6 +30,8 @@ _BASE = GRIDS[0]
 #: Samples of the deepest level above which on-the-fly rendering coarsens the data (a build keeps
 #: full detail); 2^26 float32 heights are 256 MiB.
 MAX_SAMPLES = 1 << 26
+#: Points sampled per call while building (about 40 bytes each in temporaries).
+_STRIP_POINTS = 1 << 22
 
 
 class SampleSource(Protocol):
@@ -39,6 +41,10 @@ class SampleSource(Protocol):
 
     def sample(
         self, xm: NDArray[np.float64], ym: NDArray[np.float64], spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
+
+    def sample_grid(
+        self, xs: NDArray[np.float64], ys: NDArray[np.float64], spacing: float
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
 
 
@@ -122,8 +128,13 @@ def _level_grid(
     # the same exact-power-of-two vertex coordinates as terrain.mesh.grid_coordinates
     xs = -ORIGIN + (x0 * _BASE + np.arange(nx * _BASE + 1)).astype(np.float64) * step
     ys = ORIGIN - (y0 * _BASE + np.arange(ny * _BASE + 1)).astype(np.float64) * step
-    xx, yy = np.meshgrid(xs, ys)
-    return source.sample(xx, yy, step)
+    h = np.empty((ys.size, xs.size), dtype=np.float32)
+    valid = np.empty((ys.size, xs.size), dtype=bool)
+    # strips of rows bound the float64 temporaries of sampling, whatever the data's size
+    rows = max(1, _STRIP_POINTS // xs.size)
+    for r in range(0, ys.size, rows):
+        h[r : r + rows], valid[r : r + rows] = source.sample_grid(xs, ys[r : r + rows], step)
+    return h, valid
 
 
 def _blocks(a: NDArray[np.generic]) -> NDArray[np.generic]:
