@@ -144,6 +144,8 @@ def test_bad_rasters_fail_in_one_line(
         (["--lon", "7.05", "--lat", "46.45"], "--alt"),
         (["--size", "12x"], "WIDTHxHEIGHT"),
         (["--lon", "7.05", "--lat", "46.45", "--alt", "3000", "--fov", "190"], "fov"),
+        (["--max-sse", "0"], "max_sse"),
+        (["--anisotropy", "0.5"], "anisotropy"),
     ],
 )
 def test_bad_cameras_fail_in_one_line(

@@ -53,6 +53,14 @@ OutOpt = Annotated[Path, typer.Option("-o", "--output", help="Image to write (.p
 SseOpt = Annotated[float, typer.Option("--max-sse", help="Screen-space error bound, pixels.")]
 
 
+def _scene_options(*, max_sse: float, anisotropy: float) -> SceneOptions:
+    """Scene options from flags; a value the engine refuses is a one-line usage error."""
+    try:
+        return SceneOptions(select=SelectOptions(max_sse=max_sse), anisotropy=anisotropy)
+    except ValueError as exc:
+        raise LodscapeError(f"bad option: {exc}") from None
+
+
 def _write_atomic(path: Path, write: object) -> None:
     """Write through a temporary file in the same folder, renamed into place when complete."""
     path = path.expanduser()
@@ -144,11 +152,15 @@ def render(
         typer.Option(help="Also write depth (metres along the view axis) as .npy or .tif."),
     ] = None,
     max_sse: SseOpt = 2.0,
+    anisotropy: Annotated[
+        float,
+        typer.Option(callback=_finite, help="Anisotropic filtering cap; 1 is faster on llvmpipe."),
+    ] = 16.0,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
 ) -> None:
     """Render one view of SOURCE. Without --lon/--lat/--alt, a view of the whole data."""
     w, h = _size(size)
-    options = SceneOptions(select=SelectOptions(max_sse=max_sse))
+    options = _scene_options(max_sse=max_sse, anisotropy=anisotropy)
     with open_scene(source, options) as scene:
         if lon is None and lat is None and alt is None:
             camera = scene.overview_camera(w, h, fov)

@@ -49,6 +49,17 @@ class SceneOptions:
     workers: int = 4
     #: Clear colour (RGB, 0..1) where no terrain is drawn.
     background: tuple[float, float, float] = SKY
+    #: Anisotropic texture filtering cap (1 turns it off): sharper ground at grazing angles, and
+    #: free on a GPU, but it makes a frame about 2.4x slower on Mesa's llvmpipe.
+    anisotropy: float = 16.0
+
+    def __post_init__(self) -> None:
+        if not self.gpu_budget_mb > 0.0:
+            raise ValueError(f"Expected a positive gpu_budget_mb, got {self.gpu_budget_mb}")
+        if self.workers < 1:
+            raise ValueError(f"Expected at least one worker, got {self.workers}")
+        if not self.anisotropy >= 1.0:
+            raise ValueError(f"Expected anisotropy >= 1, got {self.anisotropy}")
 
 
 @dataclass(frozen=True)
@@ -192,7 +203,10 @@ class Scene:
     def _renderer_for(self, camera: Camera) -> Renderer:
         if self._renderer is None:
             self._renderer = Renderer(
-                camera.width, camera.height, background=self.options.background
+                camera.width,
+                camera.height,
+                background=self.options.background,
+                anisotropy=self.options.anisotropy,
             )
         return self._renderer
 
