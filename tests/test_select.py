@@ -90,6 +90,7 @@ def test_a_tiny_move_keeps_the_selection(tree: TileTree) -> None:
         nudged = cam.moved(lon=cam.lon + 1e-6, alt=cam.alt + 0.05, heading=cam.heading + 0.01)
         second = select(OPTS, nudged, tree, previous=first)
         assert np.array_equal(np.sort(first.keys), np.sort(second.keys))
+        assert np.array_equal(np.sort(first.texture_keys), np.sort(second.texture_keys))
 
 
 def test_hysteresis_stops_flicker(tree: TileTree) -> None:
