@@ -149,11 +149,13 @@ def test_truncated_tiles_fail_in_one_line(cut: int) -> None:
 
 def test_garbage_fails_cleanly() -> None:
     rng = np.random.default_rng(1)
+    failures = 0
     for size in (0, 50, 100, 1000, 5000):
         try:
             decode(rng.bytes(size))
-        except QuantizedMeshError as exc:
-            assert "\n" not in str(exc)
+        except QuantizedMeshError:
+            failures += 1
+    assert failures == 5
 
 
 def test_thirty_two_bit_indices_above_65536_vertices() -> None:

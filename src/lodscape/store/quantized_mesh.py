@@ -83,10 +83,12 @@ class QuantizedMesh:
         """Longitude, latitude (degrees) and height (metres) of every vertex, given the tile's
         geographic rectangle."""
         s = 1.0 / QUANTIZED_MAX
-        lon = west + (east - west) * self.u * s
-        lat = south + (north - south) * self.v * s
-        h = self.min_height + (self.max_height - self.min_height) * self.h * s
-        return lon, lat, h
+        u, v, h = (a.astype(np.float64) * s for a in (self.u, self.v, self.h))
+        return (
+            west + (east - west) * u,
+            south + (north - south) * v,
+            self.min_height + (self.max_height - self.min_height) * h,
+        )
 
 
 def quantize(values: F64, lo: float, hi: float) -> U16:
@@ -106,7 +108,8 @@ def oct_encode(normals: F64) -> NDArray[np.uint8]:
     sign = np.where(p >= 0.0, 1.0, -1.0)
     folded = (1.0 - np.abs(p[:, ::-1])) * sign
     p = np.where(neg[:, None], folded, p)
-    return np.rint((np.clip(p, -1.0, 1.0) * 0.5 + 0.5) * 255.0).astype(np.uint8)
+    out: NDArray[np.uint8] = np.rint((np.clip(p, -1.0, 1.0) * 0.5 + 0.5) * 255.0).astype(np.uint8)
+    return out
 
 
 def oct_decode(encoded: NDArray[np.uint8]) -> F64:
@@ -122,8 +125,9 @@ def oct_decode(encoded: NDArray[np.uint8]) -> F64:
 
 
 def _zigzag_deltas(values: U16) -> bytes:
-    d = np.diff(values.astype(np.int32), prepend=0)
-    return (((d << 1) ^ (d >> 31)) & 0xFFFF).astype("<u2").tobytes()
+    d = np.diff(np.concatenate([np.zeros(1, np.int32), values.astype(np.int32)]))
+    z = (np.left_shift(d, 1) ^ np.right_shift(d, 31)) & 0xFFFF
+    return bytes(z.astype("<u2").tobytes())
 
 
 def _unzigzag(codes: U16) -> U16:
