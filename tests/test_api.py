@@ -18,6 +18,8 @@ def test_exported_members_resolve() -> None:
         "terrain",
         "imagery",
         "render",
+        "store",
+        "build",
         "data",
         "cli",
         "annotations",

@@ -24,13 +24,14 @@ from numpy.typing import NDArray
 
 from lodscape.errors import CameraError
 from lodscape.geo.frames import WGS84_A
-from lodscape.geo.tiles import lonlat_to_merc, merc_to_lonlat, tile_from_id, tile_size
-from lodscape.imagery import TintImagery
+from lodscape.geo.tiles import merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import TEXTURE, Selection, SelectOptions, select, tile_boxes
 from lodscape.render import DrawItem, Renderer
-from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
-from lodscape.terrain.pyramid import TileTree, build_tree
+from lodscape.store.provider import Provider, RasterProvider
+from lodscape.store.tileset import TilesetProvider, is_tileset
+from lodscape.terrain.mesh import TileMesh
+from lodscape.terrain.pyramid import TileTree
 from lodscape.terrain.source import ArraySource, HeightSource, RasterSource
 
 __all__ = ["FrameStats", "Scene", "SceneOptions", "open"]
@@ -68,6 +69,8 @@ class FrameStats:
 
     selection: dict[str, float | int]
     draw_calls: int
+    #: Triangles the renderer drew, skirts included.
+    triangles: int
     loaded: int
     resident_mb: float
     select_ms: float
@@ -77,6 +80,7 @@ class FrameStats:
     def as_dict(self) -> dict[str, float | int]:
         return {
             **self.selection,
+            "triangles": self.triangles,
             "draw_calls": self.draw_calls,
             "loaded": self.loaded,
             "resident_mb": round(self.resident_mb, 2),
@@ -87,19 +91,25 @@ class FrameStats:
 
 
 class Scene:
-    """A height source ready to render from any camera."""
+    """A terrain ready to render from any camera: a provider (a raster meshed on the fly, or a
+    prebuilt tileset) and the GPU resources of its tiles."""
 
     def __init__(
         self,
-        source: HeightSource,
+        source: HeightSource | Provider,
         options: SceneOptions | None = None,
         *,
         tree: TileTree | None = None,
+        owns: bool = False,
     ) -> None:
-        self.source = source
+        # a height source has ``sample``; anything else is already a provider
+        if hasattr(source, "sample"):
+            self.provider: Provider = RasterProvider(source, tree)  # type: ignore[arg-type]
+        else:
+            self.provider = source  # type: ignore[assignment]
+        self._owns = owns
         self.options = options or SceneOptions()
-        self.tree = tree if tree is not None else build_tree(source)
-        self.imagery = TintImagery(source, self.tree.height_range, tile_size=self.tree.tile_size)
+        self.tree = self.provider.tree
         self._renderer: Renderer | None = None
         self._previous: Selection | None = None
         self._used: OrderedDict[int, None] = OrderedDict()
@@ -108,11 +118,14 @@ class Scene:
 
     # --- geometry helpers ----------------------------------------------------------------
 
+    @property
+    def source(self) -> Provider:
+        """The provider (its ``name``, ``bounds_merc`` and ``tree``)."""
+        return self.provider
+
     def ground_height(self, lon: float, lat: float) -> float | None:
         """Terrain height at a point, or None outside the data's footprint."""
-        xm, ym = lonlat_to_merc([lon], [lat])
-        h, valid = self.source.sample(xm, ym, self.source.resolution_merc)
-        return float(h[0]) if bool(valid[0]) else None
+        return self.provider.ground_height(lon, lat)
 
     def overview_camera(self, width: int = 1280, height: int = 720, fov_y: float = 60.0) -> Camera:
         """A camera south of the data looking north at its centre, seeing all of it."""
@@ -184,6 +197,7 @@ class Scene:
         self.last = FrameStats(
             sel.stats(),
             renderer.last_stats.draw_calls,
+            renderer.last_stats.triangles,
             loaded,
             res_mb,
             (t1 - t0) * 1e3,
@@ -210,22 +224,9 @@ class Scene:
             )
         return self._renderer
 
-    def mesh(self, key: int) -> TileMesh:
-        """The mesh of one resource key (worker-thread safe, no GL)."""
-        t = tile_from_id(key >> 3)
-        segments = self.tree.grids[key & 7]
-        xs, ys = grid_coordinates(t.z, t.x, t.y, segments)
-        xx, yy = np.meshgrid(xs, ys)
-        heights, _ = self.source.sample(xx, yy, float(tile_size(t.z)) / segments)
-        return build_mesh(key, t.z, t.x, t.y, heights)
-
-    def texture(self, key: int) -> NDArray[np.uint8]:
-        """The RGBA texture of one texture key (worker-thread safe, no GL)."""
-        t = tile_from_id(key >> 3)
-        return self.imagery.texture(t.z, t.x, t.y)
-
     def _prepare(self, key: int) -> TileMesh | NDArray[np.uint8]:
-        return self.texture(key) if key & 7 == TEXTURE else self.mesh(key)
+        p = self.provider
+        return p.texture(key) if key & 7 == TEXTURE else p.mesh(key)
 
     def _load(self, renderer: Renderer, keys: NDArray[np.uint64]) -> int:
         # workers read, mesh and shade; this thread, which owns the GL context, uploads
@@ -259,6 +260,9 @@ class Scene:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+        if self._owns:
+            self.provider.close()
+            self._owns = False
 
     def __enter__(self) -> Scene:
         return self
@@ -282,16 +286,17 @@ def draw_items(sel: Selection) -> list[DrawItem]:
 
 
 def open(
-    source: str | PathLike[str] | HeightSource | NDArray[np.floating],
+    source: str | PathLike[str] | HeightSource | Provider | NDArray[np.floating],
     options: SceneOptions | None = None,
     **array_kwargs: Any,
 ) -> Scene:
-    """A scene over a GeoTIFF (any GDAL raster), a numpy array (with ``transform``, ``crs``), or a
-    ready HeightSource."""
+    """A scene over a tileset built by ``lodscape build`` (.lods), a GeoTIFF (any GDAL raster), a
+    numpy array (with ``transform``, ``crs``), or a ready HeightSource or Provider. A scene
+    opened from a path or an array closes what it opened when it closes."""
     if isinstance(source, np.ndarray):
-        src: HeightSource = ArraySource(source, **array_kwargs)
-    elif isinstance(source, str | PathLike):
-        src = RasterSource(source)
-    else:
-        src = source
-    return Scene(src, options)
+        return Scene(ArraySource(source, **array_kwargs), options, owns=True)
+    if isinstance(source, str | PathLike):
+        if is_tileset(source):
+            return Scene(TilesetProvider(source), options, owns=True)
+        return Scene(RasterSource(source), options, owns=True)
+    return Scene(source, options)

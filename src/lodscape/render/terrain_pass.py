@@ -105,6 +105,8 @@ class DrawStats:
 class _Tile:
     vbo: moderngl.Buffer
     vao: moderngl.VertexArray
+    #: An irregular mesh's own index buffer (None: the shared one of its grid size).
+    ibo: moderngl.Buffer | None
     segments: int
     triangles: int
     nbytes: int
@@ -173,12 +175,21 @@ class Renderer:
             return
         s = mesh.segments
         vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
-        if vertices.shape != ((s + 1) ** 2 + 4 * s, 6):
+        if mesh.indices is not None:
+            indices = np.ascontiguousarray(mesh.indices, dtype=np.uint32)
+            if vertices.ndim != 2 or vertices.shape[1] != 6 or indices.ndim != 2:
+                raise ValueError(f"mesh {mesh.key}: expected (N, 6) vertices and (M, 3) indices")
+            if indices.size and int(indices.max()) >= vertices.shape[0]:
+                raise ValueError(f"mesh {mesh.key}: index beyond its {len(vertices)} vertices")
+            ibo = self._track(self.ctx.buffer(indices))
+            s = 0
+        elif vertices.shape != ((s + 1) ** 2 + 4 * s, 6) or s < 1:
             raise ValueError(
                 f"mesh {mesh.key}: expected {(s + 1) ** 2 + 4 * s}x6 vertices for {s} segments, "
                 f"got {vertices.shape}"
             )
-        ibo = self._index_buffer(s)
+        else:
+            ibo = self._index_buffer(s)
         vbo = self._track(self.ctx.buffer(vertices))
         vao = self._track(
             self.ctx.vertex_array(  # type: ignore[no-untyped-call]  # untyped in moderngl's stubs
@@ -191,6 +202,7 @@ class Renderer:
         self._tiles[mesh.key] = _Tile(
             vbo,
             vao,
+            ibo if s == 0 else None,
             s,
             mesh.triangles,
             mesh.nbytes,
@@ -232,6 +244,9 @@ class Renderer:
             return
         for obj in (tile.vao, tile.vbo):
             self._free(obj)
+        if tile.ibo is not None:
+            self._free(tile.ibo)
+            return
         ibo, users = self._indices[tile.segments]
         if users > 1:
             self._indices[tile.segments] = (ibo, users - 1)

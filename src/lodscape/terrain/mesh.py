@@ -7,6 +7,7 @@ to its south-east corner; `lodscape.terrain.pyramid` measures errors on the same
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
 
@@ -14,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.geo.frames import geodetic_to_ecef, up_vector
-from lodscape.geo.tiles import ORIGIN, merc_to_lonlat
+from lodscape.geo.tiles import ORIGIN, Tile, lonlat_to_merc, merc_to_lonlat, xy_bounds
 
 __all__ = [
     "GRIDS",
@@ -23,6 +24,7 @@ __all__ = [
     "grid_coordinates",
     "grid_indices",
     "ring_indices",
+    "tin_mesh",
 ]
 
 #: Segment counts a tile grid may have, coarsest first (grid k has 16·2^k segments). Finer detail
@@ -32,22 +34,31 @@ GRIDS: tuple[int, ...] = (16, 32, 64)
 
 @dataclass(frozen=True, eq=False)
 class TileMesh:
-    """Everything the renderer needs for one tile at one grid size; made off the GL thread."""
+    """Everything the renderer needs for one tile's mesh; made off the GL thread.
+
+    A regular grid (``segments`` > 0) shares its index buffer with every tile of that size; an
+    irregular mesh (a TIN read from a tileset) brings its own ``indices`` and has segments 0.
+    """
 
     key: int
     segments: int
-    #: (N, 6) float32: x, y, z relative to ``center``; u, v; skirt flag (0 grid, 1 skirt).
+    #: (N, 6) float32: x, y, z relative to ``center``; u, v; skirt flag (0 surface, 1 skirt).
     vertices: NDArray[np.float32]
     center: NDArray[np.float64]
     up: NDArray[np.float32]
+    #: (M, 3) uint32 triangles of an irregular mesh, skirts included; None for a grid.
+    indices: NDArray[np.uint32] | None = None
 
     @property
     def triangles(self) -> int:
+        if self.indices is not None:
+            return int(self.indices.shape[0])
         return 2 * self.segments * self.segments + 8 * self.segments
 
     @property
     def nbytes(self) -> int:
-        return int(self.vertices.nbytes)
+        own = 0 if self.indices is None else self.indices.nbytes
+        return int(self.vertices.nbytes + own)
 
 
 @cache
@@ -123,3 +134,50 @@ def build_mesh(
     vertices = np.concatenate([grid, skirt]).astype(np.float32)
     up = up_vector(clon, clat).astype(np.float32)
     return TileMesh(key, s, vertices, center, up)
+
+
+def tin_mesh(
+    key: int,
+    z: int,
+    x: int,
+    y: int,
+    lon: NDArray[np.float64],
+    lat: NDArray[np.float64],
+    heights: NDArray[np.floating],
+    triangles: NDArray[np.integer],
+    sides: Sequence[NDArray[np.integer]],
+) -> TileMesh:
+    """An irregular tile mesh (a TIN) with skirts along its four ``sides`` (west, south, east,
+    north lists of the vertices on each, in any order): each side's vertices, in order along it,
+    are joined to copies of themselves flagged as skirt, which the vertex shader lowers."""
+    lon = np.asarray(lon, np.float64)
+    lat = np.asarray(lat, np.float64)
+    h = np.asarray(heights, np.float64)
+    b = xy_bounds(Tile(x, y, z))
+    xm, ym = lonlat_to_merc(lon, lat)
+    # texture coordinates follow the Web Mercator tile (row 0 north), like the imagery
+    u = (xm - b.left) / (b.right - b.left)
+    v = (b.top - ym) / (b.top - b.bottom)
+    clon, clat = merc_to_lonlat((b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0)
+    center = geodetic_to_ecef(clon, clat, (float(h.min()) + float(h.max())) / 2.0)
+    rel = geodetic_to_ecef(lon, lat, h) - center
+    surface = np.column_stack([rel, u, v, np.zeros(lon.size)])
+    rings, skirt_tris = [], []
+    start = lon.size
+    for k, side in enumerate(sides):
+        idx = np.unique(np.asarray(side, dtype=np.int64))
+        if idx.size < 2:
+            continue
+        along = lat if k in (0, 2) else lon
+        idx = idx[np.argsort(along[idx], kind="stable")]
+        ring = surface[idx].copy()
+        ring[:, 5] = 1.0
+        rings.append(ring)
+        a, b2 = idx[:-1], idx[1:]
+        sa = start + np.arange(idx.size - 1)
+        skirt_tris.append(np.column_stack([a, sa, b2, b2, sa, sa + 1]).reshape(-1, 3))
+        start += idx.size
+    vertices = np.concatenate([surface, *rings]).astype(np.float32)
+    indices = np.concatenate([np.asarray(triangles, np.int64).reshape(-1, 3), *skirt_tris])
+    up = up_vector(clon, clat).astype(np.float32)
+    return TileMesh(key, 0, vertices, center, up, indices.astype(np.uint32))

@@ -166,10 +166,29 @@ def _pool(
     return getattr(blocks, op)(axis=(1, 3)).astype(np.float32)  # type: ignore[no-any-return]
 
 
-def build_tree(
-    source: SampleSource, *, tile_size: int = 256, grids: tuple[int, ...] = GRIDS
-) -> TileTree:
-    """Walk the source once, bottom-up, and return its tile tree."""
+@dataclass(frozen=True)
+class LevelSpan:
+    """Which levels a tile tree over some data has."""
+
+    #: The roots: the finest level at which the data spans at most 2×2 tiles.
+    zmin: int
+    #: The finest texture level: its texels as fine as the data.
+    texture_zmax: int
+    #: The finest level: its finest grid samples every texel of ``texture_zmax``.
+    zmax: int
+    #: Levels the data's resolution was coarsened by to fit ``max_samples`` (0: full detail).
+    coarsened: int = 0
+
+
+def level_span(
+    bounds: Bbox,
+    resolution: float,
+    *,
+    tile_size: int = 256,
+    grids: tuple[int, ...] = GRIDS,
+    max_samples: int | None = MAX_SAMPLES,
+) -> LevelSpan:
+    """The levels of the tree over data of ``bounds`` and ``resolution`` (EPSG:3857 metres)."""
     if grids[0] != _BASE or any(g != _BASE << k for k, g in enumerate(grids)):
         raise ValueError(f"Expected grids {_BASE}·2^k, got {grids}")
     texel_levels = round(math.log2(tile_size / _BASE)) if tile_size >= _BASE else -1
@@ -178,22 +197,30 @@ def build_tree(
     depth = len(grids) - 1
     if depth > texel_levels:
         raise ValueError(f"Expected grids no finer than the {tile_size} texels of a tile")
-    bounds = source.bounds_merc
-    res = source.resolution_merc
-    # the finest texture level: its texels as fine as the data
-    zmax = math.ceil(math.log2(2.0 * ORIGIN / (tile_size * res)))
+    zmax = math.ceil(math.log2(2.0 * ORIGIN / (tile_size * resolution)))
     zmax = min(max(zmax, 0), MAX_ZOOM - texel_levels)
     coarsened = 0
-    while zmax > 0:
+    while max_samples is not None and zmax > 0:
         _, _, nx, ny = level_range(bounds, zmax + texel_levels)
-        if (nx * _BASE + 1) * (ny * _BASE + 1) <= MAX_SAMPLES:
+        if (nx * _BASE + 1) * (ny * _BASE + 1) <= max_samples:
             break
         zmax -= 1
         coarsened += 1
-    # the roots: the finest level at which the data spans at most 2×2 tiles
     zmin = zmax
     while zmin > 0 and max(level_range(bounds, zmin)[2:]) > 2:
         zmin -= 1
+    return LevelSpan(zmin, zmax, zmax + texel_levels - depth, coarsened)
+
+
+def build_tree(
+    source: SampleSource, *, tile_size: int = 256, grids: tuple[int, ...] = GRIDS
+) -> TileTree:
+    """Walk the source once, bottom-up, and return its tile tree."""
+    span = level_span(source.bounds_merc, source.resolution_merc, tile_size=tile_size, grids=grids)
+    bounds = source.bounds_merc
+    zmin, zmax, coarsened = span.zmin, span.texture_zmax, span.coarsened
+    texel_levels = round(math.log2(tile_size / _BASE))
+    depth = len(grids) - 1
 
     levels: dict[int, tuple[Level, NDArray[np.float32], tuple[int, int, int, int]]] = {}
     height_range = (0.0, 0.0)

@@ -35,7 +35,14 @@ from scipy.ndimage import distance_transform_edt
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import MAX_LAT, ORIGIN, Bbox, lonlat_to_merc
 
-__all__ = ["COARSE_SIZE", "ArraySource", "HeightSource", "RasterSource"]
+__all__ = [
+    "COARSE_SIZE",
+    "ArraySource",
+    "HeightSource",
+    "MosaicSource",
+    "RasterSource",
+    "open_rasters",
+]
 
 #: Longest side (pixels) of the hole-filled whole-raster overview that fills invalid points.
 COARSE_SIZE = 1024
@@ -625,3 +632,97 @@ class ArraySource(_GridSource):
     def close(self) -> None:
         """Mark the source closed; further samples raise SourceError."""
         self._closed = True
+
+
+class MosaicSource:
+    """Several height sources as one, each point from the finest source with data there.
+
+    Sources in different CRSs are each reprojected on the fly; ``open_rasters`` refuses them
+    unless asked, as gdalbuildvrt does, since mixing them is more often a mistake than a plan.
+    """
+
+    def __init__(self, sources: Sequence[HeightSource]) -> None:
+        if not sources:
+            raise SourceError("no height sources to mosaic")
+        # finest first: where sources overlap, the more detailed one wins
+        self.sources = sorted(sources, key=lambda s: s.resolution_merc)
+        names = [s.name for s in sources]
+        self.name = names[0] if len(names) == 1 else f"{names[0]} (+{len(names) - 1} more)"
+        self.crs_wkt = self.sources[0].crs_wkt
+        boxes = np.array([tuple(s.bounds_merc) for s in self.sources])
+        self.bounds_merc = Bbox(
+            float(boxes[:, 0].min()),
+            float(boxes[:, 1].min()),
+            float(boxes[:, 2].max()),
+            float(boxes[:, 3].max()),
+        )
+        self.resolution_merc = float(self.sources[0].resolution_merc)
+
+    def _combine(
+        self, parts: Sequence[tuple[NDArray[np.float32], NDArray[np.bool_]]]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        h, valid = parts[0][0].copy(), parts[0][1].copy()
+        for hk, vk in parts[1:]:
+            take = vk & ~valid
+            h[take] = hk[take]
+            valid |= vk
+        return h, valid
+
+    def sample(
+        self, xm: ArrayLike, ym: ArrayLike, spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        return self._combine([s.sample(xm, ym, spacing) for s in self.sources])  # type: ignore[arg-type]
+
+    def sample_grid(
+        self, xs: ArrayLike, ys: ArrayLike, spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        return self._combine([s.sample_grid(xs, ys, spacing) for s in self.sources])  # type: ignore[arg-type]
+
+    def read(
+        self, bounds: Bbox, shape: tuple[int, int]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        return self._combine([s.read(bounds, shape) for s in self.sources])
+
+    def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]:
+        out = self.sources[0].covers(xm, ym)
+        for s in self.sources[1:]:
+            out = out | s.covers(xm, ym)
+        return out
+
+    def close(self) -> None:
+        for s in self.sources:
+            s.close()
+
+
+def open_rasters(
+    paths: Sequence[str | os.PathLike[str]], *, allow_mixed_crs: bool = False
+) -> HeightSource:
+    """One raster as a RasterSource, several as a MosaicSource; each file checked as it opens."""
+    opened: list[RasterSource] = []
+    try:
+        for p in paths:
+            opened.append(RasterSource(p))
+        if not opened:
+            raise SourceError("no input rasters given")
+        crs = {CRS.from_wkt(s.crs_wkt) for s in opened}
+        if len(crs) > 1 and not allow_mixed_crs:
+            first = opened[0]
+            other = next(
+                s for s in opened if CRS.from_wkt(s.crs_wkt) != CRS.from_wkt(first.crs_wkt)
+            )
+            raise SourceError(
+                f"{other.name}: its CRS ({_crs_name(other.crs_wkt)}) differs from "
+                f"{first.name}'s ({_crs_name(first.crs_wkt)}); reproject the inputs to one CRS, "
+                "or pass --allow-mixed-crs to reproject each on the fly"
+            )
+    except BaseException:
+        for s in opened:
+            s.close()
+        raise
+    return opened[0] if len(opened) == 1 else MosaicSource(opened)
+
+
+def _crs_name(wkt: str) -> str:
+    crs = CRS.from_wkt(wkt)
+    code = crs.to_epsg()
+    return f"EPSG:{code}" if code else crs.name

@@ -1,0 +1,414 @@
+"""The embedded tileset: one SQLite file (paper 000's relational store).
+
+Tables:
+- ``metadata`` (name, value): the MBTiles metadata (name, format, bounds, center, minzoom,
+  maxzoom, type, version, description, attribution) and, under ``lodscape``, a JSON document:
+  schema version, levels, CRS, height range, provenance, build options, whether it is complete;
+- ``tiles`` (zoom_level, tile_column, tile_row, tile_data): imagery as PNG, rows counted from the
+  south as MBTiles has them, so any MBTiles reader opens the file;
+- ``terrain`` (z, x, y, error, min_h, max_h, data): quantized-mesh-1.0 tiles, rows from the north
+  (OSM), each with its measured geometric error and height range;
+- ``plan`` (z, x, y, done): every tile the build will make, and which are finished.
+
+A build writes each batch of finished tiles, their imagery and their ``done`` marks in one
+transaction, so a build killed at any moment loses at most the batch in flight and never leaves a
+partial tile; started again, it makes only what ``plan`` has not marked done. A reader refuses a
+file whose build has not completed.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import sqlite3
+import threading
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.errors import LodscapeError, SourceError
+from lodscape.geo.tiles import (
+    Bbox,
+    bounds,
+    lonlat_to_merc,
+    merc_to_lonlat,
+    tile,
+    tile_from_id,
+)
+from lodscape.store.quantized_mesh import QuantizedMeshError, decode
+from lodscape.terrain.mesh import TileMesh, tin_mesh
+from lodscape.terrain.pyramid import Level, TileTree
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "TileRecord",
+    "TilesetError",
+    "TilesetProvider",
+    "TilesetWriter",
+    "is_tileset",
+    "read_tree",
+]
+
+SCHEMA_VERSION = 1
+_MAGIC = b"SQLite format 3\x00"
+#: The grid size a tileset's meshes are cut from (and what Selection counts triangles by).
+TIN_GRID = 64
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS metadata (name TEXT PRIMARY KEY, value TEXT);
+CREATE TABLE IF NOT EXISTS tiles (
+    zoom_level INTEGER NOT NULL, tile_column INTEGER NOT NULL, tile_row INTEGER NOT NULL,
+    tile_data BLOB NOT NULL, PRIMARY KEY (zoom_level, tile_column, tile_row));
+CREATE TABLE IF NOT EXISTS terrain (
+    z INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL, error REAL NOT NULL,
+    min_h REAL NOT NULL, max_h REAL NOT NULL, data BLOB NOT NULL,
+    PRIMARY KEY (z, x, y)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS plan (
+    z INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL, done INTEGER NOT NULL DEFAULT 0,
+    PRIMARY KEY (z, x, y)) WITHOUT ROWID;
+"""
+
+
+class TilesetError(LodscapeError):
+    """A tileset file that cannot be used: not one, another version, incomplete, damaged."""
+
+
+def is_tileset(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is an SQLite file (a tileset, or something to refuse as one)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(16) == _MAGIC
+    except OSError:
+        return False
+
+
+@dataclass(frozen=True)
+class TileRecord:
+    """One finished tile, as a build worker returns it."""
+
+    z: int
+    x: int
+    y: int
+    #: None when the tile holds no valid data (it is marked done and left out).
+    error: float | None = None
+    min_h: float = 0.0
+    max_h: float = 0.0
+    terrain: bytes = b""
+    #: PNG bytes, for tiles down to the finest texture level.
+    imagery: bytes | None = None
+
+
+class TilesetWriter:
+    """Creates or resumes a tileset file; one writer per file (the build's coordinator)."""
+
+    def __init__(self, path: str | os.PathLike[str], manifest: dict[str, Any]) -> None:
+        self.path = Path(path)
+        folder = self.path.parent if str(self.path.parent) else Path(".")
+        if not folder.is_dir():
+            raise TilesetError(f"{self.path}: folder {folder} does not exist")
+        existed = self.path.exists()
+        if existed and not is_tileset(self.path):
+            raise TilesetError(f"{self.path}: exists and is not a tileset; choose another name")
+        try:
+            self.db = sqlite3.connect(self.path, isolation_level=None)
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=NORMAL")
+            self.db.executescript(_SCHEMA)
+        except sqlite3.Error as exc:
+            raise TilesetError(f"{self.path}: cannot write ({exc})") from None
+        old = self._manifest()
+        if old is not None and _identity(old) != _identity(manifest):
+            self.db.close()
+            raise TilesetError(
+                f"{self.path}: was built from other inputs or options; "
+                "remove it, or build again with the same ones to resume"
+            )
+        self.resumed = old is not None
+        if old is None:
+            self._set_manifest({**manifest, "complete": False})
+
+    # --- plan ----------------------------------------------------------------------------
+
+    def plan(self, tiles: Iterable[tuple[int, int, int]]) -> None:
+        """Record every tile the build will make (tiles already planned are kept)."""
+        with self._transaction():
+            self.db.executemany(
+                "INSERT OR IGNORE INTO plan (z, x, y, done) VALUES (?, ?, ?, 0)", tiles
+            )
+
+    def pending(self) -> list[tuple[int, int, int]]:
+        rows = self.db.execute("SELECT z, x, y FROM plan WHERE done = 0 ORDER BY z, y, x")
+        return [(int(z), int(x), int(y)) for z, x, y in rows]
+
+    def counts(self) -> tuple[int, int]:
+        """(tiles done, tiles planned)."""
+        done, total = self.db.execute("SELECT SUM(done), COUNT(*) FROM plan").fetchone()
+        return int(done or 0), int(total or 0)
+
+    # --- tiles ---------------------------------------------------------------------------
+
+    def write(self, records: Sequence[TileRecord]) -> None:
+        """Store a batch of finished tiles and mark them done, all or nothing."""
+        with self._transaction():
+            for r in records:
+                if r.error is not None:
+                    self.db.execute(
+                        "INSERT OR REPLACE INTO terrain VALUES (?, ?, ?, ?, ?, ?, ?)",
+                        (r.z, r.x, r.y, r.error, r.min_h, r.max_h, r.terrain),
+                    )
+                if r.imagery is not None:
+                    self.db.execute(
+                        "INSERT OR REPLACE INTO tiles VALUES (?, ?, ?, ?)",
+                        (r.z, r.x, (1 << r.z) - 1 - r.y, r.imagery),
+                    )
+                self.db.execute(
+                    "UPDATE plan SET done = 1 WHERE z = ? AND x = ? AND y = ?", (r.z, r.x, r.y)
+                )
+
+    def finish(self, mbtiles: dict[str, str]) -> None:
+        """Mark the build complete, with its MBTiles metadata, and fold the write-ahead log back
+        into the one file."""
+        manifest = self._manifest() or {}
+        with self._transaction():
+            self.db.executemany(
+                "INSERT OR REPLACE INTO metadata (name, value) VALUES (?, ?)", mbtiles.items()
+            )
+            self._set_manifest({**manifest, "complete": True})
+        self.db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        self.db.execute("PRAGMA journal_mode=DELETE")
+
+    def close(self) -> None:
+        self.db.close()
+
+    # --- internals -----------------------------------------------------------------------
+
+    def _manifest(self) -> dict[str, Any] | None:
+        row = self.db.execute("SELECT value FROM metadata WHERE name = 'lodscape'").fetchone()
+        return None if row is None else dict(json.loads(row[0]))
+
+    def _set_manifest(self, manifest: dict[str, Any]) -> None:
+        self.db.execute(
+            "INSERT OR REPLACE INTO metadata (name, value) VALUES ('lodscape', ?)",
+            (json.dumps(manifest, sort_keys=True),),
+        )
+
+    def _transaction(self) -> _Transaction:
+        return _Transaction(self.db, self.path)
+
+
+class _Transaction:
+    def __init__(self, db: sqlite3.Connection, path: Path) -> None:
+        self.db, self.path = db, path
+
+    def __enter__(self) -> None:
+        self.db.execute("BEGIN IMMEDIATE")
+
+    def __exit__(self, exc_type: Any, exc: BaseException | None, tb: Any) -> None:
+        if exc_type is None:
+            try:
+                self.db.execute("COMMIT")
+                return
+            except sqlite3.Error as err:
+                exc = err
+        self.db.execute("ROLLBACK")
+        if isinstance(exc, sqlite3.OperationalError) and "full" in str(exc):
+            raise TilesetError(
+                f"{self.path}: the disk is full; nothing of the last batch was kept, and "
+                "the build resumes from there once there is room"
+            ) from None
+        if isinstance(exc, sqlite3.Error):
+            raise TilesetError(f"{self.path}: cannot write ({exc})") from None
+
+
+def _identity(manifest: dict[str, Any]) -> Any:
+    """What must match for a build to resume: the inputs and the options that shape tiles."""
+    return (manifest.get("schema"), manifest.get("provenance"), manifest.get("options"))
+
+
+# --- reading ---------------------------------------------------------------------------------
+
+
+def read_tree(db: sqlite3.Connection, manifest: dict[str, Any]) -> TileTree:
+    """The tile tree of a tileset: per level, which tiles exist, their heights and errors."""
+    levels = manifest["levels"]
+    zmin, zmax = int(levels["zmin"]), int(levels["zmax"])
+    rows = np.array(
+        db.execute("SELECT z, x, y, error, min_h, max_h FROM terrain").fetchall(), dtype=np.float64
+    ).reshape(-1, 6)
+    out = []
+    for z in range(zmin, zmax + 1):
+        r = rows[rows[:, 0] == z]
+        if r.size == 0:
+            raise TilesetError(f"tileset has no tile at level {z}")
+        x = r[:, 1].astype(np.int64)
+        y = r[:, 2].astype(np.int64)
+        x0, y0 = int(x.min()), int(y.min())
+        nx, ny = int(x.max()) - x0 + 1, int(y.max()) - y0 + 1
+        exists = np.zeros((ny, nx), dtype=bool)
+        min_h = np.zeros((ny, nx), dtype=np.float32)
+        max_h = np.zeros((ny, nx), dtype=np.float32)
+        error = np.zeros((1, ny, nx), dtype=np.float32)
+        exists[y - y0, x - x0] = True
+        min_h[y - y0, x - x0] = r[:, 4]
+        max_h[y - y0, x - x0] = r[:, 5]
+        error[0, y - y0, x - x0] = r[:, 3]
+        out.append(Level(z, x0, y0, exists, min_h, max_h, error))
+    lo, hi = manifest["height_range"]
+    return TileTree(
+        tuple(out),
+        (TIN_GRID,),
+        int(manifest["tile_size"]),
+        (float(lo), float(hi)),
+        0,
+        int(levels["texture_zmax"]),
+    )
+
+
+class TilesetProvider:
+    """A tileset file as a Scene's provider: every tile is one indexed query away."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.name = str(path)
+        if not self.path.exists():
+            raise SourceError(f"{self.name}: no such file")
+        self._local = threading.local()
+        self._lock = threading.Lock()
+        self._connections: list[sqlite3.Connection] = []
+        try:
+            db = self._db()
+            row = db.execute("SELECT value FROM metadata WHERE name = 'lodscape'").fetchone()
+        except sqlite3.Error as exc:
+            self.close()
+            raise TilesetError(f"{self.name}: not a lodscape tileset ({exc})") from None
+        if row is None:
+            self.close()
+            raise TilesetError(f"{self.name}: an SQLite file, but not a lodscape tileset")
+        self.manifest: dict[str, Any] = json.loads(row[0])
+        if self.manifest.get("schema") != SCHEMA_VERSION:
+            self.close()
+            raise TilesetError(
+                f"{self.name}: tileset schema {self.manifest.get('schema')} is not the "
+                f"{SCHEMA_VERSION} this lodscape reads"
+            )
+        if not self.manifest.get("complete"):
+            done, total = db.execute("SELECT SUM(done), COUNT(*) FROM plan").fetchone()
+            self.close()
+            raise TilesetError(
+                f"{self.name}: its build stopped at {int(done or 0)} of {int(total or 0)} "
+                "tiles; run the same lodscape build again to finish it"
+            )
+        self.tree = read_tree(db, self.manifest)
+        b = self.manifest["bounds_merc"]
+        self.bounds_merc = Bbox(*(float(v) for v in b))
+
+    def _db(self) -> sqlite3.Connection:
+        """This thread's read-only connection (SQLite connections are not shared by threads)."""
+        db: sqlite3.Connection | None = getattr(self._local, "db", None)
+        if db is None:
+            uri = f"file:{self.path.resolve().as_posix()}?mode=ro"
+            db = sqlite3.connect(uri, uri=True, check_same_thread=False)
+            self._local.db = db
+            with self._lock:
+                self._connections.append(db)
+        return db
+
+    def _terrain(self, z: int, x: int, y: int) -> bytes | None:
+        row = (
+            self._db()
+            .execute("SELECT data FROM terrain WHERE z = ? AND x = ? AND y = ?", (z, x, y))
+            .fetchone()
+        )
+        return None if row is None else bytes(row[0])
+
+    def mesh(self, key: int) -> TileMesh:
+        t = tile_from_id(key >> 3)
+        data = self._terrain(t.z, t.x, t.y)
+        if data is None:
+            raise TilesetError(f"{self.name}: no terrain tile {t.z}/{t.x}/{t.y}")
+        try:
+            qm = decode(data)
+        except QuantizedMeshError as exc:
+            raise TilesetError(f"{self.name}: terrain tile {t.z}/{t.x}/{t.y}: {exc}") from None
+        b = bounds(t)
+        lon, lat, h = qm.positions(b.left, b.bottom, b.right, b.top)
+        # the quantized sides are exact: put the edge vertices exactly on the tile's edges
+        lon[qm.west], lon[qm.east] = b.left, b.right
+        lat[qm.south], lat[qm.north] = b.bottom, b.top
+        sides = (qm.west, qm.south, qm.east, qm.north)
+        return tin_mesh(key, t.z, t.x, t.y, lon, lat, h, qm.triangles, sides)
+
+    def texture(self, key: int) -> NDArray[np.uint8]:
+        from PIL import Image
+
+        t = tile_from_id(key >> 3)
+        row = (
+            self._db()
+            .execute(
+                "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
+                "AND tile_row = ?",
+                (t.z, t.x, (1 << t.z) - 1 - t.y),
+            )
+            .fetchone()
+        )
+        if row is None:
+            raise TilesetError(f"{self.name}: no imagery tile {t.z}/{t.x}/{t.y}")
+        try:
+            image = Image.open(io.BytesIO(bytes(row[0])))
+            rgba = np.asarray(image.convert("RGBA"))
+        except Exception as exc:  # Pillow raises several unrelated classes on bad data
+            raise TilesetError(f"{self.name}: imagery tile {t.z}/{t.x}/{t.y}: {exc}") from None
+        return np.ascontiguousarray(rgba)
+
+    def ground_height(self, lon: float, lat: float) -> float | None:
+        """The height of the finest tile's mesh under the point."""
+        xm, ym = lonlat_to_merc(lon, lat)
+        b = self.bounds_merc
+        if not (b.left <= float(xm) <= b.right and b.bottom <= float(ym) <= b.top):
+            return None
+        for lv in reversed(self.tree.levels):
+            t = tile(lon, lat, lv.z)
+            ok, _ = lv.index(np.array([t.x]), np.array([t.y]))
+            if not ok[0]:
+                continue
+            data = self._terrain(t.z, t.x, t.y)
+            if data is None:
+                continue
+            return _height_in(decode(data), bounds(t), lon, lat)
+        return None
+
+    def close(self) -> None:
+        with self._lock:
+            for db in self._connections:
+                db.close()
+            self._connections = []
+
+
+def _height_in(qm: Any, b: Bbox, lon: float, lat: float) -> float | None:
+    """Height of the mesh at a point inside its tile, by the triangle that holds it."""
+    plon, plat, h = qm.positions(b.left, b.bottom, b.right, b.top)
+    tri = qm.triangles.astype(np.int64)
+    ax, ay = plon[tri[:, 0]], plat[tri[:, 0]]
+    bx, by = plon[tri[:, 1]], plat[tri[:, 1]]
+    cx, cy = plon[tri[:, 2]], plat[tri[:, 2]]
+    det = (by - cy) * (ax - cx) + (cx - bx) * (ay - cy)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wa = ((by - cy) * (lon - cx) + (cx - bx) * (lat - cy)) / det
+        wb = ((cy - ay) * (lon - cx) + (ax - cx) * (lat - cy)) / det
+    wc = 1.0 - wa - wb
+    inside = (wa >= -1e-9) & (wb >= -1e-9) & (wc >= -1e-9) & (det != 0)
+    if not inside.any():
+        return None
+    k = int(np.argmax(inside))
+    return float(wa[k] * h[tri[k, 0]] + wb[k] * h[tri[k, 1]] + wc[k] * h[tri[k, 2]])
+
+
+def lonlat_bounds(b: Bbox) -> tuple[float, float, float, float]:
+    """An EPSG:3857 box as (west, south, east, north) degrees."""
+    (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+    return float(w), float(s), float(e), float(n)
