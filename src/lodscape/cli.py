@@ -18,6 +18,7 @@ import typer
 from numpy.typing import NDArray
 
 from lodscape.errors import LodscapeError
+from lodscape.geo.tiles import merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import SelectOptions
 from lodscape.scene import Scene, SceneOptions
@@ -188,26 +189,149 @@ def demo(
 
 
 @app.command()
-def info(source: Annotated[str, typer.Argument(help="A DEM: any GDAL raster.")]) -> None:
-    """Print a source's footprint, resolution, height range and tile levels."""
+def info(
+    source: Annotated[str, typer.Argument(help="A DEM (any GDAL raster) or a .lods tileset.")],
+) -> None:
+    """Print a source's footprint, resolution, heights and tile levels (and for a tileset, its
+    size and provenance)."""
     with open_scene(source) as scene:
         tree = scene.tree
-        src = scene.source
-        b = src.bounds_merc
-        typer.echo(f"{'source':>14}: {src.name}")
-        typer.echo(f"{'bounds 3857':>14}: {b.left:.1f} {b.bottom:.1f} {b.right:.1f} {b.top:.1f}")
-        typer.echo(f"{'resolution':>14}: {src.resolution_merc:.3f} m (Web Mercator)")
+        provider = scene.provider
+        b = provider.bounds_merc
+        (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+        line = typer.echo
+        line(f"{'source':>14}: {provider.name}")
+        line(f"{'bounds':>14}: {w:.6f} {s:.6f} {e:.6f} {n:.6f} (lon/lat)")
+        line(f"{'bounds 3857':>14}: {b.left:.1f} {b.bottom:.1f} {b.right:.1f} {b.top:.1f}")
         lo, hi = tree.height_range
-        typer.echo(f"{'heights':>14}: {lo:.1f} .. {hi:.1f} m")
-        typer.echo(
-            f"{'levels':>14}: {tree.zmin} .. {tree.zmax}"
+        line(f"{'heights':>14}: {lo:.1f} .. {hi:.1f} m")
+        line(
+            f"{'levels':>14}: {tree.zmin} .. {tree.zmax}, textures to {tree.texture_zmax}"
             + (f" (coarsened by {tree.coarsened})" if tree.coarsened else "")
         )
+        manifest = getattr(provider, "manifest", None)
+        if manifest is None:
+            res = getattr(provider, "source", None)
+            if res is not None:
+                line(f"{'resolution':>14}: {res.resolution_merc:.3f} m (Web Mercator)")
+        else:
+            size = os.path.getsize(source)
+            line(f"{'tileset':>14}: {size / 2**20:.2f} MiB, schema {manifest['schema']}")
+            line(f"{'terrain':>14}: quantized-mesh-1.0, octvertexnormals; imagery: MBTiles PNG")
+            opts = manifest["options"]
+            line(f"{'build':>14}: error {opts['error_texels']} texel(s) per level")
+            for p in manifest["provenance"]:
+                line(f"{'input':>14}: {p['path']} ({p['bytes']:,d} bytes)")
         for lv in tree.levels:
-            typer.echo(
-                f"{'z' + str(lv.z):>14}: {int(lv.exists.sum())} tiles, "
-                f"max error {float(lv.error[0].max()):.2f} m at 16 segments"
+            line(
+                f"{'z' + str(lv.z):>14}: {int(lv.exists.sum())} tiles, max error "
+                f"{float(lv.error[-1][lv.exists].max()):.2f} m"
+                + (" (finest grid)" if manifest is None else "")
             )
+
+
+@app.command()
+def build(
+    inputs: Annotated[
+        list[str],
+        typer.Argument(help="Rasters (any GDAL format, any CRS) and/or point files (.csv .xyz)."),
+    ],
+    output: Annotated[Path, typer.Option("-o", "--output", help="The tileset to write (.lods).")],
+    crs: Annotated[
+        str | None, typer.Option(help="CRS of point files, e.g. EPSG:32617 or EPSG:4326.")
+    ] = None,
+    resolution: Annotated[
+        float | None,
+        typer.Option(callback=_finite, help="Grid spacing for points, in their CRS's units."),
+    ] = None,
+    error_texels: Annotated[
+        float,
+        typer.Option(callback=_finite, help="Mesh error budget per level, in its texels."),
+    ] = 1.0,
+    workers: Annotated[
+        int | None, typer.Option(help="Build in this many processes (default: threads).")
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="Dask scheduler address (tcp://host:8786), or 'local' for a cluster."),
+    ] = None,
+    allow_mixed_crs: Annotated[
+        bool, typer.Option(help="Mosaic rasters in different CRSs, reprojecting each.")
+    ] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+) -> None:
+    """Build a tileset from INPUTS once, to render, fly or serve it anywhere. Run it again after
+    an interruption: it finishes without redoing what is done."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from lodscape.build import BuildOptions, executor_for
+    from lodscape.build import build as build_tileset
+
+    try:
+        options = BuildOptions(
+            error_texels=error_texels,
+            crs=crs,
+            resolution=resolution,
+            allow_mixed_crs=allow_mixed_crs,
+        )
+    except ValueError as exc:
+        raise LodscapeError(f"bad option: {exc}") from None
+    executor = executor_for(workers, scheduler)
+    columns = (
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]} tiles/s"),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+    )
+    start: list[float] = []
+    try:
+        with Progress(*columns, disable=quiet, transient=False) as bar:
+            task = bar.add_task("building", total=None, rate="-")
+
+            def progress(done: int, total: int) -> None:
+                import time
+
+                now = time.monotonic()
+                if not start:
+                    start.extend([now, done])
+                rate = (done - start[1]) / max(now - start[0], 1e-9)
+                bar.update(task, completed=done, total=total, rate=f"{rate:.1f}")
+
+            report = build_tileset(inputs, output, options, executor=executor, progress=progress)
+    finally:
+        executor.close()
+    if not quiet:
+        what = "finished" if report.resumed else "built"
+        typer.echo(
+            f"{what} {output}: {report.planned} tiles ({report.built} made now) in "
+            f"{report.seconds:.1f} s on {report.executor}; levels {report.levels[0]}.."
+            f"{report.levels[2]}, textures to {report.levels[1]}"
+        )
+
+
+@app.command()
+def export(
+    tileset: Annotated[str, typer.Argument(help="A .lods tileset.")],
+    cesium: Annotated[
+        Path, typer.Option("--cesium", help="Folder to write a Cesium terrain layer into.")
+    ],
+) -> None:
+    """Write a tileset as files a Cesium client streams: layer.json, {z}/{x}/{y}.terrain, and
+    the imagery as imagery/{z}/{x}/{y}.png."""
+    from lodscape.store.export import export_cesium
+
+    n = export_cesium(tileset, cesium)
+    typer.echo(f"wrote {n} terrain tiles and layer.json to {cesium}")
 
 
 def _usage_errors() -> tuple[type[Exception], ...]:

@@ -1,0 +1,133 @@
+"""A tileset as a folder a Cesium client streams: ``layer.json``, ``{z}/{x}/{y}.terrain`` (TMS rows,
+the layer's default scheme) and the imagery as ``imagery/{z}/{x}/{y}.png`` (OSM rows).
+
+Cesium starts from the tiling scheme's level 0, so the levels above the tileset's roots get
+flat tiles (at the data's lowest height) over the roots' ancestors; from the roots down every
+tile is the tileset's own. The folder is written under a temporary name and renamed when
+complete, so a failed export leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sqlite3
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from lodscape.geo.tiles import Tile, bounds
+from lodscape.store.quantized_mesh import encode
+from lodscape.store.tileset import TilesetError, TilesetProvider
+
+__all__ = ["export_cesium"]
+
+
+def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str]) -> int:
+    """Write ``tileset`` into ``folder`` (new, or empty); returns the terrain tiles written."""
+    target = Path(folder)
+    if target.exists() and (not target.is_dir() or any(target.iterdir())):
+        raise TilesetError(f"{target}: exists and is not an empty folder")
+    parent = target.parent if str(target.parent) else Path(".")
+    if not parent.is_dir():
+        raise TilesetError(f"{target}: folder {parent} does not exist")
+    provider = TilesetProvider(tileset)  # refuses what is not a complete tileset
+    manifest = provider.manifest
+    provider.close()
+    tmp = parent / f".{target.name}.{os.getpid()}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    db = sqlite3.connect(f"file:{Path(tileset).resolve().as_posix()}?mode=ro", uri=True)
+    try:
+        available: dict[int, set[tuple[int, int]]] = defaultdict(set)
+        count = 0
+        for z, x, y, data in db.execute("SELECT z, x, y, data FROM terrain"):
+            tms = (1 << z) - 1 - y
+            _write(tmp / str(z) / str(x) / f"{tms}.terrain", bytes(data))
+            available[z].add((x, tms))
+            count += 1
+        zmin = int(manifest["levels"]["zmin"])
+        lo = float(manifest["height_range"][0])
+        roots = [(x, y) for x, tms in available[zmin] for y in [(1 << zmin) - 1 - tms]]
+        for z in range(zmin):
+            for x, y in {(rx >> (zmin - z), ry >> (zmin - z)) for rx, ry in roots}:
+                tms = (1 << z) - 1 - y
+                _write(tmp / str(z) / str(x) / f"{tms}.terrain", _flat(z, x, y, lo))
+                available[z].add((x, tms))
+                count += 1
+        for z, x, row, data in db.execute(
+            "SELECT zoom_level, tile_column, tile_row, tile_data FROM tiles"
+        ):
+            _write(tmp / "imagery" / str(z) / str(x) / f"{(1 << z) - 1 - row}.png", bytes(data))
+        (w, s), (e, n) = _lonlat(manifest["bounds_merc"])
+        layer = {
+            "tilejson": "2.1.0",
+            "name": Path(tileset).stem,
+            "description": "terrain built by lodscape",
+            "version": "1.0.0",
+            "format": "quantized-mesh-1.0",
+            "scheme": "tms",
+            "projection": "EPSG:3857",
+            "extensions": ["octvertexnormals"],
+            "tiles": ["{z}/{x}/{y}.terrain?v={version}"],
+            "minzoom": 0,
+            "maxzoom": max(available),
+            "bounds": [w, s, e, n],
+            "available": [_ranges(available[z]) for z in range(max(available) + 1)],
+        }
+        (tmp / "layer.json").write_text(json.dumps(layer, indent=1))
+        if target.exists():
+            target.rmdir()
+        os.replace(tmp, target)
+    except OSError as exc:
+        raise TilesetError(f"{target}: cannot write ({exc.strerror or exc})") from None
+    finally:
+        db.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+    return count
+
+
+def _write(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(data)
+
+
+def _flat(z: int, x: int, y: int, height: float) -> bytes:
+    """A 2-triangle tile at one height: the levels above the data's roots."""
+    b = bounds(Tile(x, y, z))
+    lon = np.array([b.left, b.right, b.right, b.left])
+    lat = np.array([b.bottom, b.bottom, b.top, b.top])
+    return encode(
+        lon,
+        lat,
+        np.full(4, height),
+        np.array([[0, 1, 2], [0, 2, 3]]),
+        (b.left, b.bottom, b.right, b.top),
+    )
+
+
+def _lonlat(b: list[float]) -> tuple[tuple[float, float], tuple[float, float]]:
+    from lodscape.geo.tiles import merc_to_lonlat
+
+    (w, e), (s, n) = merc_to_lonlat([b[0], b[2]], [b[1], b[3]])
+    return (float(w), float(s)), (float(e), float(n))
+
+
+def _ranges(tiles: set[tuple[int, int]]) -> list[dict[str, int]]:
+    """Availability rectangles: runs of consecutive columns, row by row (TMS rows)."""
+    out: list[dict[str, int]] = []
+    rows: dict[int, list[int]] = defaultdict(list)
+    for x, y in tiles:
+        rows[y].append(x)
+    for y in sorted(rows):
+        xs = sorted(rows[y])
+        # a run ends where the next column is not the one after it
+        breaks = np.flatnonzero(np.diff(xs) != 1)
+        starts = [xs[0], *(xs[i + 1] for i in breaks)]
+        ends = [*(xs[i] for i in breaks), xs[-1]]
+        out.extend(
+            {"startX": a, "startY": y, "endX": b, "endY": y}
+            for a, b in zip(starts, ends, strict=True)
+        )
+    return out
