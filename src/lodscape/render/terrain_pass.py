@@ -66,10 +66,14 @@ layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
     // the imagery already carries its shading: no lighting here
-    vec4 c = texture(u_tex, v_uv);
-    // alpha marks where the data covers the tile: the terrain ends at the data's edge
-    if (c.a < 0.5) discard;
-    f_color = vec4(c.rgb, 1.0);
+    // alpha marks where the data covers the tile: the terrain ends at the data's edge. It is
+    // read from the base level's nearest texel: mipmaps average it with the no-data around, and
+    // a steep face seen edge-on (a coarse mip) would otherwise be cut open (textureLod does
+    // the same but is pathologically slow on llvmpipe)
+    ivec2 size = textureSize(u_tex, 0);
+    ivec2 texel = clamp(ivec2(floor(v_uv * vec2(size))), ivec2(0), size - 1);
+    if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
+    f_color = vec4(texture(u_tex, v_uv).rgb, 1.0);
     f_dist = v_dist;
 }
 """

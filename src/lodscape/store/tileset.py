@@ -179,8 +179,13 @@ class TilesetWriter:
                 "INSERT OR REPLACE INTO metadata (name, value) VALUES (?, ?)", mbtiles.items()
             )
             self._set_manifest({**manifest, "complete": True})
-        self.db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-        self.db.execute("PRAGMA journal_mode=DELETE")
+        try:
+            self.db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            self.db.execute("PRAGMA journal_mode=DELETE")
+        except sqlite3.OperationalError:
+            # another process has the file open: it stays in WAL mode, which is complete and
+            # consistent; the log folds in when the last connection closes
+            pass
 
     def close(self) -> None:
         self.db.close()
@@ -215,7 +220,9 @@ class _Transaction:
                 return
             except sqlite3.Error as err:
                 exc = err
-        self.db.execute("ROLLBACK")
+        # SQLite has already rolled back after some errors (a full disk among them)
+        if self.db.in_transaction:
+            self.db.execute("ROLLBACK")
         if isinstance(exc, sqlite3.OperationalError) and "full" in str(exc):
             raise TilesetError(
                 f"{self.path}: the disk is full; nothing of the last batch was kept, and "

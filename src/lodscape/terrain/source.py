@@ -19,7 +19,7 @@ import math
 import os
 import threading
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, Self
 
@@ -83,6 +83,8 @@ class HeightSource(Protocol):
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
 
     def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]: ...
+
+    def pixels_in(self, box: Bbox) -> Iterator[tuple[F64, F64, F64]]: ...
 
     def close(self) -> None: ...
 
@@ -457,6 +459,52 @@ class _GridSource:
             heights[bad] = self._fill(col[bad], row[bad])
         return heights.astype(np.float32), valid
 
+    def pixels_in(self, box: Bbox) -> Iterator[tuple[F64, F64, F64]]:
+        """The data's own samples inside an EPSG:3857 box: (x, y, height) of every valid pixel
+        centre, in chunks of rows (so a box over the whole raster never loads it at once)."""
+        t = np.linspace(0.0, 1.0, 33)
+        ex = np.concatenate(
+            [
+                box.left + t * (box.right - box.left),
+                np.full(33, box.right),
+                box.left + t * (box.right - box.left),
+                np.full(33, box.left),
+            ]
+        )
+        ey = np.concatenate(
+            [
+                np.full(33, box.top),
+                box.bottom + t * (box.top - box.bottom),
+                np.full(33, box.bottom),
+                box.bottom + t * (box.top - box.bottom),
+            ]
+        )
+        col, row, _ = self._pixel_coords(ex, ey)
+        good = np.isfinite(col) & np.isfinite(row)
+        if not good.any():
+            return
+        h, w = self.shape
+        # the projected box's edges bound it only up to their curvature: one pixel of slack
+        c0 = max(int(np.floor(col[good].min())) - 1, 0)
+        c1 = min(int(np.ceil(col[good].max())) + 1, w)
+        r0 = max(int(np.floor(row[good].min())) - 1, 0)
+        r1 = min(int(np.ceil(row[good].max())) + 1, h)
+        if c0 >= c1 or r0 >= r1:
+            return
+        step = max(1, _STRIP_PIXELS // 8 // (c1 - c0))
+        a = self.transform
+        for ra in range(r0, r1, step):
+            rb = min(ra + step, r1)
+            vals, ok = self._read_raw(None, ra, rb, c0, c1)
+            cc, rr = np.meshgrid(np.arange(c0, c1) + 0.5, np.arange(ra, rb) + 0.5)
+            cc, rr, v = cc[ok], rr[ok], vals[ok]
+            xs = a.a * cc + a.b * rr + a.c
+            ys = a.d * cc + a.e * rr + a.f
+            xm, ym = (np.asarray(q) for q in self._transformer("to_merc").transform(xs, ys))
+            inside = (xm >= box.left) & (xm <= box.right) & (ym >= box.bottom) & (ym <= box.top)
+            if inside.any():
+                yield xm[inside], ym[inside], v[inside]
+
     def covers(self, xm: ArrayLike, ym: ArrayLike) -> NDArray[np.bool_]:
         """Which EPSG:3857 points (broadcast together) fall on the raster, nodata holes included."""
         xb, yb = np.broadcast_arrays(
@@ -682,6 +730,17 @@ class MosaicSource:
         self, bounds: Bbox, shape: tuple[int, int]
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         return self._combine([s.read(bounds, shape) for s in self.sources])
+
+    def pixels_in(self, box: Bbox) -> Iterator[tuple[F64, F64, F64]]:
+        """Each source's samples where no finer source has data (what ``sample`` reads)."""
+        for i, src in enumerate(self.sources):
+            for xm, ym, h in src.pixels_in(box):
+                keep = np.ones(xm.size, dtype=bool)
+                for finer in self.sources[:i]:
+                    _, valid = finer.sample(xm, ym, finer.resolution_merc)
+                    keep &= ~valid
+                if keep.any():
+                    yield xm[keep], ym[keep], h[keep]
 
     def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]:
         out = self.sources[0].covers(xm, ym)

@@ -1,0 +1,341 @@
+"""Tileset builds: honest errors, crack-free rendering, resumable writes, the same tiles from
+every executor, and clear failures on bad input (real GeoTIFFs, real SQLite, real processes)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from contextlib import closing
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import lodscape
+from _synthetic import fbm_heights, write_dem
+from lodscape import Camera, SceneOptions
+from lodscape.build import BuildOptions, build
+from lodscape.build.executors import DaskExecutor, PoolExecutor
+from lodscape.errors import LodscapeError
+from lodscape.geo.tiles import Tile, bounds
+from lodscape.store.quantized_mesh import decode
+from lodscape.store.tileset import TilesetError, TilesetProvider
+
+MAGENTA = (1.0, 0.0, 1.0)
+EAST, NORTH = 700000.0, 4060000.0
+
+
+@pytest.fixture(scope="module")
+def dem(tmp_path_factory: pytest.TempPathFactory) -> str:
+    path = tmp_path_factory.mktemp("build") / "utm.tif"
+    return write_dem(
+        str(path), fbm_heights(257, seed=5), crs="EPSG:32617", west=EAST, north=NORTH, res=10.0
+    )
+
+
+@pytest.fixture(scope="module")
+def tileset(dem: str, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("lods") / "site.lods"
+    build([dem], out, executor=PoolExecutor(2, processes=False))
+    return out
+
+
+def _tiles(path: Path) -> dict[tuple[int, int, int], tuple[bytes, float]]:
+    with closing(sqlite3.connect(path)) as db:
+        terrain = {
+            (z, x, y): (bytes(d), e)
+            for z, x, y, e, d in db.execute("SELECT z, x, y, error, data FROM terrain")
+        }
+        imagery = {
+            (z, x, r): bytes(d)
+            for z, x, r, d in db.execute(
+                "SELECT zoom_level, tile_column, tile_row, tile_data FROM tiles"
+            )
+        }
+    return {**terrain, **{("img", *k): (v, 0.0) for k, v in imagery.items()}}  # type: ignore[dict-item]
+
+
+def _mesh_at(qm: object, rect: tuple[float, ...], lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+    """The decoded mesh's height at points (NaN outside it), triangle by triangle in numpy."""
+    plon, plat, h = qm.positions(*rect)  # type: ignore[attr-defined]
+    out = np.full(lon.shape, np.nan)
+    for a, b, c in qm.triangles.astype(np.int64):  # type: ignore[attr-defined]
+        det = (plat[b] - plat[c]) * (plon[a] - plon[c]) + (plon[c] - plon[b]) * (plat[a] - plat[c])
+        wa = ((plat[b] - plat[c]) * (lon - plon[c]) + (plon[c] - plon[b]) * (lat - plat[c])) / det
+        wb = ((plat[c] - plat[a]) * (lon - plon[c]) + (plon[a] - plon[c]) * (lat - plat[c])) / det
+        wc = 1 - wa - wb
+        inside = (wa >= -1e-9) & (wb >= -1e-9) & (wc >= -1e-9)
+        out[inside] = (wa * h[a] + wb * h[b] + wc * h[c])[inside]
+    return out
+
+
+def test_every_tiles_real_error_is_within_its_recorded_error(dem: str, tileset: Path) -> None:
+    """The recorded error of every tile bounds the decoded mesh's distance to every sample of
+    the DEM it covers (read here straight from the file, projected here with pyproj)."""
+    import rasterio
+    from pyproj import Transformer
+
+    with rasterio.open(dem) as ds:
+        values = ds.read(1).astype(np.float64)
+        rows, cols = np.mgrid[0 : ds.height, 0 : ds.width]
+        a = ds.transform
+        c, r = cols.ravel() + 0.5, rows.ravel() + 0.5
+        xs, ys = a.a * c + a.b * r + a.c, a.d * c + a.e * r + a.f
+        to_ll = Transformer.from_crs(ds.crs, "EPSG:4326", always_xy=True)
+    lon, lat = (np.asarray(v) for v in to_ll.transform(xs, ys))
+    h = values.ravel()
+    with closing(sqlite3.connect(tileset)) as db:
+        rows = db.execute("SELECT z, x, y, error, data FROM terrain").fetchall()
+    # up to twelve tiles of every level, chosen at random
+    rng = np.random.default_rng(4)
+    tiles = []
+    for level in sorted({r[0] for r in rows}):
+        at = [r for r in rows if r[0] == level]
+        tiles += [at[i] for i in rng.permutation(len(at))[:12]]
+    for z, x, y, error, data in tiles:
+        b = bounds(Tile(x, y, z))
+        inside = (lon >= b.left) & (lon <= b.right) & (lat >= b.bottom) & (lat <= b.top)
+        mesh = _mesh_at(
+            decode(bytes(data)), (b.left, b.bottom, b.right, b.top), lon[inside], lat[inside]
+        )
+        real = np.abs(mesh - h[inside])
+        assert np.isfinite(real).all()
+        assert real.max() <= error + 1e-3, (z, x, y, real.max(), error)
+    assert len(tiles) > 10
+
+
+@pytest.mark.gl
+def test_a_tileset_renders_without_cracks_within_the_bounds(tmp_path: Path) -> None:
+    dem = write_dem(
+        str(tmp_path / "5km.tif"),
+        fbm_heights(513, seed=3),
+        crs="EPSG:32617",
+        west=EAST,
+        north=NORTH,
+        res=10.0,
+    )
+    out = tmp_path / "5km.lods"
+    build([dem], out)
+    with lodscape.open(out, SceneOptions(background=MAGENTA)) as scene:
+        lo, hi = scene.tree.height_range
+        b = scene.provider.bounds_merc
+        from lodscape.geo.tiles import merc_to_lonlat
+
+        lon, lat = (
+            float(v) for v in merc_to_lonlat((b.left + b.right) / 2, (b.top + b.bottom) / 2)
+        )
+        g = scene.ground_height(lon, lat)
+        assert g is not None
+        assert lo <= g <= hi
+        views = [
+            Camera(lon, lat - 0.01, hi + 500, heading=5, pitch=-45, width=480, height=270),
+            Camera(
+                lon - 0.006, lat - 0.006, hi + 150, heading=45, pitch=-30, width=480, height=270
+            ),
+            Camera(lon, lat, g + 800, pitch=-90, width=320, height=320),
+        ]
+        levels = set()
+        for cam in views:
+            rgb, _ = scene.render(cam)
+            magenta = np.all(rgb == (255, 0, 255), axis=2)
+            below = np.maximum.accumulate(~magenta, axis=0)
+            assert int((magenta & below).sum()) == 0
+            assert (~magenta).mean() > 0.5
+            sel = scene.select(cam)
+            # within the bound except at the finest level, where the error is what resampling
+            # the DEM's own samples onto the Web Mercator grid leaves, and no finer tile exists
+            assert np.all(sel.sse[sel.z < scene.tree.zmax] <= 2.0)
+            levels |= set(sel.z.tolist())
+            assert scene.last is not None
+            assert scene.last.triangles > 0
+        assert len(levels) >= 3
+
+
+def test_processes_and_dask_make_the_same_tiles_as_threads(
+    dem: str, tileset: Path, tmp_path: Path
+) -> None:
+    want = _tiles(tileset)
+    procs = tmp_path / "procs.lods"
+    executor = PoolExecutor(2, processes=True)
+    try:
+        build([dem], procs, executor=executor)
+    finally:
+        executor.close()
+    assert _tiles(procs) == want
+    dask = tmp_path / "dask.lods"
+    executor = DaskExecutor(None, workers=2)
+    try:
+        report = build([dem], dask, executor=executor)
+    finally:
+        executor.close()
+    assert "dask" in report.executor
+    assert _tiles(dask) == want
+
+
+def test_a_killed_build_resumes_without_redoing_tiles(tmp_path: Path) -> None:
+    big = write_dem(
+        str(tmp_path / "big.tif"),
+        fbm_heights(1025, seed=8),
+        crs="EPSG:32617",
+        west=EAST,
+        north=NORTH,
+        res=5.0,
+    )
+    out = tmp_path / "big.lods"
+    cmd = [
+        sys.executable,
+        "-m",
+        "lodscape.cli",
+        "build",
+        big,
+        "-o",
+        str(out),
+        "-q",
+        "--workers",
+        "1",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    done = 0
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+            if out.exists():
+                try:
+                    with closing(sqlite3.connect(f"file:{out}?mode=ro", uri=True, timeout=1)) as db:
+                        done, total = db.execute("SELECT SUM(done), COUNT(*) FROM plan").fetchone()
+                except sqlite3.Error:
+                    continue
+                if done and 0 < done < total // 2:
+                    break
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "the build finished before it could be killed"
+    assert done
+    with pytest.raises(TilesetError, match="stopped at"):
+        TilesetProvider(out)
+    with closing(sqlite3.connect(out)) as db:
+        assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
+        finished = {r for r in db.execute("SELECT z, x, y FROM plan WHERE done = 1")}
+        before = {r[:3]: r[3] for r in db.execute("SELECT z, x, y, data FROM terrain")}
+    # every finished tile is whole, and none is there without its done mark
+    assert set(before) <= finished
+    report = build([big], out)
+    assert report.resumed
+    assert report.built == report.planned - len(finished)
+    with closing(sqlite3.connect(out)) as db:
+        assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
+        after = {r[:3]: r[3] for r in db.execute("SELECT z, x, y, data FROM terrain")}
+    assert all(after[k] == v for k, v in before.items())
+    fresh = tmp_path / "fresh.lods"
+    build([big], fresh)
+    assert _tiles(fresh) == _tiles(out)
+    assert not Path(str(out) + "-wal").exists()
+
+
+def test_points_are_triangulated_and_built(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    x = rng.uniform(EAST, EAST + 2000, 1500)
+    y = rng.uniform(NORTH - 2000, NORTH, 1500)
+    z = 400 + 0.05 * (x - EAST) + 30 * np.sin((y - NORTH) / 300)
+    csv = tmp_path / "survey.csv"
+    csv.write_text(
+        "id,x,y,z\n"
+        + "".join(f"{i},{a},{b},{c}\n" for i, (a, b, c) in enumerate(zip(x, y, z, strict=True)))
+    )
+    out = tmp_path / "survey.lods"
+    build([csv], out, BuildOptions(crs="EPSG:32617", resolution=10.0))
+    with lodscape.open(out) as scene:
+        lo, hi = scene.tree.height_range
+        assert z.min() - 1 <= lo < hi <= z.max() + 1
+    xyz = tmp_path / "survey.xyz"
+    xyz.write_text("".join(f"{a} {b} {c}\n" for a, b, c in zip(x, y, z, strict=True)))
+    build([xyz], tmp_path / "xyz.lods", BuildOptions(crs="EPSG:32617", resolution=10.0))
+
+
+def _corrupt(tmp_path: Path, dem: str) -> Path:
+    data = Path(dem).read_bytes()
+    bad = tmp_path / "cut.tif"
+    bad.write_bytes(data[: len(data) // 3])
+    return bad
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("truncated raster", "cut.tif"),
+        ("bad csv row", "row 3"),
+        ("two points", "at least three"),
+        ("collinear", "one line"),
+        ("no crs for points", "--crs"),
+        ("mixed crs", "differs"),
+        ("output folder missing", "does not exist"),
+    ],
+)
+def test_bad_inputs_fail_clearly_and_leave_nothing(
+    case: str, message: str, dem: str, tmp_path: Path
+) -> None:
+    out = tmp_path / "out.lods"
+    opts = BuildOptions(crs="EPSG:32617")
+    inputs: list[str | Path]
+    if case == "truncated raster":
+        inputs = [_corrupt(tmp_path, dem)]
+    elif case == "bad csv row":
+        (tmp_path / "p.csv").write_text("x,y,z\n1,2,3\n4,five,6\n7,8,9\n")
+        inputs = [tmp_path / "p.csv"]
+    elif case == "two points":
+        (tmp_path / "p.xyz").write_text("1 2 3\n4 5 6\n")
+        inputs = [tmp_path / "p.xyz"]
+    elif case == "collinear":
+        (tmp_path / "p.xyz").write_text("".join(f"{i} {2 * i} {i}\n" for i in range(10)))
+        inputs = [tmp_path / "p.xyz"]
+    elif case == "no crs for points":
+        (tmp_path / "p.xyz").write_text("1 2 3\n4 5 6\n7 9 8\n")
+        inputs = [tmp_path / "p.xyz"]
+        opts = BuildOptions()
+    elif case == "mixed crs":
+        other = write_dem(
+            str(tmp_path / "ll.tif"),
+            fbm_heights(33),
+            crs="EPSG:4326",
+            west=-78.7,
+            north=36.66,
+            res=0.0002,
+        )
+        inputs = [dem, other]
+    else:
+        inputs = [dem]
+        out = tmp_path / "no" / "such" / "out.lods"
+    with pytest.raises(LodscapeError, match=message) as info:
+        build(inputs, out, opts, executor=PoolExecutor(1, processes=False))
+    assert "\n" not in str(info.value)
+    assert not out.exists()
+    assert not Path(str(out) + "-wal").exists()
+
+
+def test_a_full_disk_fails_in_one_line_and_resumes(dem: str, tmp_path: Path) -> None:
+    """A write limit (RLIMIT_FSIZE) stands in for a full disk: the build stops with one line and
+    exit status 2, keeps what it committed, and finishes when run again."""
+    out = tmp_path / "full.lods"
+    code = (
+        "import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (400_000, 400_000)); "
+        "from lodscape.cli import main; "
+        f"main(['build', {dem!r}, '-o', {str(out)!r}, '-q', '--workers', '1'])"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().count("\n") == 0
+    assert "full" in proc.stderr or "cannot write" in proc.stderr
+    with pytest.raises(TilesetError):
+        TilesetProvider(out)
+    report = build([dem], out)
+    assert report.resumed
+    with lodscape.open(out) as scene:
+        assert scene.tree.zmax > scene.tree.zmin
+    os.unlink(out)
