@@ -1,0 +1,113 @@
+"""The tileset from the command line: build, info, render, export; and what outside readers
+(GDAL's MBTiles driver, a Cesium-style layer.json consumer) see in it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sqlite3
+from contextlib import closing
+from pathlib import Path
+
+import pytest
+
+from _synthetic import fbm_heights, write_dem
+from lodscape.cli import main
+from lodscape.store.quantized_mesh import decode
+
+pytestmark = pytest.mark.gl
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("cli-build")
+    dem = write_dem(
+        str(folder / "dem.tif"),
+        fbm_heights(257, seed=2),
+        crs="EPSG:4326",
+        west=7.0,
+        north=46.5,
+        res=0.0002,
+    )
+    out = folder / "site.lods"
+    main(["build", dem, "-o", str(out), "-q"])  # returns on success, exits 2 on failure
+    assert out.exists()
+    return out
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    try:
+        main(argv)
+        code = 0
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_info_render_and_export(
+    built: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out, err = _run(["info", str(built)], capsys)
+    assert code == 0, err
+    assert "quantized-mesh-1.0" in out
+    assert "dem.tif" in out
+    assert "levels" in out
+    view = tmp_path / "view.png"
+    code, out, err = _run(["render", str(built), "--size", "200x120", "-o", str(view)], capsys)
+    assert code == 0, err
+    assert view.exists()
+    folder = tmp_path / "cesium"
+    code, out, err = _run(["export", str(built), "--cesium", str(folder)], capsys)
+    assert code == 0, err
+    layer = json.loads((folder / "layer.json").read_text())
+    assert layer["format"] == "quantized-mesh-1.0"
+    assert layer["projection"] == "EPSG:3857"
+    assert layer["scheme"] == "tms"
+    # every level from 0 is there, and every available tile is a file that decodes
+    assert len(layer["available"]) == layer["maxzoom"] + 1
+    files = 0
+    for z, ranges in enumerate(layer["available"]):
+        for r in ranges:
+            for x in range(r["startX"], r["endX"] + 1):
+                for y in range(r["startY"], r["endY"] + 1):
+                    qm = decode((folder / str(z) / str(x) / f"{y}.terrain").read_bytes())
+                    assert qm.vertex_count >= 4
+                    files += 1
+    with closing(sqlite3.connect(built)) as db:
+        (terrain,) = db.execute("SELECT COUNT(*) FROM terrain").fetchone()
+        (imagery,) = db.execute("SELECT COUNT(*) FROM tiles").fetchone()
+    assert files >= terrain
+    assert len(list((folder / "imagery").rglob("*.png"))) == imagery
+    code, _, err = _run(["export", str(built), "--cesium", str(folder)], capsys)
+    assert code == 2
+    assert "not an empty folder" in err
+
+
+def test_gdal_reads_the_imagery_as_mbtiles(built: Path, tmp_path: Path) -> None:
+    """GDAL's MBTiles driver (inside rasterio's wheel) wants the .mbtiles ending; given that, it
+    reads the tileset's imagery as a raster, covering the data with opaque pixels."""
+    import rasterio
+
+    copy = tmp_path / "site.mbtiles"
+    shutil.copy(built, copy)
+    with rasterio.open(copy) as ds:
+        assert ds.driver == "MBTiles"
+        assert ds.count == 4
+        alpha = ds.read(4)
+    assert alpha.max() == 255
+    assert 0.3 < (alpha == 255).mean() <= 1.0
+
+
+def test_a_tileset_that_is_not_one_fails_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    other = tmp_path / "other.lods"
+    with closing(sqlite3.connect(other)) as db:
+        db.execute("CREATE TABLE t (a)")
+        db.commit()
+    code, _, err = _run(["render", str(other), "-o", str(tmp_path / "x.png")], capsys)
+    assert code == 2
+    assert "not a lodscape tileset" in err
+    assert err.count("\n") == 1
+    assert not (tmp_path / "x.png").exists()
