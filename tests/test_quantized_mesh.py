@@ -169,3 +169,15 @@ def test_thirty_two_bit_indices_above_65536_vertices() -> None:
     qm = decode(encode(lon, lat, h[v[:, 1], v[:, 0]], t, _rect()))
     assert qm.vertex_count == len(v)
     assert len(qm.triangles) == len(t)
+
+
+def test_gzipped_tiles_decode_and_broken_gzip_fails_cleanly() -> None:
+    import gzip
+
+    lon, lat, h, tri = _tile_mesh()
+    data = encode(lon, lat, h, tri, _rect())
+    plain, zipped = decode(data), decode(gzip.compress(data))
+    assert np.array_equal(plain.triangles, zipped.triangles)
+    assert np.array_equal(plain.h, zipped.h)
+    with pytest.raises(QuantizedMeshError, match="gzip"):
+        decode(gzip.compress(data)[:40])

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from lodscape.geo.tiles import Tile, bounds
-from lodscape.store.quantized_mesh import encode
+from lodscape.store.quantized_mesh import encode, ungzip
 from lodscape.store.tileset import TilesetError, TilesetProvider
 
 __all__ = ["export_cesium"]
@@ -44,7 +44,8 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
         count = 0
         for z, x, y, data in db.execute("SELECT z, x, y, data FROM terrain"):
             tms = (1 << z) - 1 - y
-            _write(tmp / str(z) / str(x) / f"{tms}.terrain", bytes(data))
+            # plain bytes: a static server need not add Content-Encoding headers
+            _write(tmp / str(z) / str(x) / f"{tms}.terrain", ungzip(bytes(data)))
             available[z].add((x, tms))
             count += 1
         zmin = int(manifest["levels"]["zmin"])

@@ -16,7 +16,9 @@ so it also reads encoders that do not put vertices in first-use order.
 
 from __future__ import annotations
 
+import gzip
 import struct
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +37,7 @@ __all__ = [
     "oct_decode",
     "oct_encode",
     "quantize",
+    "ungzip",
 ]
 
 #: Largest quantized u, v or height.
@@ -240,8 +243,20 @@ def encode(
     return b"".join(out)
 
 
+def ungzip(data: bytes) -> bytes:
+    """The tile's bytes without their gzip wrapping, if they have one."""
+    if data[:2] != b"\x1f\x8b":
+        return data
+    try:
+        return gzip.decompress(data)
+    except (OSError, EOFError, zlib.error) as exc:
+        raise QuantizedMeshError(f"gzipped tile does not inflate ({exc})") from None
+
+
 def decode(data: bytes) -> QuantizedMesh:
-    """Read one tile's bytes; anything malformed raises QuantizedMeshError in one line."""
+    """Read one tile's bytes, gzipped or not; anything malformed raises QuantizedMeshError in
+    one line."""
+    data = ungzip(data)
     buf = memoryview(data)
     try:
         head = _HEADER.unpack_from(buf, 0)
