@@ -339,3 +339,33 @@ def test_a_full_disk_fails_in_one_line_and_resumes(dem: str, tmp_path: Path) -> 
     with lodscape.open(out) as scene:
         assert scene.tree.zmax > scene.tree.zmin
     os.unlink(out)
+
+
+def test_a_laz_cloud_brings_its_own_crs_and_its_ground_class(tmp_path: Path) -> None:
+    laspy = pytest.importorskip("laspy")
+    from pyproj import CRS
+
+    rng = np.random.default_rng(9)
+    n = 4000
+    x = rng.uniform(EAST, EAST + 1500, n)
+    y = rng.uniform(NORTH - 1500, NORTH, n)
+    z = 300 + 0.02 * (x - EAST)
+    ground = rng.random(n) < 0.7
+    z_all = np.where(ground, z, z + 25.0)  # trees and roofs above the ground
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.scales = np.array([0.01, 0.01, 0.01])
+    header.offsets = np.array([EAST, NORTH, 0.0])
+    header.add_crs(CRS.from_epsg(32617))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = x, y, z_all
+    las.classification = np.where(ground, 2, 5).astype(np.uint8)
+    path = tmp_path / "cloud.laz"
+    las.write(path)
+    out = tmp_path / "cloud.lods"
+    build([path], out, BuildOptions(resolution=10.0))  # no --crs: the file names it
+    with lodscape.open(out) as scene:
+        lo, hi = scene.tree.height_range
+    # only the ground: nothing of the 25 m above it
+    assert z.min() - 1 <= lo < hi <= z.max() + 1
+    with pytest.raises(LodscapeError, match="differs"):
+        build([path], tmp_path / "other.lods", BuildOptions(crs="EPSG:4326"))

@@ -26,16 +26,19 @@ from lodscape.errors import SourceError
 __all__ = ["MAX_CELLS", "POINT_SUFFIXES", "grid_points", "read_points", "write_grid"]
 
 #: File name endings read as point files.
-POINT_SUFFIXES = (".csv", ".xyz", ".txt", ".pts")
+POINT_SUFFIXES = (".csv", ".xyz", ".txt", ".pts", ".las", ".laz")
 #: Largest grid the points may be resampled to (cells).
 MAX_CELLS = 1 << 26
 
 F64 = NDArray[np.float64]
 
 
-def read_points(path: str | os.PathLike[str]) -> tuple[F64, F64, F64]:
-    """x, y and z of every point in a CSV (x,y,z header) or whitespace XYZ file."""
+def read_points(path: str | os.PathLike[str]) -> tuple[F64, F64, F64, CRS | None]:
+    """x, y, z of every point in a CSV (x,y,z header), whitespace XYZ or LAS/LAZ file, and the
+    CRS the file names (LAS headers may; text files do not)."""
     name = os.fspath(path)
+    if name.lower().endswith((".las", ".laz")):
+        return _read_las(name)
     try:
         with open(name, newline="", encoding="utf-8-sig") as f:
             text = f.read()
@@ -82,7 +85,31 @@ def read_points(path: str | os.PathLike[str]) -> tuple[F64, F64, F64]:
             ) from None
         if not np.isfinite(values[i]).all():
             raise SourceError(f"{name}: row {number}: {','.join(fields)!r} is not finite")
-    return values[:, 0], values[:, 1], values[:, 2]
+    return values[:, 0], values[:, 1], values[:, 2], None
+
+
+def _read_las(name: str) -> tuple[F64, F64, F64, CRS | None]:
+    """A LAS or LAZ point cloud through laspy: its ground points (class 2) where it classifies
+    them, otherwise all of them."""
+    try:
+        import laspy
+    except ImportError:
+        raise SourceError(
+            f"{name}: reading LAS/LAZ needs laspy: pip install 'lodscape[las]'"
+        ) from None
+    if not os.path.exists(name):
+        raise SourceError(f"{name}: no such file")
+    try:
+        las = laspy.read(name)
+        x, y, z = (np.asarray(getattr(las, c), dtype=np.float64) for c in "xyz")
+        cls = np.asarray(las.classification)
+        crs = las.header.parse_crs()
+    except Exception as exc:  # laspy raises its own errors, lazrs and OSError others
+        raise SourceError(f"{name}: not a LAS/LAZ file laspy can read ({exc})") from None
+    ground = cls == 2
+    if ground.any():
+        x, y, z = x[ground], y[ground], z[ground]
+    return x, y, z, None if crs is None else CRS.from_user_input(crs)
 
 
 def grid_points(
