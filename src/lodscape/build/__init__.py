@@ -1,0 +1,281 @@
+"""Build a tileset once (rasters or scattered points in, one SQLite file out), to stream anywhere.
+
+    report = lodscape.build.build(["dem.tif"], "site.lods")
+
+The coordinator plans every tile, hands them to an executor (threads, processes or Dask) and is
+the only writer: finished tiles go into the file a batch per transaction, so a build killed at
+any moment resumes where it stopped. Which executor ran a build never changes its tiles.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from pyproj import CRS
+
+from lodscape.build.executors import BuildExecutor, executor_for
+from lodscape.build.tiles import Job, make_tiles
+from lodscape.errors import SourceError
+from lodscape.geo.tiles import Bbox, bounds_array
+from lodscape.store.tileset import SCHEMA_VERSION, TileRecord, TilesetWriter, lonlat_bounds
+from lodscape.terrain.pyramid import LevelSpan, level_range, level_span
+from lodscape.terrain.points import POINT_SUFFIXES, grid_points, read_points, write_grid
+from lodscape.terrain.rtin import Rtin
+from lodscape.terrain.source import HeightSource, open_rasters
+
+__all__ = ["BuildOptions", "BuildReport", "build", "executor_for"]
+
+Progress = Callable[[int, int], None]
+#: Tiles per task.
+_CHUNK = 8
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """How a tileset is built; the defaults are the documented behaviour."""
+
+    #: Each tile's mesh keeps within this many of its level's texels (ground size) of the
+    #: sampled heights; its real error against the data is measured and recorded per tile.
+    error_texels: float = 1.0
+    #: Texels per imagery tile side.
+    tile_size: int = 256
+    #: CRS of point inputs (CSV or XYZ), e.g. "EPSG:32617"; rasters carry their own.
+    crs: str | None = None
+    #: Grid spacing (in the points' CRS units) to resample points to; None: their own spacing.
+    resolution: float | None = None
+    #: Mosaic rasters in different CRSs (each reprojected) instead of refusing them.
+    allow_mixed_crs: bool = False
+    #: Finished tiles written per transaction.
+    batch: int = 16
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.error_texels) and self.error_texels >= 0.0):
+            raise ValueError(f"Expected error_texels >= 0, got {self.error_texels}")
+        if self.resolution is not None and not self.resolution > 0.0:
+            raise ValueError(f"Expected a positive resolution, got {self.resolution}")
+        if self.batch < 1:
+            raise ValueError(f"Expected a batch of at least 1, got {self.batch}")
+
+
+@dataclass(frozen=True)
+class BuildReport:
+    path: Path
+    planned: int
+    #: Tiles made by this run (the others were finished by an earlier, interrupted one).
+    built: int
+    resumed: bool
+    seconds: float
+    executor: str
+    levels: tuple[int, int, int]
+
+
+def build(
+    inputs: Sequence[str | os.PathLike[str]],
+    output: str | os.PathLike[str],
+    options: BuildOptions | None = None,
+    *,
+    executor: BuildExecutor | None = None,
+    progress: Progress | None = None,
+) -> BuildReport:
+    """Build (or finish building) the tileset ``output`` from rasters and/or point files."""
+    options = options or BuildOptions()
+    out = Path(output)
+    t0 = time.perf_counter()
+    rasters = _rasters(inputs, out, options)
+    source = open_rasters(rasters, allow_mixed_crs=options.allow_mixed_crs)
+    try:
+        span = level_span(
+            source.bounds_merc, source.resolution_merc, tile_size=options.tile_size,
+            grids=(16, 32, 64), max_samples=None,
+        )
+        height_range = _height_range(source)
+        job = Job(
+            tuple(os.path.abspath(p) for p in rasters), options.allow_mixed_crs,
+            options.tile_size, options.error_texels, span.texture_zmax, height_range,
+            source.resolution_merc,
+        )
+        plan = _plan(source, span.zmin, span.zmax)
+        manifest = _manifest(source, options, inputs, span, height_range)
+    finally:
+        source.close()
+    writer = TilesetWriter(out, manifest)
+    own = executor is None
+    ok = False
+    try:
+        writer.plan(plan)
+        pending = writer.pending()
+        done, total = writer.counts()
+        if progress is not None:
+            progress(done, total)
+        if pending:
+            # one numba compile here, not one per worker thread racing for it
+            Rtin(np.zeros((3, 3)))
+            executor = executor or executor_for()
+        label = executor.label if executor is not None else "none"
+        batch: list[TileRecord] = []
+        last = time.monotonic()
+        if executor is not None:
+            # a few neighbouring tiles per task: a task's overhead (a Dask round trip, above
+            # all) is then small against its work
+            chunks = (
+                (job, pending[i : i + _CHUNK]) for i in range(0, len(pending), _CHUNK)
+            )
+            for records in executor.imap(make_tiles, chunks):
+                batch.extend(records)
+                if len(batch) >= options.batch or time.monotonic() - last > 2.0:
+                    writer.write(batch)
+                    done += len(batch)
+                    batch, last = [], time.monotonic()
+                    if progress is not None:
+                        progress(done, total)
+            if batch:
+                writer.write(batch)
+                done += len(batch)
+                if progress is not None:
+                    progress(done, total)
+        writer.finish(_mbtiles(manifest, out))
+        ok = True
+    finally:
+        if own and executor is not None:
+            executor.close()
+        writer.close()
+        if not ok and not writer.resumed and _bad_input():
+            # an input that fails midway cannot be resumed from (fixing it changes it): leave
+            # nothing behind; an interruption or a full disk keeps the file to resume
+            for suffix in ("", "-wal", "-shm"):
+                Path(str(out) + suffix).unlink(missing_ok=True)
+    return BuildReport(
+        out, total, len(pending), writer.resumed, time.perf_counter() - t0, label,
+        (span.zmin, span.texture_zmax, span.zmax),
+    )
+
+
+def _bad_input() -> bool:
+    """Whether the exception being handled is about the inputs."""
+    import sys
+
+    return isinstance(sys.exc_info()[1], SourceError)
+
+
+def _rasters(
+    inputs: Sequence[str | os.PathLike[str]], out: Path, options: BuildOptions
+) -> list[str]:
+    """The raster inputs, with point files gridded into one GeoTIFF beside the output."""
+    if not inputs:
+        raise SourceError("no inputs given")
+    rasters = [os.fspath(p) for p in inputs if not _is_points(p)]
+    points = [os.fspath(p) for p in inputs if _is_points(p)]
+    if points:
+        read = [read_points(p) for p in points]
+        named = {p: r[3] for p, r in zip(points, read, strict=True) if r[3] is not None}
+        if options.crs is not None:
+            try:
+                crs = CRS.from_user_input(options.crs)
+            except Exception as exc:  # pyproj's CRSError on anything it cannot parse
+                raise SourceError(f"--crs {options.crs!r} is not a CRS ({exc})") from None
+        elif named:
+            crs = next(iter(named.values()))
+        else:
+            raise SourceError(f"{points[0]}: point files need their CRS: give --crs (e.g. EPSG:4326)")
+        for p, own in named.items():
+            if own != crs:
+                raise SourceError(
+                    f"{p}: its CRS ({own.to_string()}) differs from {crs.to_string()}; "
+                    "reproject the points, or give the one --crs they are all in"
+                )
+        xs, ys, zs = ([r[0] for r in read], [r[1] for r in read], [r[2] for r in read])
+        name = points[0] if len(points) == 1 else f"{points[0]} (+{len(points) - 1} more)"
+        heights, transform = grid_points(
+            np.concatenate(xs), np.concatenate(ys), np.concatenate(zs), name=name,
+            resolution=options.resolution,
+        )
+        grid = out.with_name(out.name + ".points.tif")
+        write_grid(grid, heights, transform, crs)
+        rasters.append(str(grid))
+    return rasters
+
+
+def _is_points(path: str | os.PathLike[str]) -> bool:
+    return os.fspath(path).lower().endswith(POINT_SUFFIXES)
+
+
+def _height_range(source: HeightSource) -> tuple[float, float]:
+    """Lowest and highest height over a 513² sample of the data (for the imagery's colours)."""
+    b = source.bounds_merc
+    xs = np.linspace(b.left, b.right, 513)
+    ys = np.linspace(b.top, b.bottom, 513)
+    h, valid = source.sample_grid(xs, ys, max(b.right - b.left, b.top - b.bottom) / 512)
+    if not valid.any():
+        raise SourceError(f"{source.name}: no valid heights inside the data's footprint")
+    return float(h[valid].min()), float(h[valid].max())
+
+
+def _plan(source: HeightSource, zmin: int, zmax: int) -> list[tuple[int, int, int]]:
+    """Every tile of levels zmin..zmax whose 5×5 lattice touches the data's footprint."""
+    out: list[tuple[int, int, int]] = []
+    f = np.linspace(0.0, 1.0, 5)
+    for z in range(zmin, zmax + 1):
+        x0, y0, nx, ny = level_range(source.bounds_merc, z)
+        yy, xx = np.mgrid[y0 : y0 + ny, x0 : x0 + nx]
+        x, y = xx.ravel(), yy.ravel()
+        left, bottom, right, top = bounds_array(z, x, y)
+        px = left[:, None, None] + f[None, None, :] * (right - left)[:, None, None]
+        py = bottom[:, None, None] + f[None, :, None] * (top - bottom)[:, None, None]
+        hit = source.covers(*np.broadcast_arrays(px, py)).reshape(x.size, -1).any(axis=1)
+        out.extend(zip([z] * int(hit.sum()), x[hit].tolist(), y[hit].tolist(), strict=True))
+    return out
+
+
+def _manifest(
+    source: HeightSource, options: BuildOptions, inputs: Sequence[str | os.PathLike[str]],
+    span: LevelSpan, height_range: tuple[float, float],
+) -> dict[str, object]:
+    provenance = []
+    for p in inputs:
+        st = os.stat(p)
+        provenance.append({"path": os.path.abspath(p), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns})
+    opts = asdict(options)
+    opts.pop("batch")
+    return {
+        "schema": SCHEMA_VERSION,
+        "tile_size": options.tile_size,
+        "levels": {
+            "zmin": span.zmin,
+            "texture_zmax": span.texture_zmax,
+            "zmax": span.zmax,
+        },
+        "crs": source.crs_wkt,
+        "bounds_merc": list(source.bounds_merc),
+        "height_range": list(height_range),
+        "resolution_merc": source.resolution_merc,
+        "terrain": {"format": "quantized-mesh-1.0", "extensions": ["octvertexnormals"],
+                    "scheme": "xyz", "projection": "EPSG:3857"},
+        "provenance": provenance,
+        "options": opts,
+    }
+
+
+def _mbtiles(manifest: dict[str, object], out: Path) -> dict[str, str]:
+    b = manifest["bounds_merc"]
+    w, s, e, n = lonlat_bounds(Bbox(*b))  # type: ignore[misc]
+    levels = manifest["levels"]
+    lo, hi = levels["zmin"], levels["texture_zmax"]  # type: ignore[index]
+    return {
+        "name": out.stem,
+        "format": "png",
+        "type": "baselayer",
+        "version": "1",
+        "description": "hypsometric tint with hillshade, made by lodscape",
+        "attribution": "terrain: see the lodscape metadata's provenance",
+        "bounds": f"{w:.7f},{s:.7f},{e:.7f},{n:.7f}",
+        "center": f"{(w + e) / 2:.7f},{(s + n) / 2:.7f},{lo}",
+        "minzoom": str(lo),
+        "maxzoom": str(hi),
+    }
+

@@ -1,0 +1,206 @@
+"""One tile of a build: heights → RTIN mesh within the level's budget → measured error →
+quantized-mesh and PNG bytes. A pure function of (job, z, x, y), so any executor (threads,
+processes, a Dask cluster) makes the same bytes, and each task reads only its tile's windows.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import math
+import threading
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.geo.frames import geodetic_to_ecef
+from lodscape.geo.frames import WGS84_A
+from lodscape.geo.tiles import ORIGIN, Bbox, Tile, bounds, merc_to_lonlat, xy_bounds
+from lodscape.imagery import TintImagery
+from lodscape.store.quantized_mesh import QUANTIZED_MAX, encode, quantize
+from lodscape.store.tileset import TIN_GRID, TileRecord
+from lodscape.terrain.mesh import grid_coordinates
+from lodscape.terrain.rtin import Rtin
+from lodscape.terrain.source import HeightSource, open_rasters
+
+__all__ = ["Job", "make_tile", "make_tiles", "tile_budget"]
+
+@dataclass(frozen=True)
+class Job:
+    """Everything a tile task needs besides its tile; small and picklable."""
+
+    inputs: tuple[str, ...]
+    allow_mixed_crs: bool
+    tile_size: int
+    #: Each tile's mesh keeps within this many of its level's texels of the sampled grid.
+    error_texels: float
+    texture_zmax: int
+    height_range: tuple[float, float]
+    #: The source's own sample spacing (EPSG:3857 metres): the truth errors are measured on.
+    resolution: float
+
+
+_sources: dict[tuple[tuple[str, ...], bool], HeightSource] = {}
+_sources_lock = threading.Lock()
+
+
+def _source(job: Job) -> HeightSource:
+    """The job's source, opened once per process (and shared by its threads)."""
+    key = (job.inputs, job.allow_mixed_crs)
+    with _sources_lock:
+        src = _sources.get(key)
+        if src is None:
+            src = _sources[key] = open_rasters(job.inputs, allow_mixed_crs=job.allow_mixed_crs)
+        return src
+
+
+def tile_budget(job: Job, z: int, y: int) -> float:
+    """Metres of vertical error a tile's mesh may have: ``error_texels`` of its texels' ground
+    size (so a level's tiles drawn at the pixel band's top stay near ``error_texels`` px)."""
+    side = 2.0 * ORIGIN / (1 << z)
+    _, lat = merc_to_lonlat(0.0, ORIGIN - (y + 0.5) * side)
+    return float(job.error_texels * side * math.cos(math.radians(float(lat))) / job.tile_size)
+
+
+def make_tiles(job: Job, tiles: list[tuple[int, int, int]]) -> list[TileRecord]:
+    """Several tiles in one task."""
+    return [make_tile(job, z, x, y) for z, x, y in tiles]
+
+
+def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
+    src = _source(job)
+    t = Tile(x, y, z)
+    xs, ys = grid_coordinates(z, x, y, TIN_GRID)
+    side = xs[-1] - xs[0]
+    heights, valid = src.sample_grid(xs, ys, side / TIN_GRID)
+    if not valid.any():
+        return TileRecord(z, x, y)
+    rtin = Rtin(heights)
+    budget = tile_budget(job, z, y)
+    verts, tris = rtin.mesh(budget)
+    vh = heights[verts[:, 1], verts[:, 0]].astype(np.float64)
+    b = bounds(t)
+    lon_col, _ = merc_to_lonlat(xs, np.zeros_like(xs))
+    _, lat_row = merc_to_lonlat(np.zeros_like(ys), ys)
+    # the grid's sides exactly on the tile's edges, as the format's edge lists require
+    lon_col[0], lon_col[-1], lat_row[0], lat_row[-1] = b.left, b.right, b.top, b.bottom
+    lon, lat = lon_col[verts[:, 0]], lat_row[verts[:, 1]]
+    normals = _normals(lon, lat, vh, tris)
+    rect = (b.left, b.bottom, b.right, b.top)
+    data = encode(lon, lat, vh, tris, rect, normals=normals)
+    # stored gzipped, as Cesium's servers keep them (and serve them: Content-Encoding: gzip);
+    # mtime 0 so the same tile is the same bytes
+    stored = gzip.compress(data, compresslevel=6, mtime=0)
+    # the error of what is stored (quantized positions and heights) against every data sample
+    hmin, hmax = float(vh.min()), float(vh.max())
+    qlon = _dequantize(quantize(lon_col, b.left, b.right), b.left, b.right)
+    qlat = _dequantize(quantize(lat_row, b.bottom, b.top), b.bottom, b.top)
+    qh = _dequantize(quantize(heights.astype(np.float64), hmin, hmax), hmin, hmax)
+    error = 0.0
+    for pxm, pym, ph in src.pixels_in(xy_bounds(t)):
+        plon, plat = merc_to_lonlat(pxm, pym)
+        error = max(error, _sample_error(rtin.errors, budget, qlon, qlat, qh, plon, plat, ph))
+    error += _sag(tris, verts, side, b)
+    imagery = None
+    if z <= job.texture_zmax:
+        rgba = TintImagery(src, job.height_range, tile_size=job.tile_size).texture(z, x, y)
+        imagery = _png(rgba)
+    return TileRecord(z, x, y, error, hmin, hmax, stored, imagery)
+
+
+def _dequantize(q: NDArray[np.uint16], lo: float, hi: float) -> NDArray[np.float64]:
+    """What a decoder reads back: lo + (hi − lo)·q/32767, as ``QuantizedMesh.positions``."""
+    out: NDArray[np.float64] = lo + (hi - lo) * (q.astype(np.float64) * (1.0 / QUANTIZED_MAX))
+    return out
+
+
+def _sag(tris: NDArray[np.int32], verts: NDArray[np.int32], side: float, b: Bbox) -> float:
+    """How far the longest edge's straight chord sags below the curved Earth: L²/(8R)."""
+    p = verts.astype(np.float64)
+    t = tris.astype(np.int64)
+    longest = max(float(np.hypot(*(p[t[:, i]] - p[t[:, (i + 1) % 3]]).T).max()) for i in range(3))
+    ground = longest / TIN_GRID * side * math.cos(math.radians(min(abs(b.bottom), abs(b.top))))
+    return ground * ground / (8.0 * WGS84_A)
+
+
+@numba.njit(cache=True, nogil=True)  # type: ignore[misc]
+def _sample_error(
+    err: NDArray[np.float64],
+    budget: float,
+    lon: NDArray[np.float64],
+    lat: NDArray[np.float64],
+    h: NDArray[np.float64],
+    plon: NDArray[np.float64],
+    plat: NDArray[np.float64],
+    ph: NDArray[np.float64],
+) -> float:
+    """The largest |mesh − sample| over the samples: each point is located by descending the
+    RTIN exactly as its mesh was cut (the same split test), in the tile's lon/lat, where the
+    format interpolates; grid vertex (col, row) sits at (lon[col], lat[row]), height h[row, col]."""
+    last = lon.size - 1
+    worst = 0.0
+    for k in range(plon.size):
+        px, py = plon[k], plat[k]
+        # two roots on the diagonal from the north-west corner to the south-east one
+        ax, ay, bx, by, cx, cy = 0, 0, last, last, last, 0
+        s_p = _side(lon[0], lat[0], lon[last], lat[last], px, py)
+        s_c = _side(lon[0], lat[0], lon[last], lat[last], lon[last], lat[0])
+        if s_p * s_c < 0.0:
+            ax, ay, bx, by, cx, cy = last, last, 0, 0, 0, last
+        while True:
+            mx = (ax + bx) >> 1
+            my = (ay + by) >> 1
+            if not (abs(ax - cx) + abs(ay - cy) > 1 and err[my, mx] > budget):
+                break
+            # children (c, a, m) and (b, c, m): the point is in the one on its side of c–m
+            s_p = _side(lon[cx], lat[cy], lon[mx], lat[my], px, py)
+            s_a = _side(lon[cx], lat[cy], lon[mx], lat[my], lon[ax], lat[ay])
+            if s_p * s_a >= 0.0:
+                ax, ay, bx, by, cx, cy = cx, cy, ax, ay, mx, my
+            else:
+                ax, ay, bx, by, cx, cy = bx, by, cx, cy, mx, my
+        x0, y0, x1, y1, x2, y2 = lon[ax], lat[ay], lon[bx], lat[by], lon[cx], lat[cy]
+        det = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
+        if det == 0.0:
+            continue
+        w0 = ((y1 - y2) * (px - x2) + (x2 - x1) * (py - y2)) / det
+        w1 = ((y2 - y0) * (px - x2) + (x0 - x2) * (py - y2)) / det
+        v = w0 * h[ay, ax] + w1 * h[by, bx] + (1.0 - w0 - w1) * h[cy, cx]
+        e = abs(v - ph[k])
+        if e > worst:
+            worst = e
+    return worst
+
+
+@numba.njit(cache=True, inline="always")  # type: ignore[misc]
+def _side(x0: float, y0: float, x1: float, y1: float, px: float, py: float) -> float:
+    return (x1 - x0) * (py - y0) - (y1 - y0) * (px - x0)
+
+
+def _normals(
+    lon: NDArray[np.float64], lat: NDArray[np.float64], h: NDArray[np.float64],
+    tris: NDArray[np.int32],
+) -> NDArray[np.float64]:
+    """Area-weighted vertex normals in ECEF, pointing away from the Earth."""
+    p = geodetic_to_ecef(lon, lat, h).reshape(-1, 3)
+    t = tris.astype(np.int64)
+    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    up = p[t[:, 0]]
+    face *= np.where(np.einsum("ij,ij->i", face, up) < 0.0, -1.0, 1.0)[:, None]
+    n = np.zeros_like(p)
+    for c in range(3):
+        np.add.at(n, t[:, c], face)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    out: NDArray[np.float64] = n / np.where(norm > 0.0, norm, 1.0)
+    return out
+
+
+def _png(rgba: NDArray[np.uint8]) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(rgba).save(buf, format="PNG", compress_level=6)
+    return buf.getvalue()
+
