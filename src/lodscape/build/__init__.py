@@ -24,8 +24,8 @@ from lodscape.build.tiles import Job, make_tiles
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import Bbox, bounds_array
 from lodscape.store.tileset import SCHEMA_VERSION, TileRecord, TilesetWriter, lonlat_bounds
-from lodscape.terrain.pyramid import LevelSpan, level_range, level_span
 from lodscape.terrain.points import POINT_SUFFIXES, grid_points, read_points, write_grid
+from lodscape.terrain.pyramid import LevelSpan, level_range, level_span
 from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import HeightSource, open_rasters
 
@@ -91,13 +91,20 @@ def build(
     source = open_rasters(rasters, allow_mixed_crs=options.allow_mixed_crs)
     try:
         span = level_span(
-            source.bounds_merc, source.resolution_merc, tile_size=options.tile_size,
-            grids=(16, 32, 64), max_samples=None,
+            source.bounds_merc,
+            source.resolution_merc,
+            tile_size=options.tile_size,
+            grids=(16, 32, 64),
+            max_samples=None,
         )
         height_range = _height_range(source)
         job = Job(
-            tuple(os.path.abspath(p) for p in rasters), options.allow_mixed_crs,
-            options.tile_size, options.error_texels, span.texture_zmax, height_range,
+            tuple(os.path.abspath(p) for p in rasters),
+            options.allow_mixed_crs,
+            options.tile_size,
+            options.error_texels,
+            span.texture_zmax,
+            height_range,
             source.resolution_merc,
         )
         plan = _plan(source, span.zmin, span.zmax)
@@ -123,9 +130,7 @@ def build(
         if executor is not None:
             # a few neighbouring tiles per task: a task's overhead (a Dask round trip, above
             # all) is then small against its work
-            chunks = (
-                (job, pending[i : i + _CHUNK]) for i in range(0, len(pending), _CHUNK)
-            )
+            chunks = ((job, pending[i : i + _CHUNK]) for i in range(0, len(pending), _CHUNK))
             for records in executor.imap(make_tiles, chunks):
                 batch.extend(records)
                 if len(batch) >= options.batch or time.monotonic() - last > 2.0:
@@ -151,7 +156,12 @@ def build(
             for suffix in ("", "-wal", "-shm"):
                 Path(str(out) + suffix).unlink(missing_ok=True)
     return BuildReport(
-        out, total, len(pending), writer.resumed, time.perf_counter() - t0, label,
+        out,
+        total,
+        len(pending),
+        writer.resumed,
+        time.perf_counter() - t0,
+        label,
         (span.zmin, span.texture_zmax, span.zmax),
     )
 
@@ -182,7 +192,9 @@ def _rasters(
         elif named:
             crs = next(iter(named.values()))
         else:
-            raise SourceError(f"{points[0]}: point files need their CRS: give --crs (e.g. EPSG:4326)")
+            raise SourceError(
+                f"{points[0]}: point files need their CRS: give --crs (e.g. EPSG:4326)"
+            )
         for p, own in named.items():
             if own != crs:
                 raise SourceError(
@@ -192,7 +204,10 @@ def _rasters(
         xs, ys, zs = ([r[0] for r in read], [r[1] for r in read], [r[2] for r in read])
         name = points[0] if len(points) == 1 else f"{points[0]} (+{len(points) - 1} more)"
         heights, transform = grid_points(
-            np.concatenate(xs), np.concatenate(ys), np.concatenate(zs), name=name,
+            np.concatenate(xs),
+            np.concatenate(ys),
+            np.concatenate(zs),
+            name=name,
             resolution=options.resolution,
         )
         grid = out.with_name(out.name + ".points.tif")
@@ -233,13 +248,18 @@ def _plan(source: HeightSource, zmin: int, zmax: int) -> list[tuple[int, int, in
 
 
 def _manifest(
-    source: HeightSource, options: BuildOptions, inputs: Sequence[str | os.PathLike[str]],
-    span: LevelSpan, height_range: tuple[float, float],
+    source: HeightSource,
+    options: BuildOptions,
+    inputs: Sequence[str | os.PathLike[str]],
+    span: LevelSpan,
+    height_range: tuple[float, float],
 ) -> dict[str, object]:
     provenance = []
     for p in inputs:
         st = os.stat(p)
-        provenance.append({"path": os.path.abspath(p), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns})
+        provenance.append(
+            {"path": os.path.abspath(p), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns}
+        )
     opts = asdict(options)
     opts.pop("batch")
     return {
@@ -254,8 +274,12 @@ def _manifest(
         "bounds_merc": list(source.bounds_merc),
         "height_range": list(height_range),
         "resolution_merc": source.resolution_merc,
-        "terrain": {"format": "quantized-mesh-1.0", "extensions": ["octvertexnormals"],
-                    "scheme": "xyz", "projection": "EPSG:3857"},
+        "terrain": {
+            "format": "quantized-mesh-1.0",
+            "extensions": ["octvertexnormals"],
+            "scheme": "xyz",
+            "projection": "EPSG:3857",
+        },
         "provenance": provenance,
         "options": opts,
     }
@@ -278,4 +302,3 @@ def _mbtiles(manifest: dict[str, object], out: Path) -> dict[str, str]:
         "minzoom": str(lo),
         "maxzoom": str(hi),
     }
-

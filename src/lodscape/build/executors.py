@@ -6,6 +6,7 @@ bounded number in flight so a continent's worth of tiles never sits in memory at
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing
 import os
 from collections.abc import Callable, Iterable, Iterator
@@ -88,7 +89,9 @@ class DaskExecutor:
         try:
             if address is None:
                 self._cluster = LocalCluster(
-                    n_workers=workers, threads_per_worker=1, processes=True,
+                    n_workers=workers,
+                    threads_per_worker=1,
+                    processes=True,
                     dashboard_address=None,
                 )
                 self.client = Client(self._cluster)
@@ -104,7 +107,7 @@ class DaskExecutor:
 
         todo = iter(args)
         limit = 8 * self.workers
-        first = [self.client.submit(fn, *a, pure=False) for _, a in zip(range(limit), todo)]
+        first = [self.client.submit(fn, *a, pure=False) for a in itertools.islice(todo, limit)]
         queue = as_completed(first)
         for future in queue:
             yield future.result()

@@ -15,8 +15,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.frames import geodetic_to_ecef
-from lodscape.geo.frames import WGS84_A
+from lodscape.geo.frames import WGS84_A, geodetic_to_ecef
 from lodscape.geo.tiles import ORIGIN, Bbox, Tile, bounds, merc_to_lonlat, xy_bounds
 from lodscape.imagery import TintImagery
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, encode, quantize
@@ -26,6 +25,7 @@ from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import HeightSource, open_rasters
 
 __all__ = ["Job", "make_tile", "make_tiles", "tile_budget"]
+
 
 @dataclass(frozen=True)
 class Job:
@@ -180,7 +180,9 @@ def _side(x0: float, y0: float, x1: float, y1: float, px: float, py: float) -> f
 
 
 def _normals(
-    lon: NDArray[np.float64], lat: NDArray[np.float64], h: NDArray[np.float64],
+    lon: NDArray[np.float64],
+    lat: NDArray[np.float64],
+    h: NDArray[np.float64],
     tris: NDArray[np.int32],
 ) -> NDArray[np.float64]:
     """Area-weighted vertex normals in ECEF, pointing away from the Earth."""
@@ -203,4 +205,3 @@ def _png(rgba: NDArray[np.uint8]) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(rgba).save(buf, format="PNG", compress_level=6)
     return buf.getvalue()
-
