@@ -19,30 +19,10 @@ from contextlib import closing
 from pathlib import Path
 
 import numpy as np
-import rasterio
-from rasterio.transform import Affine
 
-from bench_spine import spectral_fbm
+from bench_spine import write
 from lodscape.build import build
 from lodscape.build.executors import BuildExecutor, DaskExecutor, PoolExecutor
-
-
-def write(path: Path, n: int) -> None:
-    profile = {
-        "driver": "GTiff",
-        "height": n,
-        "width": n,
-        "count": 1,
-        "dtype": "float32",
-        "crs": "EPSG:32617",
-        "transform": Affine(5.0, 0.0, 700000.0, 0.0, -5.0, 4070000.0),
-        "tiled": True,
-        "blockxsize": 256,
-        "blockysize": 256,
-        "compress": "deflate",
-    }
-    with rasterio.open(path, "w", **profile) as dst:
-        dst.write(spectral_fbm(n), 1)
 
 
 def tiles(path: Path) -> dict[tuple[int, int, int], bytes]:

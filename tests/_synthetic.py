@@ -108,3 +108,16 @@ def write_dem(
     with rasterio.open(path, "w", **profile) as dst:
         dst.write(heights, 1)
     return path
+
+
+def run_cli(argv: list[str], capsys: object) -> tuple[int, str, str]:
+    """Run the ``lodscape`` command in-process: (exit status, stdout, stderr)."""
+    from lodscape.cli import main
+
+    try:
+        main(argv)
+        code = 0
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    out, err = capsys.readouterr()  # type: ignore[attr-defined]
+    return code, out, err

@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from _synthetic import fbm_heights, write_dem
-from lodscape.cli import main
+from _synthetic import fbm_heights, run_cli, write_dem
 
 pytestmark = pytest.mark.gl
 
@@ -24,13 +23,7 @@ def dem(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 
 def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    try:
-        main(argv)
-        code = 0
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
+    return run_cli(argv, capsys)
 
 
 def test_render_writes_a_picture(

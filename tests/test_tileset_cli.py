@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from _synthetic import fbm_heights, write_dem
+from _synthetic import fbm_heights, run_cli, write_dem
 from lodscape.cli import main
 from lodscape.store.quantized_mesh import decode
 
@@ -36,13 +36,7 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    try:
-        main(argv)
-        code = 0
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
+    return run_cli(argv, capsys)
 
 
 def test_info_render_and_export(

@@ -165,45 +165,16 @@ def _sweep_diamond(
                 1,
             )
             _touch(lo, hi, y0 + s, x0 + half, a, b)
-            # left and right triangles, row by row: each row spans a band of columns
-            a, b = _range_left(h, y0, x0, s, tl, (c2 - tl - bl) * inv, (bl - tl) * inv)
-            _touch(lo, hi, y0 + half, x0, a, b)
-            a, b = _range_right(
-                h, y0, x0, s, tr + (c2 - tr - br), (c2 - tr - br) * -inv, (br - tr) * inv
-            )
-            _touch(lo, hi, y0 + half, x0 + s, a, b)
-
-
-@numba.njit(cache=True, fastmath=True)  # type: ignore[misc]
-def _range_left(
-    h: NDArray[np.float64], y0: int, x0: int, s: int, z0: float, gu: float, gv: float
-) -> tuple[float, float]:
-    """The left triangle of a diamond square: u <= v and u <= s - v."""
-    a = 0.0
-    b = 0.0
-    for v in range(s + 1):
-        row = h[y0 + v]
-        for u in range(min(v, s - v) + 1):
-            r = z0 + gu * u + gv * v - row[x0 + u]
-            a = min(a, r)
-            b = max(b, r)
-    return a, b
-
-
-@numba.njit(cache=True, fastmath=True)  # type: ignore[misc]
-def _range_right(
-    h: NDArray[np.float64], y0: int, x0: int, s: int, z0: float, gu: float, gv: float
-) -> tuple[float, float]:
-    """The right triangle of a diamond square: u >= v and u >= s - v."""
-    a = 0.0
-    b = 0.0
-    for v in range(s + 1):
-        row = h[y0 + v]
-        for u in range(max(v, s - v), s + 1):
-            r = z0 + gu * u + gv * v - row[x0 + u]
-            a = min(a, r)
-            b = max(b, r)
-    return a, b
+            # the left and right triangles widen to the middle row, then narrow: two runs each
+            gl, gv = (c2 - tl - bl) * inv, (bl - tl) * inv
+            a1, b1 = _range(h, y0, x0, tl, gl, gv, 0, half, 0, 0, 0, 1)
+            a2, b2 = _range(h, y0, x0, tl, gl, gv, half + 1, s, 0, 0, s, -1)
+            _touch(lo, hi, y0 + half, x0, min(a1, a2), max(b1, b2))
+            gr, gv = (c2 - tr - br) * -inv, (br - tr) * inv
+            z0 = tr + (c2 - tr - br)
+            a1, b1 = _range(h, y0, x0, z0, gr, gv, 0, half, s, -1, s, 0)
+            a2, b2 = _range(h, y0, x0, z0, gr, gv, half + 1, s, 0, 1, s, 0)
+            _touch(lo, hi, y0 + half, x0 + s, min(a1, a2), max(b1, b2))
 
 
 @numba.njit(cache=True)  # type: ignore[misc]
