@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from lodscape.geo.tiles import Bbox, lonlat_to_merc, tile_from_id, tile_size
 from lodscape.imagery import TintImagery
+from lodscape.lod.select import TEXTURE
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import TileTree, build_tree
 from lodscape.terrain.source import HeightSource
@@ -33,12 +34,22 @@ class Provider(Protocol):
         """Terrain height at a point, or None outside the data."""
         ...
 
+    def fetch(self, key: int) -> bytes:
+        """The stored form of one resource key (tile id << 3 | slot): what the disk or the
+        network gives, what the streamer's cache stage holds."""
+        ...
+
+    def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
+        """The fetched bytes made ready to upload: a mesh, or a (T, T, 4) RGBA texture (alpha
+        0 where there is no data)."""
+        ...
+
     def mesh(self, key: int) -> TileMesh:
-        """The mesh of one resource key (tile id << 3 | grid index)."""
+        """fetch and decode of a mesh key."""
         ...
 
     def texture(self, key: int) -> NDArray[np.uint8]:
-        """The (T, T, 4) RGBA texture of one texture key; alpha 0 where there is no data."""
+        """fetch and decode of a texture key."""
         ...
 
     def close(self) -> None: ...
@@ -59,13 +70,31 @@ class RasterProvider:
         h, valid = self.source.sample(xm, ym, self.source.resolution_merc)
         return float(h[0]) if bool(valid[0]) else None
 
-    def mesh(self, key: int) -> TileMesh:
+    def fetch(self, key: int) -> bytes:
+        """A mesh key's sampled heights (float32), or a texture key's RGBA pixels."""
         t = tile_from_id(key >> 3)
+        if key & 7 == TEXTURE:
+            return self.imagery.texture(t.z, t.x, t.y).tobytes()
         segments = self.tree.grids[key & 7]
         xs, ys = grid_coordinates(t.z, t.x, t.y, segments)
         xx, yy = np.meshgrid(xs, ys)
         heights, _ = self.source.sample(xx, yy, float(tile_size(t.z)) / segments)
+        return heights.astype(np.float32).tobytes()
+
+    def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
+        t = tile_from_id(key >> 3)
+        if key & 7 == TEXTURE:
+            n = self.imagery.tile_size
+            return np.frombuffer(data, dtype=np.uint8).reshape(n, n, 4)
+        s = self.tree.grids[key & 7] + 1
+        heights = np.frombuffer(data, dtype=np.float32).reshape(s, s)
         return build_mesh(key, t.z, t.x, t.y, heights)
+
+    def mesh(self, key: int) -> TileMesh:
+        made = self.decode(key, self.fetch(key))
+        if not isinstance(made, TileMesh):
+            raise TypeError(f"key {key} is not a mesh key")
+        return made
 
     def texture(self, key: int) -> NDArray[np.uint8]:
         t = tile_from_id(key >> 3)

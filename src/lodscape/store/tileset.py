@@ -40,6 +40,7 @@ from lodscape.geo.tiles import (
     tile,
     tile_from_id,
 )
+from lodscape.lod.select import TEXTURE
 from lodscape.store.quantized_mesh import QuantizedMeshError, decode
 from lodscape.terrain.mesh import TileMesh, tin_mesh
 from lodscape.terrain.pyramid import Level, TileTree
@@ -333,11 +334,38 @@ class TilesetProvider:
         )
         return None if row is None else bytes(row[0])
 
-    def mesh(self, key: int) -> TileMesh:
+    def fetch(self, key: int) -> bytes:
+        """A tile's stored bytes: gzipped quantized-mesh for a mesh key, PNG for a texture key."""
         t = tile_from_id(key >> 3)
+        if key & 7 == TEXTURE:
+            row = (
+                self._db()
+                .execute(
+                    "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
+                    "AND tile_row = ?",
+                    (t.z, t.x, (1 << t.z) - 1 - t.y),
+                )
+                .fetchone()
+            )
+            if row is None:
+                raise TilesetError(f"{self.name}: no imagery tile {t.z}/{t.x}/{t.y}")
+            return bytes(row[0])
         data = self._terrain(t.z, t.x, t.y)
         if data is None:
             raise TilesetError(f"{self.name}: no terrain tile {t.z}/{t.x}/{t.y}")
+        return data
+
+    def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
+        """The stored bytes made ready to upload: a TileMesh with skirts, or RGBA pixels."""
+        t = tile_from_id(key >> 3)
+        if key & 7 == TEXTURE:
+            from PIL import Image
+
+            try:
+                rgba = np.asarray(Image.open(io.BytesIO(data)).convert("RGBA"))
+            except Exception as exc:  # Pillow raises several unrelated classes on bad data
+                raise TilesetError(f"{self.name}: imagery tile {t.z}/{t.x}/{t.y}: {exc}") from None
+            return np.ascontiguousarray(rgba)
         try:
             qm = decode(data)
         except QuantizedMeshError as exc:
@@ -350,27 +378,17 @@ class TilesetProvider:
         sides = (qm.west, qm.south, qm.east, qm.north)
         return tin_mesh(key, t.z, t.x, t.y, lon, lat, h, qm.triangles, sides)
 
-    def texture(self, key: int) -> NDArray[np.uint8]:
-        from PIL import Image
+    def mesh(self, key: int) -> TileMesh:
+        made = self.decode(key, self.fetch(key))
+        if not isinstance(made, TileMesh):
+            raise TypeError(f"key {key} is not a mesh key")
+        return made
 
-        t = tile_from_id(key >> 3)
-        row = (
-            self._db()
-            .execute(
-                "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
-                "AND tile_row = ?",
-                (t.z, t.x, (1 << t.z) - 1 - t.y),
-            )
-            .fetchone()
-        )
-        if row is None:
-            raise TilesetError(f"{self.name}: no imagery tile {t.z}/{t.x}/{t.y}")
-        try:
-            image = Image.open(io.BytesIO(bytes(row[0])))
-            rgba = np.asarray(image.convert("RGBA"))
-        except Exception as exc:  # Pillow raises several unrelated classes on bad data
-            raise TilesetError(f"{self.name}: imagery tile {t.z}/{t.x}/{t.y}: {exc}") from None
-        return np.ascontiguousarray(rgba)
+    def texture(self, key: int) -> NDArray[np.uint8]:
+        made = self.decode(key | TEXTURE, self.fetch(key | TEXTURE))
+        if isinstance(made, TileMesh):
+            raise TypeError(f"key {key} is not a texture key")
+        return made
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         """The height of the finest tile's mesh under the point."""
