@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import time
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from os import PathLike
@@ -23,13 +23,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import CameraError
-from lodscape.geo.frames import WGS84_A
-from lodscape.geo.tiles import merc_to_lonlat
+from lodscape.geo.frames import WGS84_A, ecef_to_geodetic
+from lodscape.geo.tiles import merc_to_lonlat, tile_from_id_array, tile_id_array
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import TEXTURE, Selection, SelectOptions, select, tile_boxes
 from lodscape.render import DrawItem, Renderer
 from lodscape.store.provider import Provider, RasterProvider
 from lodscape.store.tileset import TilesetProvider, is_tileset
+from lodscape.stream import RealClock, Streamer, StreamOptions
+from lodscape.stream.streamer import Clock
 from lodscape.terrain.mesh import TileMesh
 from lodscape.terrain.pyramid import TileTree
 from lodscape.terrain.source import ArraySource, HeightSource, RasterSource
@@ -53,6 +55,9 @@ class SceneOptions:
     #: Anisotropic texture filtering cap (1 turns it off): sharper ground at grazing angles, and
     #: free on a GPU, but it makes a frame about 2.4x slower on Mesa's llvmpipe.
     anisotropy: float = 16.0
+    #: Stream tiles through the staged pipeline (never waiting on a load: missing tiles are
+    #: drawn from their ancestors) instead of loading every missing tile before drawing.
+    stream: StreamOptions | None = None
 
     def __post_init__(self) -> None:
         if not self.gpu_budget_mb > 0.0:
@@ -76,6 +81,8 @@ class FrameStats:
     select_ms: float
     load_ms: float
     draw_ms: float
+    #: The streaming pipeline's figures for this frame (empty when not streaming).
+    stream: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, float | int]:
         return {
@@ -87,6 +94,7 @@ class FrameStats:
             "select_ms": round(self.select_ms, 2),
             "load_ms": round(self.load_ms, 2),
             "draw_ms": round(self.draw_ms, 2),
+            **self.stream,
         }
 
 
@@ -101,6 +109,7 @@ class Scene:
         *,
         tree: TileTree | None = None,
         owns: bool = False,
+        clock: Clock | None = None,
     ) -> None:
         # a height source has ``sample``; anything else is already a provider
         if hasattr(source, "sample"):
@@ -115,6 +124,11 @@ class Scene:
         self._used: OrderedDict[int, None] = OrderedDict()
         self._pool = ThreadPoolExecutor(max(1, self.options.workers), "lodscape-load")
         self.last: FrameStats | None = None
+        self.streamer: Streamer | None = None
+        if self.options.stream is not None:
+            self.streamer = Streamer(self.provider, self.options.stream, clock or RealClock())
+        self._motion: tuple[float, NDArray[np.float64]] | None = None
+        self._frame = 0
 
     # --- geometry helpers ----------------------------------------------------------------
 
@@ -178,6 +192,8 @@ class Scene:
         """RGB (H, W, 3) uint8 and depth (H, W) float32 metres along the view axis (inf: sky)."""
         cam = self.prepare(camera)
         renderer = self._renderer_for(cam)
+        if self.streamer is not None:
+            return self._render_streaming(cam, renderer, self.streamer)
         t0 = time.perf_counter()
         resident = np.array(sorted(renderer.resident()), dtype=np.uint64)
         sel = select(self.options.select, cam, self.tree, self._previous, resident)
@@ -205,6 +221,93 @@ class Scene:
             (t3 - t2) * 1e3,
         )
         return rgb, depth
+
+    def _render_streaming(
+        self, cam: Camera, renderer: Renderer, streamer: Streamer
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        """One frame that never waits on the pipeline, except for tiles with nothing resident
+        above them (the roots, at the start): those are taken at once and counted as a stall."""
+        opts = self.options
+        before = streamer.stats.snapshot()
+        t0 = time.perf_counter()
+        sel = select(opts.select, cam, self.tree, self._previous, _keys(renderer))
+        on_gpu = renderer.has
+        stall = 0.0
+        unresolved = [k for k in _drawn_keys(sel) if not on_gpu(k)]
+        taken = 0
+        if unresolved:
+            # the roots above them come at once, and the rest streams in while they stand in
+            ts = time.perf_counter()
+            for keys in (_roots(unresolved, self.tree.zmin), None):
+                if keys is None:
+                    keys = [k for k in _drawn_keys(sel) if not on_gpu(k)]
+                for key in keys:
+                    if not on_gpu(key):
+                        _upload(renderer, key, streamer.take(key))
+                        taken += 1
+                sel = select(opts.select, cam, self.tree, self._previous, _keys(renderer))
+            stall = (time.perf_counter() - ts) * 1e3
+        t1 = time.perf_counter()
+        streamer.request((int(k) for k in sel.loads), "memory", on_gpu)
+        self._prefetch(cam, streamer, on_gpu)
+        streamer.collect()
+        wanted = [int(k) for k in sel.loads]
+        budget = streamer.options.upload_ms
+        uploaded = streamer.upload(renderer, [*wanted, *list(streamer.memory)], budget)
+        if uploaded:
+            sel = select(opts.select, cam, self.tree, self._previous, _keys(renderer))
+        t2 = time.perf_counter()
+        rgb, depth = renderer.draw(cam, draw_items(sel), background=opts.background)
+        t3 = time.perf_counter()
+        self._previous = sel
+        self._evict(renderer, sel)
+        gpu = sum(renderer.resident().values())
+        stages = streamer.resident()
+        stream = {
+            **streamer.stats.since(before),
+            "stall_ms": round(stall, 2),
+            "frame_cpu_ms": round((t2 - t0) * 1e3, 2),
+            "gpu_bytes": gpu,
+            "memory_bytes": stages["memory"],
+            "cache_bytes": stages["cache"],
+            "in_flight": streamer.in_flight(),
+        }
+        self.last = FrameStats(
+            sel.stats(),
+            renderer.last_stats.draw_calls,
+            renderer.last_stats.triangles,
+            uploaded + taken,
+            gpu / 2**20,
+            (t1 - t0) * 1e3,
+            (t2 - t1) * 1e3,
+            (t3 - t2) * 1e3,
+            stream,
+        )
+        return rgb, depth
+
+    def _prefetch(self, cam: Camera, streamer: Streamer, on_gpu: Callable[[int], bool]) -> None:
+        """The memory and cache radii: what the camera will want ``ahead`` seconds on along its
+        velocity (every fourth frame: a selection costs a few milliseconds)."""
+        now = streamer.clock.now()
+        pos = cam.position
+        last, self._motion = self._motion, (now, pos)
+        self._frame += 1
+        ahead = streamer.options.ahead
+        if last is None or not ahead or self._frame % 4:
+            return
+        dt = now - last[0]
+        if dt <= 0.0:
+            return
+        velocity = (pos - last[1]) / dt
+        for i, seconds in enumerate(ahead):
+            lon, lat, alt = ecef_to_geodetic(pos + velocity * seconds)
+            try:
+                future = self.prepare(cam.moved(lon=float(lon), lat=float(lat), alt=float(alt)))
+            except CameraError:
+                continue  # the path would go under the ground: nothing to fetch for it
+            sel = select(self.options.select, future, self.tree)
+            keys = (int(k) for k in np.concatenate([sel.texture_keys, sel.keys]))
+            streamer.request(keys, "memory" if i == 0 else "cache", on_gpu)
 
     def frames(
         self, cameras: Iterator[Camera]
@@ -239,10 +342,10 @@ class Scene:
         return len(todo)
 
     def _evict(self, renderer: Renderer, sel: Selection) -> None:
-        for k in sel.keys:
-            self._used[int(k)] = None
-            self._used.move_to_end(int(k))
-        drawn = {int(k) for k in sel.keys}
+        drawn = _drawn_keys(sel)
+        for k in drawn:
+            self._used[k] = None
+            self._used.move_to_end(k)
         budget = self.options.gpu_budget_mb * 2**20
         sizes = renderer.resident()
         total = sum(sizes.values())
@@ -257,6 +360,8 @@ class Scene:
 
     def close(self) -> None:
         self._pool.shutdown(wait=True)
+        if self.streamer is not None:
+            self.streamer.close()
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
@@ -269,6 +374,31 @@ class Scene:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _keys(renderer: Renderer) -> NDArray[np.uint64]:
+    return np.array(sorted(renderer.resident()), dtype=np.uint64)
+
+
+def _roots(keys: list[int], zmin: int) -> list[int]:
+    """The mesh (coarsest grid) and texture keys of the root tiles above ``keys``."""
+    ids = np.array(keys, dtype=np.uint64) >> np.uint64(3)
+    z, x, y = tile_from_id_array(ids)
+    up = z - zmin
+    rid = np.unique(tile_id_array(np.full(z.size, zmin), x >> up, y >> up))
+    return [int(r << np.uint64(3)) for r in rid] + [int((r << np.uint64(3)) | 7) for r in rid]
+
+
+def _drawn_keys(sel: Selection) -> set[int]:
+    """The meshes and textures a selection draws."""
+    return {int(k) for k in sel.keys} | {int(k) for k in sel.texture_keys}
+
+
+def _upload(renderer: Renderer, key: int, made: TileMesh | NDArray[np.uint8]) -> None:
+    if isinstance(made, TileMesh):
+        renderer.upload(made)
+    else:
+        renderer.upload_texture(key, made)
 
 
 def draw_items(sel: Selection) -> list[DrawItem]:
@@ -288,15 +418,17 @@ def draw_items(sel: Selection) -> list[DrawItem]:
 def open(
     source: str | PathLike[str] | HeightSource | Provider | NDArray[np.floating],
     options: SceneOptions | None = None,
+    *,
+    clock: Clock | None = None,
     **array_kwargs: Any,
 ) -> Scene:
     """A scene over a tileset built by ``lodscape build`` (.lods), a GeoTIFF (any GDAL raster), a
     numpy array (with ``transform``, ``crs``), or a ready HeightSource or Provider. A scene
     opened from a path or an array closes what it opened when it closes."""
     if isinstance(source, np.ndarray):
-        return Scene(ArraySource(source, **array_kwargs), options, owns=True)
+        return Scene(ArraySource(source, **array_kwargs), options, owns=True, clock=clock)
     if isinstance(source, str | PathLike):
         if is_tileset(source):
-            return Scene(TilesetProvider(source), options, owns=True)
-        return Scene(RasterSource(source), options, owns=True)
-    return Scene(source, options)
+            return Scene(TilesetProvider(source), options, owns=True, clock=clock)
+        return Scene(RasterSource(source), options, owns=True, clock=clock)
+    return Scene(source, options, clock=clock)

@@ -258,6 +258,10 @@ class Renderer:
             del self._indices[tile.segments]
             self._free(ibo)
 
+    def has(self, key: int) -> bool:
+        """Whether mesh or texture ``key`` is uploaded."""
+        return key in self._tiles or key in self._textures
+
     def resident(self) -> dict[int, int]:
         """GPU bytes of every uploaded mesh (its vertices) and texture (with its mips)."""
         out = {key: tile.nbytes for key, tile in self._tiles.items()}

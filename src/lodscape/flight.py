@@ -1,0 +1,322 @@
+"""Flights: a camera path (a route file, an orbit or a straight line) flown frame by frame on a
+simulated clock, streaming as it goes, into an MP4 and per-frame statistics.
+
+Every frame is rendered offline, however long that takes; the streamer's workers and uploads
+get exactly the time a real-time viewer at the requested frame rate would have given them
+(``SimClock``), so the statistics say what that viewer would have seen.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.errors import LodscapeError
+from lodscape.geo.frames import ecef_to_geodetic, enu_basis, geodetic_to_ecef
+from lodscape.lod.camera import Camera
+from lodscape.scene import Scene
+
+__all__ = ["Route", "fly", "line_route", "orbit_route", "read_route"]
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Route:
+    """Positions (lon°, lat°, alt m) at times (s): the camera's path, and where it looks."""
+
+    times: F64
+    lon: F64
+    lat: F64
+    alt: F64
+    #: A point every camera looks at (an orbit's centre), or None to look along the path.
+    target: tuple[float, float, float] | None = None
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1])
+
+    def at(self, t: float) -> tuple[float, float, float]:
+        return (
+            float(np.interp(t, self.times, self.lon)),
+            float(np.interp(t, self.times, self.lat)),
+            float(np.interp(t, self.times, self.alt)),
+        )
+
+
+def _timed(lon: F64, lat: F64, alt: F64, speed: float, name: str) -> F64:
+    """Times along a polyline flown at ``speed`` m/s."""
+    if not (math.isfinite(speed) and speed > 0.0):
+        raise LodscapeError(f"--speed must be a positive number of m/s, got {speed}")
+    p = geodetic_to_ecef(lon, lat, alt)
+    step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    times = np.concatenate([[0.0], np.cumsum(step)]) / speed
+    if times[-1] <= 0.0:
+        raise LodscapeError(f"{name}: the path has no length")
+    return times
+
+
+def read_route(path: str | os.PathLike[str], speed: float) -> Route:
+    """A CSV (lon,lat,alt header, optional time column in seconds) or a GeoJSON line
+    (coordinates [lon, lat, alt]) as a route."""
+    name = os.fspath(path)
+    try:
+        text = Path(name).read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise LodscapeError(f"{name}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise LodscapeError(f"{name}: cannot read ({exc})") from None
+    if name.lower().endswith((".geojson", ".json")):
+        lon, lat, alt = _geojson(text, name)
+        times = None
+    else:
+        lon, lat, alt, times = _csv(text, name)
+    if lon.size < 2:
+        raise LodscapeError(f"{name}: a route needs at least two points")
+    if np.any(np.abs(lat) > 90.0) or not np.isfinite(np.stack([lon, lat, alt])).all():
+        raise LodscapeError(f"{name}: coordinates must be finite lon, lat (within ±90) and alt")
+    if times is None:
+        times = _timed(lon, lat, alt, speed, name)
+    else:
+        times = times - times[0]
+        if np.any(np.diff(times) <= 0.0):
+            raise LodscapeError(f"{name}: the time column must increase from row to row")
+    return Route(times, lon, lat, alt)
+
+
+def _csv(text: str, name: str) -> tuple[F64, F64, F64, F64 | None]:
+    rows = list(csv.reader(text.splitlines()))
+    if not rows:
+        raise LodscapeError(f"{name}: empty route")
+    header = [h.strip().lower() for h in rows[0]]
+    missing = [c for c in ("lon", "lat", "alt") if c not in header]
+    if missing:
+        raise LodscapeError(
+            f"{name}: the header needs lon, lat and alt columns (missing {', '.join(missing)})"
+        )
+    cols = [header.index(c) for c in ("lon", "lat", "alt")]
+    tcol = header.index("time") if "time" in header else None
+    values = []
+    for number, row in enumerate(rows[1:], start=2):
+        if not any(c.strip() for c in row):
+            continue
+        try:
+            values.append(
+                [float(row[c]) for c in cols] + ([float(row[tcol])] if tcol is not None else [])
+            )
+        except (ValueError, IndexError):
+            raise LodscapeError(f"{name}: row {number}: {','.join(row)!r} is not numbers") from None
+    a = np.array(values, dtype=np.float64).reshape(len(values), -1)
+    if a.shape[0] == 0:
+        raise LodscapeError(f"{name}: the route has no points")
+    return a[:, 0], a[:, 1], a[:, 2], (a[:, 3] if tcol is not None else None)
+
+
+def _geojson(text: str, name: str) -> tuple[F64, F64, F64]:
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise LodscapeError(f"{name}: not JSON ({exc.msg} at line {exc.lineno})") from None
+    geom = doc
+    if isinstance(doc, dict) and doc.get("type") == "FeatureCollection":
+        feats = doc.get("features") or []
+        geom = feats[0] if feats else {}
+    if isinstance(geom, dict) and geom.get("type") == "Feature":
+        geom = geom.get("geometry") or {}
+    if not isinstance(geom, dict) or geom.get("type") not in ("LineString", "MultiLineString"):
+        raise LodscapeError(f"{name}: expected a GeoJSON LineString (or a feature holding one)")
+    coords = geom.get("coordinates") or []
+    if geom["type"] == "MultiLineString":
+        coords = [c for part in coords for c in part]
+    try:
+        a = np.array(coords, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise LodscapeError(f"{name}: coordinates must be [lon, lat, alt] numbers") from None
+    if a.ndim != 2 or a.shape[1] < 3:
+        raise LodscapeError(f"{name}: every coordinate needs an altitude: [lon, lat, alt]")
+    return a[:, 0], a[:, 1], a[:, 2]
+
+
+def orbit_route(lon: float, lat: float, radius: float, alt: float, speed: float) -> Route:
+    """A circle of ``radius`` metres around (lon, lat) at ``alt``, looking at its centre."""
+    if not (radius > 0.0 and math.isfinite(radius)):
+        raise LodscapeError(f"--orbit radius must be positive, got {radius}")
+    a = np.linspace(0.0, 2.0 * math.pi, 361)
+    east, north = radius * np.sin(a), radius * np.cos(a)
+    basis = enu_basis(lon, lat)
+    centre = geodetic_to_ecef(lon, lat, alt)
+    p = centre + east[:, None] * basis[0] + north[:, None] * basis[1]
+    plon, plat, _ = ecef_to_geodetic(p)
+    palt = np.full(a.size, alt)
+    times = _timed(plon, plat, palt, speed, "--orbit")
+    return Route(times, plon, plat, palt, target=(lon, lat, alt - 2.0 * radius / 3.0))
+
+
+def line_route(
+    lon1: float, lat1: float, lon2: float, lat2: float, alt: float, speed: float
+) -> Route:
+    """A straight line at ``alt`` from the first point to the second."""
+    lon = np.linspace(lon1, lon2, 64)
+    lat = np.linspace(lat1, lat2, 64)
+    altv = np.full(64, float(alt))
+    return Route(_timed(lon, lat, altv, speed, "--line"), lon, lat, altv)
+
+
+def cameras(
+    route: Route,
+    fps: float,
+    width: int,
+    height: int,
+    *,
+    pitch: float = -15.0,
+    fov: float = 60.0,
+    duration: float | None = None,
+) -> Iterator[Camera]:
+    """One camera per frame: along the route, looking where it goes (or at its target)."""
+    end = route.duration if duration is None else min(duration, route.duration)
+    frames = max(1, math.floor(end * fps) + 1)
+    for i in range(frames):
+        t = i / fps
+        lon, lat, alt = route.at(t)
+        if route.target is not None:
+            yield Camera.looking_at(
+                lon, lat, alt, route.target, fov_y=fov, width=width, height=height
+            )
+            continue
+        # the direction of travel: towards where the route will be a moment later
+        ahead = route.at(min(t + 1.0, route.duration)) if t < route.duration else None
+        behind = route.at(max(t - 1.0, 0.0))
+        a, b = (lon, lat, alt), ahead if ahead is not None and ahead != (lon, lat, alt) else None
+        if b is None:
+            a, b = behind, (lon, lat, alt)
+        e, n, _ = enu_basis(lon, lat) @ (geodetic_to_ecef(*b) - geodetic_to_ecef(*a))
+        heading = math.degrees(math.atan2(e, n)) % 360.0
+        yield Camera(
+            lon, lat, alt, heading=heading, pitch=pitch, fov_y=fov, width=width, height=height
+        )
+
+
+STAT_COLUMNS = (
+    "frame",
+    "time_s",
+    "draw_ms",
+    "frame_cpu_ms",
+    "over_budget",
+    "stall_ms",
+    "tiles",
+    "triangles",
+    "max_sse_px",
+    "fallback_max",
+    "gpu_bytes",
+    "memory_bytes",
+    "cache_bytes",
+    "requested",
+    "fetched",
+    "decoded",
+    "uploaded",
+    "failed",
+    "retried",
+    "cache_hits",
+    "memory_hits",
+    "in_flight",
+)
+
+
+def fly(
+    scene: Scene,
+    frames: Iterator[Camera],
+    fps: float,
+    *,
+    video: Path | None = None,
+    stats: Path | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> list[dict[str, float]]:
+    """Render every camera on a simulated clock; write the MP4 and the statistics CSV (each
+    whole or not at all). Returns the per-frame statistics."""
+    from lodscape.stream import SimClock
+
+    streamer = scene.streamer
+    if streamer is None or not isinstance(streamer.clock, SimClock):
+        raise ValueError("fly needs a Scene streaming on a SimClock (Scene(..., clock=SimClock()))")
+    clock = streamer.clock
+    budget = 1000.0 / fps
+    rows: list[dict[str, float]] = []
+    writer: Any = None
+    tmp_video: Path | None = None
+    try:
+        for i, cam in enumerate(frames):
+            rgb, _ = scene.render(cam)
+            if video is not None:
+                if writer is None:
+                    writer, tmp_video = _video_writer(video, cam.width, cam.height, fps)
+                writer.send(np.ascontiguousarray(rgb).tobytes())
+            assert scene.last is not None
+            d = scene.last.as_dict()
+            row = {c: d.get(c, 0) for c in STAT_COLUMNS}
+            row.update(
+                frame=i,
+                time_s=round(clock.now(), 4),
+                draw_ms=d["draw_ms"],
+                over_budget=int(d.get("frame_cpu_ms", 0.0) > budget),
+            )
+            rows.append(row)
+            clock.advance(1.0 / fps)
+            if on_frame is not None:
+                on_frame(i)
+        if writer is not None:
+            writer.close()
+            writer = None
+            assert tmp_video is not None
+            assert video is not None
+            os.replace(tmp_video, video)
+        if stats is not None:
+            _write_stats(stats, rows)
+    finally:
+        if writer is not None:
+            writer.close()
+        if tmp_video is not None and tmp_video.exists():
+            tmp_video.unlink()
+    return rows
+
+
+def _video_writer(path: Path, width: int, height: int, fps: float) -> tuple[Any, Path]:
+    import imageio_ffmpeg
+
+    if width % 2 or height % 2:
+        raise LodscapeError(
+            f"an MP4 (H.264, 4:2:0) needs an even width and height, got {width}x{height}"
+        )
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    writer = imageio_ffmpeg.write_frames(
+        str(tmp),
+        (width, height),
+        fps=fps,
+        codec="libx264",
+        pix_fmt_out="yuv420p",
+        macro_block_size=1,
+        quality=7,
+        ffmpeg_log_level="error",
+    )
+    writer.send(None)
+    return writer, tmp
+
+
+def _write_stats(path: Path, rows: list[dict[str, float]]) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with tmp.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(STAT_COLUMNS))
+            w.writeheader()
+            w.writerows(rows)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

@@ -1,0 +1,330 @@
+"""The staged resource pipeline: see the package docstring."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.errors import LodscapeError
+from lodscape.terrain.mesh import TileMesh
+
+__all__ = ["RealClock", "SimClock", "StreamOptions", "StreamStats", "Streamer"]
+
+Made = TileMesh | NDArray[np.uint8]
+Stage = Literal["memory", "cache"]
+
+
+class Source(Protocol):
+    """What the streamer reads: a Provider's two halves."""
+
+    def fetch(self, key: int) -> bytes: ...
+
+    def decode(self, key: int, data: bytes) -> Made: ...
+
+
+class Uploader(Protocol):
+    """What the streamer hands decoded resources to (the renderer, on the GL thread)."""
+
+    def upload(self, mesh: TileMesh) -> None: ...
+
+    def upload_texture(self, key: int, image: NDArray[np.uint8]) -> None: ...
+
+
+class Clock(Protocol):
+    def now(self) -> float: ...
+
+
+class RealClock:
+    """Wall-clock seconds: a result is usable as soon as it is ready."""
+
+    simulated = False
+
+    def now(self) -> float:
+        return time.monotonic()
+
+
+class SimClock:
+    """Simulated seconds, advanced by the caller one frame at a time."""
+
+    simulated = True
+
+    def __init__(self, start: float = 0.0) -> None:
+        self.t = start
+
+    def now(self) -> float:
+        return self.t
+
+    def advance(self, seconds: float) -> None:
+        self.t += seconds
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    """Budgets and limits of the pipeline; the defaults suit a desktop viewer."""
+
+    #: Bytes of fetched tiles kept in RAM (the cache stage).
+    cache_mb: float = 128.0
+    #: Bytes of decoded, upload-ready tiles kept in RAM (the memory stage).
+    memory_mb: float = 128.0
+    #: GL-thread time per frame for uploads, milliseconds.
+    upload_ms: float = 6.0
+    #: Jobs (fetch and/or decode) in flight at once.
+    in_flight: int = 16
+    #: Worker threads.
+    workers: int = 4
+    #: Seconds ahead along the velocity the memory and cache radii look; () turns prefetch off.
+    ahead: tuple[float, ...] = (1.0, 3.0)
+    #: First retry delay after a failed fetch (doubling, up to ``max_backoff``), seconds.
+    backoff: float = 0.25
+    max_backoff: float = 8.0
+
+    def __post_init__(self) -> None:
+        for name in ("cache_mb", "memory_mb", "upload_ms", "backoff", "max_backoff"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"Expected a positive {name}, got {getattr(self, name)}")
+        if self.in_flight < 1 or self.workers < 1:
+            raise ValueError("Expected at least one worker and one job in flight")
+
+
+@dataclass
+class StreamStats:
+    """Running totals; a frame's figures are the difference of two snapshots."""
+
+    requested: int = 0
+    fetched: int = 0
+    decoded: int = 0
+    uploaded: int = 0
+    failed: int = 0
+    retried: int = 0
+    cache_hits: int = 0
+    memory_hits: int = 0
+    upload_ms: float = 0.0
+
+    def snapshot(self) -> StreamStats:
+        return StreamStats(**self.__dict__)
+
+    def since(self, before: StreamStats) -> dict[str, float]:
+        return {k: round(v - getattr(before, k), 3) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class _Job:
+    key: int
+    decode: bool
+    submitted: float
+    future: Future[tuple[bytes | None, Made | None, float]]
+    #: Simulated completion, once known.
+    done_at: float | None = None
+
+
+@dataclass
+class _Failure:
+    attempts: int
+    retry_at: float
+    message: str = ""
+
+
+@dataclass
+class Streamer:
+    """Owns the cache and memory stages and the worker jobs that fill them."""
+
+    source: Source
+    options: StreamOptions = field(default_factory=StreamOptions)
+    clock: Clock = field(default_factory=RealClock)
+
+    def __post_init__(self) -> None:
+        self.cache: OrderedDict[int, bytes] = OrderedDict()
+        self.memory: OrderedDict[int, Made] = OrderedDict()
+        self.cache_bytes = 0
+        self.memory_bytes = 0
+        self.stats = StreamStats()
+        self._jobs: dict[int, _Job] = {}
+        self._failures: dict[int, _Failure] = {}
+        self._slots = [-math.inf] * self.options.workers
+        self._pool = ThreadPoolExecutor(self.options.workers, thread_name_prefix="lodscape-io")
+        self._pinned: set[int] = set()
+
+    # --- requests ----------------------------------------------------------------------------
+
+    def request(self, keys: Iterable[int], stage: Stage, skip: Callable[[int], bool]) -> None:
+        """Ask for ``keys`` (most urgent first) up to ``stage``; ``skip`` says which are already
+        on the GPU. Stops at the in-flight limit: less urgent classes wait their turn."""
+        now = self.clock.now()
+        for key in keys:
+            if skip(key):
+                continue
+            if key in self.memory:
+                self.memory.move_to_end(key)
+                continue
+            job = self._jobs.get(key)
+            if job is not None:
+                continue
+            cached = self.cache.get(key)
+            if cached is not None:
+                self.cache.move_to_end(key)
+                if stage == "cache":
+                    continue
+            failure = self._failures.get(key)
+            if failure is not None and now < failure.retry_at:
+                continue
+            if len(self._jobs) >= self.options.in_flight:
+                return
+            if failure is not None:
+                self.stats.retried += 1
+            self.stats.requested += 1
+            decode = stage == "memory"
+            future = self._pool.submit(self._work, key, cached, decode)
+            self._jobs[key] = _Job(key, decode, now, future)
+
+    def _work(
+        self, key: int, cached: bytes | None, decode: bool
+    ) -> tuple[bytes | None, Made | None, float]:
+        """On a worker: fetch (unless cached) and decode (if asked); returns what it made and
+        how long that took."""
+        t = time.perf_counter()
+        data = cached if cached is not None else self.source.fetch(key)
+        made = self.source.decode(key, data) if decode else None
+        return (None if cached is not None else data), made, time.perf_counter() - t
+
+    # --- results -----------------------------------------------------------------------------
+
+    def collect(self) -> None:
+        """Move finished jobs whose results the clock allows into the cache and memory."""
+        now = self.clock.now()
+        simulated = bool(getattr(self.clock, "simulated", False))
+        for key, job in list(self._jobs.items()):
+            if not job.future.done():
+                continue
+            exc = job.future.exception()
+            if job.done_at is None:
+                took = 0.0 if exc is not None else job.future.result()[2]
+                if simulated:
+                    # the worker slot that frees first takes the job
+                    slot = int(np.argmin(self._slots))
+                    start = max(job.submitted, self._slots[slot])
+                    job.done_at = self._slots[slot] = start + took
+                else:
+                    job.done_at = now
+            if job.done_at > now:
+                continue
+            del self._jobs[key]
+            if exc is not None:
+                self._fail(key, exc, now)
+                continue
+            data, made, _ = job.future.result()
+            self._failures.pop(key, None)
+            if data is not None:
+                self.stats.fetched += 1
+                self._put_cache(key, data)
+            else:
+                self.stats.cache_hits += 1
+            if made is not None:
+                self.stats.decoded += 1
+                self._put_memory(key, made)
+
+    def _fail(self, key: int, exc: BaseException, now: float) -> None:
+        if not isinstance(exc, LodscapeError | OSError | ValueError):
+            raise exc
+        self.stats.failed += 1
+        old = self._failures.get(key)
+        attempts = 1 if old is None else old.attempts + 1
+        delay = min(self.options.backoff * 2.0 ** (attempts - 1), self.options.max_backoff)
+        self._failures[key] = _Failure(attempts, now + delay, str(exc))
+
+    def failures(self) -> dict[int, str]:
+        """Keys whose last attempt failed, with its message."""
+        return {k: f.message for k, f in self._failures.items()}
+
+    # --- uploads -----------------------------------------------------------------------------
+
+    def upload(self, target: Uploader, keys: Iterable[int], budget_ms: float) -> int:
+        """On the GL thread: upload decoded ``keys`` (most urgent first) until ``budget_ms`` is
+        spent; each leaves the memory stage for the GPU. Returns how many went up."""
+        spent = 0.0
+        count = 0
+        for key in keys:
+            made = self.memory.get(key)
+            if made is None:
+                continue
+            if spent >= budget_ms:
+                break
+            t = time.perf_counter()
+            if isinstance(made, TileMesh):
+                target.upload(made)
+            else:
+                target.upload_texture(key, made)
+            spent += (time.perf_counter() - t) * 1e3
+            del self.memory[key]
+            self.memory_bytes -= _nbytes(made)
+            count += 1
+        self.stats.uploaded += count
+        self.stats.upload_ms += spent
+        return count
+
+    def take(self, key: int) -> Made:
+        """A resource now, whatever it costs (the frame cannot be drawn without it): from
+        memory, from the cache, or fetched on this thread."""
+        made = self.memory.pop(key, None)
+        if made is not None:
+            self.memory_bytes -= _nbytes(made)
+            self.stats.memory_hits += 1
+            return made
+        data = self.cache.get(key)
+        if data is None:
+            data = self.source.fetch(key)
+            self.stats.fetched += 1
+            self._put_cache(key, data)
+        else:
+            self.stats.cache_hits += 1
+        self.stats.decoded += 1
+        return self.source.decode(key, data)
+
+    # --- budgets -----------------------------------------------------------------------------
+
+    def _put_cache(self, key: int, data: bytes) -> None:
+        if key not in self.cache:
+            self.cache_bytes += len(data)
+        self.cache[key] = data
+        self.cache.move_to_end(key)
+        limit = self.options.cache_mb * 2**20
+        while self.cache_bytes > limit and len(self.cache) > 1:
+            _, old = self.cache.popitem(last=False)
+            self.cache_bytes -= len(old)
+
+    def _put_memory(self, key: int, made: Made) -> None:
+        if key not in self.memory:
+            self.memory_bytes += _nbytes(made)
+        self.memory[key] = made
+        self.memory.move_to_end(key)
+        limit = self.options.memory_mb * 2**20
+        while self.memory_bytes > limit and len(self.memory) > 1:
+            _, old = self.memory.popitem(last=False)
+            self.memory_bytes -= _nbytes(old)
+
+    def resident(self) -> dict[str, int]:
+        """Bytes held now in each of the streamer's stages."""
+        return {"cache": self.cache_bytes, "memory": self.memory_bytes}
+
+    def in_flight(self) -> int:
+        return len(self._jobs)
+
+    def drain(self, timeout: float = 30.0) -> None:
+        """Wait for every job in flight (tests, and the end of a flight)."""
+        for job in list(self._jobs.values()):
+            job.future.exception(timeout=timeout)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._jobs.clear()
+
+
+def _nbytes(made: Any) -> int:
+    return int(made.nbytes)
