@@ -19,6 +19,8 @@ def test_exported_members_resolve() -> None:
         "imagery",
         "render",
         "store",
+        "stream",
+        "flight",
         "build",
         "data",
         "cli",
