@@ -236,7 +236,7 @@ def test_fly_writes_a_video_and_statistics(
         for c in cams:
             f.write(f"{c.lon},{c.lat},{c.alt}\n")
     video, stats = tmp_path / "flight.mp4", tmp_path / "stats.csv"
-    code, out, err = run_cli(
+    code, _out, err = run_cli(
         [
             "fly",
             str(tileset),
