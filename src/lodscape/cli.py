@@ -23,6 +23,7 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.select import SelectOptions
 from lodscape.scene import Scene, SceneOptions
 from lodscape.scene import open as open_scene
+from lodscape.stream.streamer import Clock
 
 app = typer.Typer(
     name="lodscape",
@@ -52,6 +53,48 @@ def _finite(value: float | None) -> float | None:
 SizeOpt = Annotated[str, typer.Option("--size", help="Viewport WIDTHxHEIGHT in pixels.")]
 OutOpt = Annotated[Path, typer.Option("-o", "--output", help="Image to write (.png, .jpg, .tif).")]
 SseOpt = Annotated[float, typer.Option("--max-sse", help="Screen-space error bound, pixels.")]
+ImageryOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="Imagery: an XYZ URL template (https://{s}.host/{z}/{x}/{y}.png), an .mbtiles "
+        "file or a folder of z/x/y tiles. Default: the terrain's own tint and hillshade."
+    ),
+]
+CacheOpt = Annotated[
+    Path | None,
+    typer.Option(help="Folder for the imagery cache (default: $XDG_CACHE_HOME/lodscape)."),
+]
+
+
+def _open(
+    source: str,
+    options: SceneOptions,
+    imagery: str | None,
+    cache: Path | None,
+    *,
+    strict: bool = True,
+    clock: Clock | None = None,
+) -> Scene:
+    """A scene, with its textures from ``imagery`` when one is given."""
+    if imagery is None:
+        return open_scene(source, options, clock=clock)
+    from lodscape.imagery.sources import imagery_source
+    from lodscape.store.provider import ImageryProvider
+
+    if cache is None:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
+        cache = Path(base) / "lodscape"
+    fetcher = imagery_source(imagery, cache_dir=cache)
+    try:
+        terrain = open_scene(source, options)
+    except BaseException:
+        fetcher.close()
+        raise
+    # the terrain's provider, now serving imagery too; the first scene hands it over
+    provider = ImageryProvider(terrain.provider, fetcher, strict=strict)
+    terrain.release_provider()
+    terrain.close()
+    return Scene(provider, options, owns=True, clock=clock)
 
 
 def _scene_options(*, max_sse: float, anisotropy: float) -> SceneOptions:
@@ -157,12 +200,14 @@ def render(
         float,
         typer.Option(callback=_finite, help="Anisotropic filtering cap; 1 is faster on llvmpipe."),
     ] = 16.0,
+    imagery: ImageryOpt = None,
+    imagery_cache: CacheOpt = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
 ) -> None:
     """Render one view of SOURCE. Without --lon/--lat/--alt, a view of the whole data."""
     w, h = _size(size)
     options = _scene_options(max_sse=max_sse, anisotropy=anisotropy)
-    with open_scene(source, options) as scene:
+    with _open(source, options, imagery, imagery_cache, strict=False) as scene:
         if lon is None and lat is None and alt is None:
             camera = scene.overview_camera(w, h, fov)
             camera = camera.moved(heading=camera.heading if heading == 0.0 else heading)
@@ -209,6 +254,8 @@ def fly(
     anisotropy: Annotated[
         float, typer.Option(callback=_finite, help="Anisotropic filtering cap.")
     ] = 16.0,
+    imagery: ImageryOpt = None,
+    imagery_cache: CacheOpt = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Fly a camera over SOURCE along a route, an orbit or a line into an MP4, streaming tiles
@@ -256,7 +303,7 @@ def fly(
     cams = list(flight.cameras(route, fps, w, h, pitch=pitch, fov=fov, duration=duration))
     columns = (TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with (
-        open_scene(source, options, clock=SimClock()) as scene,
+        _open(source, options, imagery, imagery_cache, clock=SimClock()) as scene,
         Progress(*columns, disable=quiet) as bar,
     ):
         task = bar.add_task("frames", total=len(cams))

@@ -358,6 +358,11 @@ class Scene:
             renderer.release(key)
             del self._used[key]
 
+    def release_provider(self) -> None:
+        """Stop owning the provider: closing the scene then leaves it open (for a caller that
+        wraps it in another scene)."""
+        self._owns = False
+
     def close(self) -> None:
         self._pool.shutdown(wait=True)
         if self.streamer is not None:

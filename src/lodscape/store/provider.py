@@ -6,6 +6,8 @@ Every method but ``close`` is safe to call from worker threads; none touches the
 
 from __future__ import annotations
 
+import io
+import threading
 from typing import Protocol
 
 import numpy as np
@@ -13,12 +15,13 @@ from numpy.typing import NDArray
 
 from lodscape.geo.tiles import Bbox, lonlat_to_merc, tile_from_id, tile_size
 from lodscape.imagery import TintImagery
+from lodscape.imagery.sources import ImageryError, ImageryFetcher, TileMissing
 from lodscape.lod.select import TEXTURE
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import TileTree, build_tree
 from lodscape.terrain.source import HeightSource
 
-__all__ = ["Provider", "RasterProvider"]
+__all__ = ["ImageryProvider", "Provider", "RasterProvider"]
 
 
 class Provider(Protocol):
@@ -102,3 +105,77 @@ class RasterProvider:
 
     def close(self) -> None:
         self.source.close()
+
+
+class ImageryProvider:
+    """A provider whose textures come from an imagery source (a tile server, an MBTiles file, a
+    folder); where the terrain has data (the textures' alpha) still comes from the terrain.
+
+    A tile the source does not have (404) is the terrain's own tint. Other failures raise, so a
+    streaming scene retries them with backoff and draws the ancestor's texture meanwhile; with
+    ``strict`` False (one-off renders) they fall back to the tint too. Both are counted.
+    """
+
+    def __init__(self, base: Provider, imagery: ImageryFetcher, *, strict: bool = True) -> None:
+        self.base = base
+        self.imagery = imagery
+        self.strict = strict
+        self.name = base.name
+        self.tree = base.tree
+        self.bounds_merc = base.bounds_merc
+        self.fallbacks = 0
+        self._lock = threading.Lock()
+
+    def ground_height(self, lon: float, lat: float) -> float | None:
+        return self.base.ground_height(lon, lat)
+
+    def fetch(self, key: int) -> bytes:
+        if key & 7 != TEXTURE:
+            return self.base.fetch(key)
+        t = tile_from_id(key >> 3)
+        try:
+            return self.imagery.fetch(t.z, t.x, t.y)
+        except TileMissing:
+            return b""
+        except ImageryError:
+            if self.strict:
+                raise
+            return b""
+
+    def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
+        if key & 7 != TEXTURE:
+            return self.base.decode(key, data)
+        tint = self.base.texture(key)
+        if not data:
+            with self._lock:
+                self.fallbacks += 1
+            return tint
+        from PIL import Image
+
+        n = tint.shape[0]
+        with Image.open(io.BytesIO(data)) as im:
+            rgb = im.convert("RGB")
+            if rgb.size != (n, n):
+                rgb = rgb.resize((n, n), Image.Resampling.BILINEAR)
+            pixels = np.asarray(rgb)
+        return np.ascontiguousarray(np.dstack([pixels, tint[..., 3]]))
+
+    def mesh(self, key: int) -> TileMesh:
+        return self.base.mesh(key)
+
+    def placeholder(self, key: int) -> TileMesh | NDArray[np.uint8]:
+        """What stands in for a texture the source failed to give when a frame cannot wait:
+        the terrain's own tint."""
+        with self._lock:
+            self.fallbacks += 1
+        return self.base.texture(key)
+
+    def texture(self, key: int) -> NDArray[np.uint8]:
+        made = self.decode(key | TEXTURE, self.fetch(key | TEXTURE))
+        if isinstance(made, TileMesh):
+            raise TypeError(f"key {key} is not a texture key")
+        return made
+
+    def close(self) -> None:
+        self.imagery.close()
+        self.base.close()

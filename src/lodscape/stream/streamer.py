@@ -279,7 +279,15 @@ class Streamer:
             return made
         data = self.cache.get(key)
         if data is None:
-            data = self.source.fetch(key)
+            try:
+                data = self.source.fetch(key)
+            except LodscapeError as exc:
+                # a frame cannot wait for retries: a source that has a stand-in gives it
+                placeholder = getattr(self.source, "placeholder", None)
+                if placeholder is None:
+                    raise
+                self._fail(key, exc, self.clock.now())
+                return placeholder(key)  # type: ignore[no-any-return]
             self.stats.fetched += 1
             self._put_cache(key, data)
         else:

@@ -1,0 +1,305 @@
+"""Imagery from elsewhere: OSM-style z/x/y servers over HTTP (paper 000), MBTiles files and tile
+folders, behind one small fetch protocol (``fetch(z, x, y) -> bytes``).
+
+The HTTP source goes through httpx with a connection limit, timeouts, retries with exponential
+backoff on timeouts, connection errors and 5xx answers, a User-Agent naming lodscape, and a
+persistent SQLite cache that keeps each tile with its validators: a fresh tile (Cache-Control
+max-age or Expires) is served from the cache, a stale one is revalidated (If-None-Match,
+If-Modified-Since) and a 304 refreshes it. A 404 is "no tile here" (not retried). An answer
+that is not an image, or is cut short, is an error: never cached, retried later.
+"""
+
+from __future__ import annotations
+
+import email.utils
+import io
+import os
+import random
+import re
+import sqlite3
+import threading
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Protocol
+
+from lodscape.errors import LodscapeError
+
+__all__ = [
+    "DirectorySource",
+    "HttpSource",
+    "ImageryError",
+    "ImageryFetcher",
+    "MBTilesSource",
+    "TileCache",
+    "TileMissing",
+    "imagery_source",
+]
+
+USER_AGENT = "lodscape/0.1 (terrain engine; +https://pypi.org/project/lodscape/)"
+
+
+class ImageryError(LodscapeError):
+    """An imagery tile that could not be had (after retries) or is not an image."""
+
+
+class TileMissing(ImageryError):
+    """The source has no tile there (HTTP 404, no row, no file)."""
+
+
+class ImageryFetcher(Protocol):
+    #: For messages: the template, file or folder.
+    name: str
+
+    def fetch(self, z: int, x: int, y: int) -> bytes: ...
+
+    def close(self) -> None: ...
+
+
+def _check_image(data: bytes, what: str) -> bytes:
+    """The bytes, if Pillow reads them as a whole image; else ImageryError."""
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            im.load()
+    except Exception as exc:  # Pillow raises several unrelated classes on bad data
+        raise ImageryError(f"{what}: not an image ({type(exc).__name__}: {exc})") from None
+    return data
+
+
+class TileCache:
+    """A persistent tile cache: one SQLite file, safe to share between threads."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute(
+            "CREATE TABLE IF NOT EXISTS tiles (url TEXT PRIMARY KEY, data BLOB NOT NULL, "
+            "etag TEXT, last_modified TEXT, expires REAL NOT NULL)"
+        )
+
+    def get(self, url: str) -> tuple[bytes, str | None, str | None, float] | None:
+        with self._lock:
+            row = self._db.execute(
+                "SELECT data, etag, last_modified, expires FROM tiles WHERE url = ?", (url,)
+            ).fetchone()
+        return None if row is None else (bytes(row[0]), row[1], row[2], float(row[3]))
+
+    def put(
+        self, url: str, data: bytes, etag: str | None, modified: str | None, expires: float
+    ) -> None:
+        with self._lock:
+            self._db.execute(
+                "INSERT OR REPLACE INTO tiles VALUES (?, ?, ?, ?, ?)",
+                (url, data, etag, modified, expires),
+            )
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+
+def _expires(headers: Mapping[str, str], now: float, default: float) -> float:
+    """When a response stops being fresh: Cache-Control max-age/no-cache, else Expires."""
+    cc = str(headers.get("cache-control") or "").lower()
+    if "no-store" in cc or "no-cache" in cc:
+        return now
+    m = re.search(r"max-age\s*=\s*(\d+)", cc)
+    if m:
+        return now + int(m.group(1))
+    exp = headers.get("expires")
+    if exp:
+        try:
+            dt = email.utils.parsedate_to_datetime(exp)
+            return dt.timestamp()
+        except (TypeError, ValueError):
+            return now
+    return now + default
+
+
+class HttpSource:
+    """An XYZ URL template, e.g. ``https://{s}.tile.example.org/{z}/{x}/{y}.png``."""
+
+    def __init__(
+        self,
+        template: str,
+        *,
+        subdomains: str = "abc",
+        timeout: float = 10.0,
+        retries: int = 3,
+        backoff: float = 0.25,
+        max_connections: int = 8,
+        cache: TileCache | None = None,
+        default_max_age: float = 86400.0,
+    ) -> None:
+        import httpx
+
+        for field in ("{z}", "{x}", "{y}"):
+            if field not in template:
+                raise ImageryError(f"imagery URL {template!r} lacks {field}")
+        self.name = template
+        self.template = template
+        self.subdomains = subdomains or "a"
+        self.retries = retries
+        self.backoff = backoff
+        self.cache = cache
+        self.default_max_age = default_max_age
+        self._client = httpx.Client(
+            timeout=httpx.Timeout(timeout),
+            limits=httpx.Limits(max_connections=max_connections),
+            headers={"User-Agent": USER_AGENT},
+            follow_redirects=True,
+        )
+        self.requests = 0
+        self.retried = 0
+
+    def url(self, z: int, x: int, y: int) -> str:
+        s = self.subdomains[(x + y) % len(self.subdomains)]
+        return self.template.format(z=z, x=x, y=y, s=s)
+
+    def fetch(self, z: int, x: int, y: int) -> bytes:
+        import httpx
+
+        url = self.url(z, x, y)
+        now = time.time()
+        cached = self.cache.get(url) if self.cache is not None else None
+        if cached is not None and cached[3] > now:
+            return cached[0]
+        headers = {}
+        if cached is not None:
+            if cached[1]:
+                headers["If-None-Match"] = cached[1]
+            if cached[2]:
+                headers["If-Modified-Since"] = cached[2]
+        last = ""
+        for attempt in range(self.retries + 1):
+            if attempt:
+                self.retried += 1
+                # exponential backoff with jitter, so many tiles do not retry in step
+                time.sleep(self.backoff * 2 ** (attempt - 1) * (0.5 + random.random()))
+            self.requests += 1
+            try:
+                r = self._client.get(url, headers=headers)
+            except httpx.TimeoutException:
+                last = "timed out"
+                continue
+            except httpx.RemoteProtocolError as exc:
+                # the server closed the connection before the whole body came
+                last = f"body cut short ({exc})"
+                continue
+            except httpx.TransportError as exc:
+                last = f"connection failed ({exc})"
+                continue
+            if r.status_code == 304 and cached is not None:
+                expires = _expires(r.headers, time.time(), self.default_max_age)
+                if self.cache is not None:
+                    self.cache.put(url, cached[0], cached[1], cached[2], expires)
+                return cached[0]
+            if r.status_code == 404:
+                raise TileMissing(f"{url}: no tile (404)")
+            if r.status_code >= 500 or r.status_code == 429:
+                last = f"HTTP {r.status_code}"
+                continue
+            if r.status_code != 200:
+                raise ImageryError(f"{url}: HTTP {r.status_code}")
+            try:
+                data = bytes(r.content)
+            except httpx.HTTPError as exc:
+                last = f"body cut short ({exc})"
+                continue
+            try:
+                _check_image(data, url)
+            except ImageryError as exc:
+                last = str(exc).split(": ", 1)[-1]
+                continue
+            if self.cache is not None:
+                self.cache.put(
+                    url,
+                    data,
+                    r.headers.get("etag"),
+                    r.headers.get("last-modified"),
+                    _expires(r.headers, time.time(), self.default_max_age),
+                )
+            return data
+        raise ImageryError(f"{url}: {last} after {self.retries + 1} tries")
+
+    def close(self) -> None:
+        self._client.close()
+        if self.cache is not None:
+            self.cache.close()
+
+
+class MBTilesSource:
+    """An MBTiles file's ``tiles`` table (rows counted from the south)."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.name = os.fspath(path)
+        if not os.path.exists(self.name):
+            raise ImageryError(f"{self.name}: no such file")
+        self._local = threading.local()
+
+    def fetch(self, z: int, x: int, y: int) -> bytes:
+        db = getattr(self._local, "db", None)
+        if db is None:
+            uri = f"file:{Path(self.name).resolve().as_posix()}?mode=ro"
+            try:
+                db = self._local.db = sqlite3.connect(uri, uri=True)
+                row = db.execute(
+                    "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
+                    "AND tile_row = ?",
+                    (z, x, (1 << z) - 1 - y),
+                ).fetchone()
+            except sqlite3.Error as exc:
+                raise ImageryError(f"{self.name}: not an MBTiles file ({exc})") from None
+        else:
+            row = db.execute(
+                "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
+                "AND tile_row = ?",
+                (z, x, (1 << z) - 1 - y),
+            ).fetchone()
+        if row is None:
+            raise TileMissing(f"{self.name}: no tile {z}/{x}/{y}")
+        return _check_image(bytes(row[0]), f"{self.name} {z}/{x}/{y}")
+
+    def close(self) -> None:
+        pass
+
+
+class DirectorySource:
+    """A folder of ``{z}/{x}/{y}.png`` (or .jpg, .jpeg, .webp) tiles, OSM rows."""
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self.name = os.fspath(root)
+        if not os.path.isdir(self.name):
+            raise ImageryError(f"{self.name}: no such folder")
+
+    def fetch(self, z: int, x: int, y: int) -> bytes:
+        for ext in ("png", "jpg", "jpeg", "webp"):
+            p = Path(self.name) / str(z) / str(x) / f"{y}.{ext}"
+            if p.exists():
+                return _check_image(p.read_bytes(), str(p))
+        raise TileMissing(f"{self.name}: no tile {z}/{x}/{y}")
+
+    def close(self) -> None:
+        pass
+
+
+def imagery_source(spec: str, *, cache_dir: str | os.PathLike[str] | None = None) -> ImageryFetcher:
+    """An imagery source from what a user typed: a URL template, an .mbtiles file or a folder."""
+    if spec.startswith(("http://", "https://")):
+        cache = None
+        if cache_dir is not None:
+            cache = TileCache(Path(cache_dir) / "imagery-cache.sqlite")
+        return HttpSource(spec, cache=cache)
+    if spec.lower().endswith((".mbtiles", ".lods")):
+        return MBTilesSource(spec)
+    if os.path.isdir(spec):
+        return DirectorySource(spec)
+    raise ImageryError(
+        f"--imagery {spec!r}: expected an http(s) URL template with {{z}}/{{x}}/{{y}}, an "
+        ".mbtiles file or a folder of z/x/y tiles"
+    )

@@ -1,0 +1,110 @@
+"""A real HTTP tile server on loopback for the tests: generated PNG tiles, and faults on demand.
+
+Each tile is a flat colour made from z/x/y (so a picture shows which tile it came from). Faults
+are set per tile with ``server.faults[(z, x, y)] = [...]`` (consumed one per request) or for every
+tile with ``server.default_fault``: "404", "500", "slow" (sleeps ``server.delay`` seconds),
+"truncated" (promises more bytes than it sends), "garbage" (200 with a body that is no image).
+Responses carry an ETag and Cache-Control: max-age=``server.max_age``; If-None-Match gets 304.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import re
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import numpy as np
+
+__all__ = ["TileServer", "tile_colour"]
+
+
+def tile_colour(z: int, x: int, y: int) -> tuple[int, int, int]:
+    h = hashlib.sha1(f"{z}/{x}/{y}".encode()).digest()
+    return h[0], h[1], h[2]
+
+
+def _png(colour: tuple[int, int, int], size: int = 256) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.full((size, size, 3), colour, np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+class TileServer:
+    def __init__(self) -> None:
+        self.faults: dict[tuple[int, int, int], list[str]] = {}
+        self.default_fault: str | None = None
+        self.delay = 0.5
+        self.max_age = 3600
+        self.requests: list[tuple[str, dict[str, str]]] = []
+        self.lock = threading.Lock()
+        server = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args: object) -> None:  # keep test output quiet
+                pass
+
+            def do_GET(self) -> None:
+                with server.lock:
+                    server.requests.append((self.path, dict(self.headers)))
+                m = re.fullmatch(r"/(?:[a-c]/)?(\d+)/(\d+)/(\d+)\.png", self.path)
+                if m is None:
+                    self.send_error(404)
+                    return
+                key = (int(m[1]), int(m[2]), int(m[3]))
+                with server.lock:
+                    queue = server.faults.get(key)
+                    fault = queue.pop(0) if queue else server.default_fault
+                if fault == "slow":
+                    time.sleep(server.delay)
+                if fault == "404":
+                    self.send_error(404)
+                    return
+                if fault == "500":
+                    self.send_error(500)
+                    return
+                body = _png(tile_colour(*key))
+                etag = '"' + hashlib.sha1(body).hexdigest()[:16] + '"'
+                if self.headers.get("If-None-Match") == etag:
+                    self.send_response(304)
+                    self.send_header("ETag", etag)
+                    self.send_header("Cache-Control", f"max-age={server.max_age}")
+                    self.end_headers()
+                    return
+                if fault == "garbage":
+                    body = b"<html>this is not an image</html>"
+                self.send_response(200)
+                self.send_header("Content-Type", "image/png")
+                self.send_header("ETag", etag)
+                self.send_header("Cache-Control", f"max-age={server.max_age}")
+                if fault == "truncated":
+                    self.send_header("Content-Length", str(len(body)))
+                    self.end_headers()
+                    self.wfile.write(body[: len(body) // 2])
+                    self.close_connection = True
+                    return
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.httpd.daemon_threads = True
+        self.port = self.httpd.server_address[1]
+        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
+        self.thread.start()
+
+    @property
+    def template(self) -> str:
+        return f"http://127.0.0.1:{self.port}/{{z}}/{{x}}/{{y}}.png"
+
+    def count(self, z: int, x: int, y: int) -> int:
+        with self.lock:
+            return sum(1 for p, _ in self.requests if p.endswith(f"/{z}/{x}/{y}.png"))
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
