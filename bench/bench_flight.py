@@ -11,6 +11,9 @@ Three runs over the same cameras:
 - naive (paper 004's "load when it is needed"): every missing tile loaded before the frame is
   drawn, as ``lodscape render`` does; its loads count against the frame.
 
+They run twice: on the local tileset alone, and with imagery from a loopback tile server that
+answers each tile after ``--latency-ms`` (a remote server), where loading when needed hurts.
+
 Reported: frames that fall back more than one level, frames whose CPU work (selection, stalls,
 uploads) exceeds the frame's 33.3 ms, and peak resident bytes, after the first second.
 
@@ -22,6 +25,7 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -34,8 +38,14 @@ from lodscape import Camera, SceneOptions
 from lodscape.build import build
 from lodscape.flight import fly
 from lodscape.geo.tiles import lonlat_to_merc, merc_to_lonlat
+from lodscape.imagery.sources import HttpSource
+from lodscape.store.provider import ImageryProvider, Provider
+from lodscape.store.tileset import TilesetProvider
 from lodscape.stream import SimClock, StreamOptions
 from lodscape.terrain.source import RasterSource
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from _tileserver import TileServer
 
 FPS = 30.0
 SPEED = 300.0
@@ -65,10 +75,15 @@ def cameras(dem: Path, seconds: float) -> list[Camera]:
     ]
 
 
-def run(tileset: Path, cams: list[Camera], stream: StreamOptions | None) -> dict[str, float]:
+def run(
+    tileset: Path, cams: list[Camera], stream: StreamOptions | None, imagery: str | None
+) -> dict[str, float]:
     opts = SceneOptions(gpu_budget_mb=BUDGET_MB, anisotropy=1.0, stream=stream)
     clock = SimClock()
-    with lodscape.open(tileset, opts, clock=clock) as scene:
+    provider: Provider = TilesetProvider(tileset)
+    if imagery is not None:
+        provider = ImageryProvider(provider, HttpSource(imagery, max_connections=16))
+    with lodscape.Scene(provider, opts, owns=True, clock=clock) as scene:
         if stream is not None:
             rows = fly(scene, iter(cams), FPS)
         else:
@@ -105,6 +120,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--work", type=Path, default=None, help="keep the DEM and tileset here")
     ap.add_argument("--seconds", type=float, default=40.0)
+    ap.add_argument("--latency-ms", type=float, default=40.0, help="the imagery server's delay")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
@@ -122,21 +138,33 @@ def main() -> None:
             f"tileset {size:.0f} MiB; budgets {BUDGET_MB:.0f} MiB a stage; {len(cams)} frames "
             f"at {FPS:.0f} fps, {SPEED:.0f} m/s, {AGL:.0f} m above the ground"
         )
-        for label, stream in [
+        server = TileServer()
+        server.default_fault = "slow"
+        server.delay = args.latency_ms / 1000
+        modes: list[tuple[str, StreamOptions | None]] = [
             ("staged", StreamOptions(cache_mb=BUDGET_MB, memory_mb=BUDGET_MB)),
             (
                 "async, no prefetch",
                 StreamOptions(cache_mb=BUDGET_MB, memory_mb=BUDGET_MB, ahead=()),
             ),
             ("naive (load when needed)", None),
-        ]:
-            r = run(tileset, cams, stream)
-            print(
-                f"{label:>25}: {r['frames']} frames after the first second: "
-                f"{r['fallback_gt_1']} fall back > 1 level, {r['over_budget']} over "
-                f"{1000 / FPS:.1f} ms (CPU median {r['cpu_ms_median']:.1f} ms, max "
-                f"{r['cpu_ms_max']:.1f} ms), peak resident {r['peak_mib']:.1f} MiB"
-            )
+        ]
+        try:
+            for imagery, where in [
+                (None, "the local tileset"),
+                (server.template, f"imagery from a server {args.latency_ms:.0f} ms away"),
+            ]:
+                print(f"-- {where}")
+                for label, stream in modes:
+                    r = run(tileset, cams, stream, imagery)
+                    print(
+                        f"{label:>25}: {r['frames']} frames after the first second: "
+                        f"{r['fallback_gt_1']} fall back > 1 level, {r['over_budget']} over "
+                        f"{1000 / FPS:.1f} ms (CPU median {r['cpu_ms_median']:.1f} ms, max "
+                        f"{r['cpu_ms_max']:.1f} ms), peak resident {r['peak_mib']:.1f} MiB"
+                    )
+        finally:
+            server.close()
 
 
 if __name__ == "__main__":
