@@ -58,6 +58,22 @@ class Provider(Protocol):
     def close(self) -> None: ...
 
 
+def mesh_of(provider: Provider, key: int) -> TileMesh:
+    """fetch then decode a mesh key (the one-shot path, off the streamer)."""
+    made = provider.decode(key, provider.fetch(key))
+    if not isinstance(made, TileMesh):
+        raise TypeError(f"key {key} is not a mesh key")
+    return made
+
+
+def texture_of(provider: Provider, key: int) -> NDArray[np.uint8]:
+    """fetch then decode a texture key."""
+    made = provider.decode(key | TEXTURE, provider.fetch(key | TEXTURE))
+    if isinstance(made, TileMesh):
+        raise TypeError(f"key {key} is not a texture key")
+    return made
+
+
 class RasterProvider:
     """A height source meshed on the fly: regular grids per tile, tint + hillshade imagery."""
 
@@ -94,10 +110,7 @@ class RasterProvider:
         return build_mesh(key, t.z, t.x, t.y, heights)
 
     def mesh(self, key: int) -> TileMesh:
-        made = self.decode(key, self.fetch(key))
-        if not isinstance(made, TileMesh):
-            raise TypeError(f"key {key} is not a mesh key")
-        return made
+        return mesh_of(self, key)
 
     def texture(self, key: int) -> NDArray[np.uint8]:
         t = tile_from_id(key >> 3)
@@ -171,10 +184,7 @@ class ImageryProvider:
         return self.base.texture(key)
 
     def texture(self, key: int) -> NDArray[np.uint8]:
-        made = self.decode(key | TEXTURE, self.fetch(key | TEXTURE))
-        if isinstance(made, TileMesh):
-            raise TypeError(f"key {key} is not a texture key")
-        return made
+        return texture_of(self, key)
 
     def close(self) -> None:
         self.imagery.close()

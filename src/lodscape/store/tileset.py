@@ -379,16 +379,14 @@ class TilesetProvider:
         return tin_mesh(key, t.z, t.x, t.y, lon, lat, h, qm.triangles, sides)
 
     def mesh(self, key: int) -> TileMesh:
-        made = self.decode(key, self.fetch(key))
-        if not isinstance(made, TileMesh):
-            raise TypeError(f"key {key} is not a mesh key")
-        return made
+        from lodscape.store.provider import mesh_of
+
+        return mesh_of(self, key)
 
     def texture(self, key: int) -> NDArray[np.uint8]:
-        made = self.decode(key | TEXTURE, self.fetch(key | TEXTURE))
-        if isinstance(made, TileMesh):
-            raise TypeError(f"key {key} is not a texture key")
-        return made
+        from lodscape.store.provider import texture_of
+
+        return texture_of(self, key)
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         """The height of the finest tile's mesh under the point."""
