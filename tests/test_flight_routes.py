@@ -1,0 +1,84 @@
+"""Routes: CSV (with and without times), GeoJSON lines, orbits and straight lines, and the
+cameras that fly them."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lodscape.errors import LodscapeError
+from lodscape.flight import cameras, line_route, orbit_route, read_route
+from lodscape.geo.frames import geodetic_to_ecef
+
+
+def test_csv_routes_with_and_without_times(tmp_path: Path) -> None:
+    p = tmp_path / "r.csv"
+    p.write_text("lat,lon,alt\n36.5,-84.2,1000\n36.5,-84.19,1000\n")
+    r = read_route(p, speed=100.0)
+    metres = np.linalg.norm(
+        geodetic_to_ecef(-84.19, 36.5, 1000) - geodetic_to_ecef(-84.2, 36.5, 1000)
+    )
+    assert r.duration == pytest.approx(metres / 100.0)
+    p.write_text("lon,lat,alt,time\n-84.2,36.5,1000,10\n-84.19,36.5,1200,40\n")
+    r = read_route(p, speed=100.0)
+    assert r.duration == pytest.approx(30.0)
+    assert r.at(15.0)[2] == pytest.approx(1100.0)
+
+
+def test_geojson_lines(tmp_path: Path) -> None:
+    p = tmp_path / "r.geojson"
+    coords = [[7.0, 46.5, 3000], [7.05, 46.5, 3000], [7.05, 46.52, 3200]]
+    p.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {},
+                        "geometry": {"type": "LineString", "coordinates": coords},
+                    }
+                ],
+            }
+        )
+    )
+    r = read_route(p, speed=200.0)
+    assert r.lon[-1] == 7.05
+    assert r.alt[-1] == 3200
+    # heading follows the route: east first, then north
+    cams = list(cameras(r, 2.0, 64, 48))
+    assert cams[0].heading == pytest.approx(90.0, abs=1.0)
+    assert cams[-1].heading == pytest.approx(0.0, abs=2.0) or cams[-1].heading > 358.0
+
+
+def test_orbits_look_at_their_centre_and_lines_go_straight() -> None:
+    o = orbit_route(7.0, 46.5, 2000.0, 2500.0, speed=100.0)
+    for cam in cameras(o, 0.05, 32, 24):
+        to = geodetic_to_ecef(7.0, 46.5, o.target[2]) - cam.position  # type: ignore[index]
+        assert np.dot(cam.forward, to / np.linalg.norm(to)) > 0.999
+    line = line_route(7.0, 46.5, 7.1, 46.5, 3000.0, speed=300.0)
+    headings = {round(c.heading) for c in cameras(line, 1.0, 32, 24)}
+    assert headings <= {89, 90, 91}
+
+
+@pytest.mark.parametrize(
+    ("text", "suffix", "message"),
+    [
+        ("lon,lat\n1,2\n3,4\n", ".csv", "missing alt"),
+        ("lon,lat,alt\n1,2,3\n", ".csv", "at least two"),
+        ("lon,lat,alt\n1,2,3\nx,2,3\n", ".csv", "row 3"),
+        ("lon,lat,alt,time\n1,2,3,5\n1.1,2,3,5\n", ".csv", "increase"),
+        ('{"type": "Point", "coordinates": [1, 2]}', ".geojson", "LineString"),
+        ('{"type": "LineString", "coordinates": [[1, 2], [3, 4]]}', ".geojson", "altitude"),
+        ("{nope", ".geojson", "not JSON"),
+    ],
+)
+def test_bad_routes_fail_in_one_line(tmp_path: Path, text: str, suffix: str, message: str) -> None:
+    p = tmp_path / f"r{suffix}"
+    p.write_text(text)
+    with pytest.raises(LodscapeError, match=message) as info:
+        read_route(p, speed=100.0)
+    assert "\n" not in str(info.value)
