@@ -14,10 +14,10 @@ import math
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from os import PathLike
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -128,7 +128,7 @@ class Scene:
         if self.options.stream is not None:
             self.streamer = Streamer(self.provider, self.options.stream, clock or RealClock())
         self._motion: tuple[float, NDArray[np.float64]] | None = None
-        self._frame = 0
+        self._predicted: Future[list[tuple[Literal["memory", "cache"], list[int]]]] | None = None
 
     # --- geometry helpers ----------------------------------------------------------------
 
@@ -287,18 +287,30 @@ class Scene:
 
     def _prefetch(self, cam: Camera, streamer: Streamer, on_gpu: Callable[[int], bool]) -> None:
         """The memory and cache radii: what the camera will want ``ahead`` seconds on along its
-        velocity (every fourth frame: a selection costs a few milliseconds)."""
+        velocity. The predicted selections run on a worker (a few milliseconds each), and their
+        keys are asked for once they are ready; what they ask for then may be a frame stale."""
+        pending = self._predicted
+        if pending is not None and pending.done():
+            self._predicted = None
+            for stage, keys in pending.result():
+                streamer.request(keys, stage, on_gpu)
         now = streamer.clock.now()
         pos = cam.position
         last, self._motion = self._motion, (now, pos)
-        self._frame += 1
         ahead = streamer.options.ahead
-        if last is None or not ahead or self._frame % 4:
+        if last is None or not ahead or self._predicted is not None or now <= last[0]:
             return
-        dt = now - last[0]
-        if dt <= 0.0:
-            return
-        velocity = (pos - last[1]) / dt
+        velocity = (pos - last[1]) / (now - last[0])
+        self._predicted = self._pool.submit(self._predict, cam, pos, velocity, ahead)
+
+    def _predict(
+        self,
+        cam: Camera,
+        pos: NDArray[np.float64],
+        velocity: NDArray[np.float64],
+        ahead: tuple[float, ...],
+    ) -> list[tuple[Literal["memory", "cache"], list[int]]]:
+        out: list[tuple[Literal["memory", "cache"], list[int]]] = []
         for i, seconds in enumerate(ahead):
             lon, lat, alt = ecef_to_geodetic(pos + velocity * seconds)
             try:
@@ -306,8 +318,9 @@ class Scene:
             except CameraError:
                 continue  # the path would go under the ground: nothing to fetch for it
             sel = select(self.options.select, future, self.tree)
-            keys = (int(k) for k in np.concatenate([sel.texture_keys, sel.keys]))
-            streamer.request(keys, "memory" if i == 0 else "cache", on_gpu)
+            keys = [int(k) for k in np.concatenate([sel.texture_keys, sel.keys])]
+            out.append(("memory" if i == 0 else "cache", keys))
+        return out
 
     def frames(
         self, cameras: Iterator[Camera]
