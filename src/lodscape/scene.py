@@ -39,6 +39,8 @@ from lodscape.terrain.source import ArraySource, HeightSource, RasterSource
 __all__ = ["FrameStats", "Scene", "SceneOptions", "open"]
 
 SKY = (0.62, 0.75, 0.88)
+#: Seconds (on the scene's clock) between predictions of where the camera is going.
+_PREDICT_EVERY = 0.15
 
 
 @dataclass(frozen=True)
@@ -128,6 +130,7 @@ class Scene:
         if self.options.stream is not None:
             self.streamer = Streamer(self.provider, self.options.stream, clock or RealClock())
         self._motion: tuple[float, NDArray[np.float64]] | None = None
+        self._predicted_at = -math.inf
         self._predicted: Future[list[tuple[Literal["memory", "cache"], list[int]]]] | None = None
 
     # --- geometry helpers ----------------------------------------------------------------
@@ -300,6 +303,10 @@ class Scene:
         ahead = streamer.options.ahead
         if last is None or not ahead or self._predicted is not None or now <= last[0]:
             return
+        # a few times a second is enough: the radii move little in a tenth of a second
+        if now - self._predicted_at < _PREDICT_EVERY:
+            return
+        self._predicted_at = now
         velocity = (pos - last[1]) / (now - last[0])
         self._predicted = self._pool.submit(self._predict, cam, pos, velocity, ahead)
 
