@@ -193,11 +193,10 @@ def cameras(
             )
             continue
         # the direction of travel: towards where the route will be a moment later
-        ahead = route.at(min(t + 1.0, route.duration)) if t < route.duration else None
-        behind = route.at(max(t - 1.0, 0.0))
-        a, b = (lon, lat, alt), ahead if ahead is not None and ahead != (lon, lat, alt) else None
-        if b is None:
-            a, b = behind, (lon, lat, alt)
+        here = (lon, lat, alt)
+        ahead = route.at(min(t + 1.0, route.duration))
+        # at the route's end there is no ahead: the direction it came from
+        a, b = (here, ahead) if ahead != here else (route.at(max(t - 1.0, 0.0)), here)
         e, n, _ = enu_basis(lon, lat) @ (geodetic_to_ecef(*b) - geodetic_to_ecef(*a))
         heading = math.degrees(math.atan2(e, n)) % 360.0
         yield Camera(

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lodscape.geo.tiles import Tile, bounds
+from lodscape.geo.tiles import Bbox, Tile, bounds
 from lodscape.store.quantized_mesh import encode, ungzip
-from lodscape.store.tileset import TilesetError, TilesetProvider
+from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
 
 __all__ = ["export_cesium"]
 
@@ -61,7 +61,7 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
             "SELECT zoom_level, tile_column, tile_row, tile_data FROM tiles"
         ):
             _write(tmp / "imagery" / str(z) / str(x) / f"{(1 << z) - 1 - row}.png", bytes(data))
-        (w, s), (e, n) = _lonlat(manifest["bounds_merc"])
+        w, s, e, n = lonlat_bounds(Bbox(*manifest["bounds_merc"]))
         layer = {
             "tilejson": "2.1.0",
             "name": Path(tileset).stem,
@@ -106,13 +106,6 @@ def _flat(z: int, x: int, y: int, height: float) -> bytes:
         np.array([[0, 1, 2], [0, 2, 3]]),
         (b.left, b.bottom, b.right, b.top),
     )
-
-
-def _lonlat(b: list[float]) -> tuple[tuple[float, float], tuple[float, float]]:
-    from lodscape.geo.tiles import merc_to_lonlat
-
-    (w, e), (s, n) = merc_to_lonlat([b[0], b[2]], [b[1], b[3]])
-    return (float(w), float(s)), (float(e), float(n))
 
 
 def _ranges(tiles: set[tuple[int, int]]) -> list[dict[str, int]]:
