@@ -24,6 +24,7 @@ from lodscape.lod.select import SelectOptions
 from lodscape.scene import Scene, SceneOptions
 from lodscape.scene import open as open_scene
 from lodscape.stream.streamer import Clock
+from lodscape.terrain.detail import Fractal, parse_procedural
 
 app = typer.Typer(
     name="lodscape",
@@ -66,6 +67,58 @@ CacheOpt = Annotated[
 ]
 
 
+DetailOpt = Annotated[
+    str,
+    typer.Option(
+        help="Detail below the data's resolution: none, or fractal (fBm by midpoint "
+        "displacement, paper 003)."
+    ),
+]
+HurstOpt = Annotated[
+    float | None,
+    typer.Option(
+        callback=_finite,
+        help="Roughness of the fractal detail, 0 < H < 1 (rough .. smooth). Default 0.7; a "
+        "procedural source's own otherwise.",
+    ),
+]
+SigmaOpt = Annotated[
+    float | None,
+    typer.Option(
+        callback=_finite,
+        help="Metres of the first fractal step below the data (default: from the data's own "
+        "roughness).",
+    ),
+]
+SeedOpt = Annotated[int | None, typer.Option(help="Seed of the fractal detail (default 0).")]
+
+
+def _detail(
+    source: str, detail: str, hurst: float | None, sigma: float | None, seed: int | None
+) -> Fractal | None:
+    """The fractal detail the flags ask for (None: none); one-line errors."""
+    procedural = source == "procedural" or source.startswith("procedural:")
+    if detail not in ("none", "fractal"):
+        raise LodscapeError(f"--detail must be none or fractal, got {detail!r}")
+    if detail == "none" and not procedural:
+        if hurst is not None or sigma is not None or seed is not None:
+            raise LodscapeError("--hurst, --sigma and --seed need --detail fractal")
+        return None
+    if procedural and hurst is None and sigma is None and seed is None:
+        return None
+    try:
+        if procedural:
+            spec = parse_procedural(source)
+            return Fractal(
+                spec.hurst if hurst is None else hurst,
+                spec.sigma if sigma is None else sigma,
+                spec.seed if seed is None else seed,
+            )
+        return Fractal(0.7 if hurst is None else hurst, sigma, 0 if seed is None else seed)
+    except ValueError as exc:
+        raise LodscapeError(f"bad option: {exc}") from None
+
+
 def _open(
     source: str,
     options: SceneOptions,
@@ -74,10 +127,11 @@ def _open(
     *,
     strict: bool = True,
     clock: Clock | None = None,
+    detail: Fractal | None = None,
 ) -> Scene:
     """A scene, with its textures from ``imagery`` when one is given."""
     if imagery is None:
-        return open_scene(source, options, clock=clock)
+        return open_scene(source, options, clock=clock, detail=detail)
     from lodscape.imagery.sources import imagery_source
     from lodscape.store.provider import ImageryProvider
 
@@ -86,7 +140,7 @@ def _open(
         cache = Path(base) / "lodscape"
     fetcher = imagery_source(imagery, cache_dir=cache)
     try:
-        terrain = open_scene(source, options)
+        terrain = open_scene(source, options, detail=detail)
     except BaseException:
         fetcher.close()
         raise
@@ -202,12 +256,18 @@ def render(
     ] = 16.0,
     imagery: ImageryOpt = None,
     imagery_cache: CacheOpt = None,
+    detail: DetailOpt = "none",
+    hurst: HurstOpt = None,
+    sigma: SigmaOpt = None,
+    seed: SeedOpt = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
 ) -> None:
-    """Render one view of SOURCE. Without --lon/--lat/--alt, a view of the whole data."""
+    """Render one view of SOURCE (a DEM, a .lods tileset, or procedural:seed=N). Without
+    --lon/--lat/--alt, a view of the whole data."""
     w, h = _size(size)
     options = _scene_options(max_sse=max_sse, anisotropy=anisotropy)
-    with _open(source, options, imagery, imagery_cache, strict=False) as scene:
+    fractal = _detail(source, detail, hurst, sigma, seed)
+    with _open(source, options, imagery, imagery_cache, strict=False, detail=fractal) as scene:
         if lon is None and lat is None and alt is None:
             camera = scene.overview_camera(w, h, fov)
             camera = camera.moved(heading=camera.heading if heading == 0.0 else heading)
@@ -256,6 +316,10 @@ def fly(
     ] = 16.0,
     imagery: ImageryOpt = None,
     imagery_cache: CacheOpt = None,
+    detail: DetailOpt = "none",
+    hurst: HurstOpt = None,
+    sigma: SigmaOpt = None,
+    seed: SeedOpt = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Fly a camera over SOURCE along a route, an orbit or a line into an MP4, streaming tiles
@@ -279,6 +343,7 @@ def fly(
     for target in (output, stats):
         if target is not None and not (target.parent if str(target.parent) else Path(".")).is_dir():
             raise LodscapeError(f"{target}: folder {target.parent} does not exist")
+    fractal = _detail(source, detail, hurst, sigma, seed)
     given = [p for p in (path, orbit, line) if p is not None]
     if len(given) != 1:
         raise LodscapeError("give one of --path, --orbit or --line")
@@ -303,7 +368,7 @@ def fly(
     cams = list(flight.cameras(route, fps, w, h, pitch=pitch, fov=fov, duration=duration))
     columns = (TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with (
-        _open(source, options, imagery, imagery_cache, clock=SimClock()) as scene,
+        _open(source, options, imagery, imagery_cache, clock=SimClock(), detail=fractal) as scene,
         Progress(*columns, disable=quiet) as bar,
     ):
         task = bar.add_task("frames", total=len(cams))
@@ -338,11 +403,26 @@ def _numbers(text: str, count: int, usage: str) -> list[float]:
 def demo(
     output: OutOpt = Path("lodscape-demo.png"),
     size: SizeOpt = "1280x720",
+    procedural: Annotated[
+        bool,
+        typer.Option(
+            "--procedural", help="The procedural planet (no data at all) instead of the sample."
+        ),
+    ] = False,
+    seed: Annotated[int, typer.Option(help="The procedural planet's seed.")] = 0,
 ) -> None:
-    """Render the embedded sample DEM (Jacksboro Fault, Tennessee) and print the frame's stats."""
+    """Render the embedded sample DEM (Jacksboro Fault, Tennessee) and print the frame's stats;
+    with --procedural, a low view over the procedural planet."""
     from lodscape.data import sample_dem_path
 
     w, h = _size(size)
+    if procedural:
+        with open_scene(f"procedural:seed={seed}") as scene:
+            lon, lat = 7.0, 46.0
+            ground = scene.ground_height(lon, lat) or 0.0
+            camera = Camera(lon, lat, ground + 600.0, heading=20.0, pitch=-12.0, width=w, height=h)
+            _render(scene, camera, output, None, False)
+        return
     with open_scene(sample_dem_path()) as scene:
         _render(scene, scene.overview_camera(w, h), output, None, False)
 
@@ -382,6 +462,9 @@ def info(
             for p in manifest["provenance"]:
                 line(f"{'input':>14}: {p['path']} ({p['bytes']:,d} bytes)")
         for lv in tree.levels:
+            if not hasattr(lv, "exists"):
+                line(f"{'z' + str(lv.z):>14}: computed on demand (procedural)")
+                continue
             line(
                 f"{'z' + str(lv.z):>14}: {int(lv.exists.sum())} tiles, max error "
                 f"{float(lv.error[-1][lv.exists].max()):.2f} m"

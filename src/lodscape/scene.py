@@ -22,18 +22,26 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.errors import CameraError
+from lodscape.errors import CameraError, SourceError
 from lodscape.geo.frames import WGS84_A, ecef_to_geodetic
 from lodscape.geo.tiles import merc_to_lonlat, tile_from_id_array, tile_id_array
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import TEXTURE, Selection, SelectOptions, select, tile_boxes
 from lodscape.render import DrawItem, Renderer
-from lodscape.store.provider import Provider, RasterProvider
+from lodscape.store.provider import FractalProvider, Provider, RasterProvider
 from lodscape.store.tileset import TilesetProvider, is_tileset
 from lodscape.stream import RealClock, Streamer, StreamOptions
 from lodscape.stream.streamer import Clock
+from lodscape.terrain.detail import (
+    DetailHeights,
+    DetailTree,
+    Fractal,
+    ProceduralHeights,
+    ProceduralTree,
+    parse_procedural,
+)
 from lodscape.terrain.mesh import TileMesh
-from lodscape.terrain.pyramid import TileTree
+from lodscape.terrain.pyramid import TileTree, build_tree
 from lodscape.terrain.source import ArraySource, HeightSource, RasterSource
 
 __all__ = ["FrameStats", "Scene", "SceneOptions", "open"]
@@ -172,12 +180,9 @@ class Scene:
         if camera.far is not None:
             return camera.with_clip(near, camera.far)
         x, y = self.tree.roots()
-        lv = self.tree.level(self.tree.zmin)
-        _, idx = lv.index(x, y)
+        st = self.tree.level(self.tree.zmin).stats(x, y)
         probe = camera.with_clip(1.0, 2.0)
-        boxes = tile_boxes(
-            probe, self.tree.zmin, x, y, lv.min_h.ravel()[idx], lv.max_h.ravel()[idx]
-        )
+        boxes = tile_boxes(probe, self.tree.zmin, x, y, st.min_h, st.max_h)
         # everything in the data lies within its root boxes; the horizon bounds it on a planet
         horizon = math.sqrt(max(camera.alt - lo, 1.0) * 2.0 * WGS84_A) + math.sqrt(
             max(hi - lo, 1.0) * 2.0 * WGS84_A
@@ -445,15 +450,58 @@ def open(
     options: SceneOptions | None = None,
     *,
     clock: Clock | None = None,
+    detail: Fractal | None = None,
     **array_kwargs: Any,
 ) -> Scene:
     """A scene over a tileset built by ``lodscape build`` (.lods), a GeoTIFF (any GDAL raster), a
-    numpy array (with ``transform``, ``crs``), or a ready HeightSource or Provider. A scene
-    opened from a path or an array closes what it opened when it closes."""
+    numpy array (with ``transform``, ``crs``), the procedural planet (``"procedural:seed=N"``),
+    or a ready HeightSource or Provider. ``detail`` adds fractal detail below a raster's
+    resolution (paper 003). A scene opened from a path or an array closes what it opened when
+    it closes."""
+    if isinstance(source, str) and (source == "procedural" or source.startswith("procedural:")):
+        return Scene(procedural_provider(source, detail), options, owns=True, clock=clock)
     if isinstance(source, np.ndarray):
-        return Scene(ArraySource(source, **array_kwargs), options, owns=True, clock=clock)
-    if isinstance(source, str | PathLike):
+        src: HeightSource = ArraySource(source, **array_kwargs)
+    elif isinstance(source, str | PathLike):
         if is_tileset(source):
+            if detail is not None:
+                raise SourceError(
+                    f"{source}: fractal detail needs a raster source; a tileset keeps no lattice "
+                    "of the data to add it to"
+                )
             return Scene(TilesetProvider(source), options, owns=True, clock=clock)
-        return Scene(RasterSource(source), options, owns=True, clock=clock)
-    return Scene(source, options, clock=clock)
+        src = RasterSource(source)
+    else:
+        if detail is not None:
+            raise SourceError("fractal detail needs a raster source, not a ready provider")
+        return Scene(source, options, clock=clock)
+    if detail is None:
+        return Scene(src, options, owns=True, clock=clock)
+    try:
+        return Scene(fractal_provider(src, detail), options, owns=True, clock=clock)
+    except BaseException:
+        src.close()
+        raise
+
+
+def fractal_provider(source: HeightSource, fractal: Fractal) -> FractalProvider:
+    """A raster with fractal detail below its resolution."""
+    tree = DetailTree.over(build_tree(source), fractal)
+    return FractalProvider(DetailHeights(source, tree), tree)
+
+
+def procedural_provider(spec: str, override: Fractal | None = None) -> FractalProvider:
+    """The procedural planet of ``procedural:seed=N[,hurst=H][,sigma=S]``; ``override``'s
+    fields, where given, win over the spec's."""
+    try:
+        f = parse_procedural(spec)
+    except ValueError as exc:
+        raise SourceError(str(exc)) from None
+    if override is not None:
+        f = Fractal(
+            override.hurst,
+            override.sigma if override.sigma is not None else f.sigma,
+            override.seed,
+        )
+    sigma = float(f.sigma if f.sigma is not None else 0.0)
+    return FractalProvider(ProceduralHeights(f, sigma), ProceduralTree(f, sigma))

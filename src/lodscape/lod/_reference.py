@@ -42,23 +42,13 @@ def select_reference(
     out: list[tuple[int, int, int, int, int]] = []
 
     def metrics(z: int, x: int, y: int) -> tuple[bool, bool, float, np.ndarray, float] | None:
-        lv = tree.level(z)
-        ok, idx = lv.index(np.array([x]), np.array([y]))
-        if not ok[0]:
+        st = tree.level(z).stats(np.array([x]), np.array([y]))
+        if not st.exists[0]:
             return None
-        i = int(idx[0])
-        nx = lv.min_h.shape[1]
-        box = tile_boxes(
-            camera,
-            z,
-            np.array([x]),
-            np.array([y]),
-            lv.min_h.ravel()[i : i + 1],
-            lv.max_h.ravel()[i : i + 1],
-        )
+        box = tile_boxes(camera, z, np.array([x]), np.array([y]), st.min_h, st.max_h)
         eff = max(float(box.dist_near[0]), near)
         ground = float(box.ground[0])
-        return bool(box.inside[0]), True, ground * d / eff, lv.error[:, i // nx, i % nx], ground
+        return bool(box.inside[0]), True, ground * d / eff, st.error[:, 0], ground
 
     def visit(z: int, x: int, y: int) -> None:
         m = metrics(z, x, y)

@@ -46,6 +46,7 @@ __all__ = [
     "LevelLike",
     "SelectOptions",
     "Selection",
+    "TileStats",
     "TreeLike",
     "select",
     "texture_key",
@@ -65,20 +66,28 @@ _EMPTY_U = np.zeros(0, dtype=np.uint64)
 _MARGIN = 1e-3
 
 
+@dataclass(frozen=True, eq=False)
+class TileStats:
+    """What the selection needs of N tiles of one level (zero where a tile does not exist)."""
+
+    exists: NDArray[np.bool_]
+    min_h: NDArray[np.floating]
+    max_h: NDArray[np.floating]
+    #: (len(grids), N) metres of geometric error of each grid.
+    error: NDArray[np.floating]
+
+    def take(self, m: NDArray[np.bool_]) -> TileStats:
+        return TileStats(self.exists[m], self.min_h[m], self.max_h[m], self.error[:, m])
+
+
 class LevelLike(Protocol):
+    """One level of a tile tree: stored (a dense pyramid) or computed on demand (fractal
+    detail, a procedural planet)."""
+
     @property
     def z(self) -> int: ...
 
-    @property
-    def min_h(self) -> NDArray[np.float32]: ...
-
-    @property
-    def max_h(self) -> NDArray[np.float32]: ...
-
-    @property
-    def error(self) -> NDArray[np.float32]: ...
-
-    def index(self, x: I64, y: I64) -> tuple[NDArray[np.bool_], I64]: ...
+    def stats(self, x: I64, y: I64) -> TileStats: ...
 
 
 class TreeLike(Protocol):
@@ -280,7 +289,6 @@ class _Metrics:
     """Screen metrics of N tiles of one level: what both the traversal and fallbacks need."""
 
     boxes: Boxes
-    idx: I64
     #: (len(grids), N) geometric error of each grid, metres.
     err: NDArray[np.float32]
     #: Pixels per metre at each tile's nearest point.
@@ -291,12 +299,10 @@ class _Metrics:
         return self.boxes.ground * self.scale
 
 
-def _metrics(camera: Camera, lv: LevelLike, x: I64, y: I64, idx: I64) -> _Metrics:
-    box = tile_boxes(camera, lv.z, x, y, lv.min_h.ravel()[idx], lv.max_h.ravel()[idx])
-    nx = lv.min_h.shape[1]
-    err = lv.error[:, idx // nx, idx % nx]
+def _metrics(camera: Camera, z: int, x: I64, y: I64, st: TileStats) -> _Metrics:
+    box = tile_boxes(camera, z, x, y, st.min_h, st.max_h)
     scale = camera.scale / np.maximum(box.dist_near, camera.near or 0.0)
-    return _Metrics(box, idx, err, scale)
+    return _Metrics(box, np.asarray(st.error, dtype=np.float32), scale)
 
 
 def _grid_choice(
@@ -338,11 +344,11 @@ def select(
     for z in range(tree.zmin, zmax + 1):
         if x.size == 0:
             break
-        lv = tree.level(z)
-        ok, idx = lv.index(x, y)
-        x, y, idx = x[ok], y[ok], idx[ok]
+        st = tree.level(z).stats(x, y)
+        ok = st.exists
+        x, y = x[ok], y[ok]
         visited += int(x.size)
-        m = _metrics(camera, lv, x, y, idx)
+        m = _metrics(camera, z, x, y, st.take(ok))
         culled += int((~m.boxes.inside).sum())
         keep = m.boxes.inside
         x, y = x[keep], y[keep]
@@ -505,11 +511,11 @@ def _children_hold(
     options: SelectOptions, camera: Camera, tree: TreeLike, z: int, x: I64, y: I64
 ) -> NDArray[np.bool_]:
     """For tiles split last frame: does every visible child still cover merge·T pixels?"""
-    lv = tree.level(z + 1)
     cx = (2 * x[:, None] + np.array([0, 1, 0, 1])).ravel()
     cy = (2 * y[:, None] + np.array([0, 0, 1, 1])).ravel()
-    ok, idx = lv.index(cx, cy)
-    m = _metrics(camera, lv, cx, cy, idx)
+    st = tree.level(z + 1).stats(cx, cy)
+    ok = st.exists
+    m = _metrics(camera, z + 1, cx, cy, st)
     # absent or culled children do not hold their parent back
     small = ok & m.boxes.inside & (m.px < options.merge * tree.tile_size)
     held = ~np.asarray(small.reshape(-1, 4).any(axis=1), dtype=bool)
@@ -586,9 +592,8 @@ def _metrics_many(
     px, sse, dn, df, err = (np.zeros(n) for _ in range(5))
     for lvl in np.unique(z):
         m = z == lvl
-        lv = tree.level(int(lvl))
-        _, idx = lv.index(x[m], y[m])
-        mt = _metrics(camera, lv, x[m], y[m], idx)
+        st = tree.level(int(lvl)).stats(x[m], y[m])
+        mt = _metrics(camera, int(lvl), x[m], y[m], st)
         e = mt.err[k[m], np.arange(int(m.sum()))].astype(np.float64)
         px[m], sse[m] = mt.px, e * mt.scale
         dn[m], df[m], err[m] = mt.boxes.dist_near, mt.boxes.dist_far, e

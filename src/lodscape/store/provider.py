@@ -8,20 +8,21 @@ from __future__ import annotations
 
 import io
 import threading
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.tiles import Bbox, lonlat_to_merc, tile_from_id, tile_size
+from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, tile_from_id, tile_size
 from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError, ImageryFetcher, TileMissing
 from lodscape.lod.select import TEXTURE
+from lodscape.terrain.fractal import MAX_LEVEL
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import TileTree, build_tree
 from lodscape.terrain.source import HeightSource
 
-__all__ = ["ImageryProvider", "Provider", "RasterProvider"]
+__all__ = ["FractalProvider", "ImageryProvider", "Provider", "RasterProvider"]
 
 
 class Provider(Protocol):
@@ -77,7 +78,7 @@ def texture_of(provider: Provider, key: int) -> NDArray[np.uint8]:
 class RasterProvider:
     """A height source meshed on the fly: regular grids per tile, tint + hillshade imagery."""
 
-    def __init__(self, source: HeightSource, tree: TileTree | None = None) -> None:
+    def __init__(self, source: HeightSource, tree: Any = None) -> None:
         self.source = source
         self.name = source.name
         self.tree = tree if tree is not None else build_tree(source)
@@ -118,6 +119,37 @@ class RasterProvider:
 
     def close(self) -> None:
         self.source.close()
+
+
+class FractalProvider(RasterProvider):
+    """A raster with fractal detail below its resolution, or the procedural planet: meshes of
+    exact lattice heights, split along their lowest diagonals below the data (paper 003)."""
+
+    def __init__(self, heights: Any, tree: Any) -> None:
+        super().__init__(heights, tree)
+        self.heights: Any = heights
+        self.detail_tree: Any = tree
+
+    def ground_height(self, lon: float, lat: float) -> float | None:
+        xm, ym = lonlat_to_merc([lon], [lat])
+        finest = 2.0 * ORIGIN / float(1 << MAX_LEVEL)
+        h, valid = self.source.sample(xm, ym, finest)
+        return float(h[0]) if bool(valid[0]) else None
+
+    def fetch(self, key: int) -> bytes:
+        t = tile_from_id(key >> 3)
+        if key & 7 == TEXTURE:
+            return self.imagery.texture(t.z, t.x, t.y).tobytes()
+        segments = self.tree.grids[key & 7]
+        return bytes(self.heights.tile(t.z, t.x, t.y, segments).tobytes())
+
+    def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
+        t = tile_from_id(key >> 3)
+        if key & 7 == TEXTURE:
+            return super().decode(key, data)
+        g = self.tree.grids[key & 7]
+        heights = np.frombuffer(data, dtype=np.float32).reshape(g + 1, g + 1)
+        return build_mesh(key, t.z, t.x, t.y, heights, adaptive=self.detail_tree.adaptive(t.z, g))
 
 
 class ImageryProvider:

@@ -59,17 +59,32 @@ def gaussian_hash(seed: int, level: int, i: NDArray[np.integer], j: NDArray[np.i
 
 
 def fbm_window(
-    seed: int, hurst: float, sigma: float, level: int, i0: int, j0: int, ni: int, nj: int
+    seed: int,
+    hurst: float,
+    sigma: float,
+    level: int,
+    i0: int,
+    j0: int,
+    ni: int,
+    nj: int,
+    *,
+    start: int = 0,
 ) -> F64:
     """Heights of the lattice points (i0 + a, j0 + b), a < ni, b < nj, of level ``level``: an
-    (nj, ni) array, rows along j. Indices wrap modulo 2^level."""
+    (nj, ni) array, rows along j. Indices wrap modulo 2^level.
+
+    With ``start`` > 0 the surface is detail only: zero on every level up to ``start``, the
+    displacements beginning at level start + 1 with ``sigma`` in the place of level 1's (what a
+    DEM of level ``start``'s spacing lacks)."""
     if not 0.0 < hurst < 1.0:
         raise ValueError(f"Expected a Hurst exponent in (0, 1), got {hurst}")
     if not 0 <= level <= MAX_LEVEL:
         raise ValueError(f"Expected a level in 0..{MAX_LEVEL}, got {level}")
     if ni < 1 or nj < 1:
         raise ValueError(f"Expected a window of at least 1×1 points, got {ni}×{nj}")
-    return _window(seed, effective_hurst(hurst), sigma, level, i0, j0, ni, nj)
+    if not 0 <= start <= MAX_LEVEL:
+        raise ValueError(f"Expected a start level in 0..{MAX_LEVEL}, got {start}")
+    return _window(seed, effective_hurst(hurst), sigma, level, i0, j0, ni, nj, start)
 
 
 #: Measured scaling of the scheme's increments (slope/2 of the mean squared increment over lags
@@ -88,8 +103,10 @@ def effective_hurst(hurst: float) -> float:
 
 
 def _window(
-    seed: int, h: float, sigma: float, level: int, i0: int, j0: int, ni: int, nj: int
+    seed: int, h: float, sigma: float, level: int, i0: int, j0: int, ni: int, nj: int, start: int
 ) -> F64:
+    if start > 0 and level <= start:
+        return np.zeros((nj, ni))
     if level == 0:
         # one value: the four corners of the square are one point on the torus
         v = gaussian_hash(seed, 0, np.zeros(1, np.int64), np.zeros(1, np.int64))[0]
@@ -97,7 +114,7 @@ def _window(
     # the parent window covers this one's points and their neighbours, one parent cell more
     pi0, pj0 = (i0 >> 1) - 1, (j0 >> 1) - 1
     pi1, pj1 = ((i0 + ni) >> 1) + 2, ((j0 + nj) >> 1) + 2
-    parent = _window(seed, h, sigma, level - 1, pi0, pj0, pi1 - pi0, pj1 - pj0)
+    parent = _window(seed, h, sigma, level - 1, pi0, pj0, pi1 - pi0, pj1 - pj0, start)
     n = 1 << level
     # the child window over the parent's extent: even points are the parent's
     ci0, cj0 = 2 * pi0, 2 * pj0
@@ -110,8 +127,9 @@ def _window(
     # shrinks the displacement by 2^(-H/2) and adds it to the new points *and* the old ones,
     # which keeps the increments' scaling close to fBm's for every H (plain midpoint
     # displacement drifts towards rougher surfaces as H grows)
-    d_square = sigma * 2.0 ** (-(2 * level - 1) * h / 2.0)
-    d_diamond = sigma * 2.0 ** (-level * h)
+    rel = level - start
+    d_square = sigma * 2.0 ** (-(2 * rel - 1) * h / 2.0)
+    d_diamond = sigma * 2.0 ** (-rel * h)
     odd_i, odd_j = ii[1::2] % n, jj[1::2] % n
     even_i, even_j = ii[0::2] % n, jj[0::2] % n
     # square step: cell centres (odd, odd) from their four corners; then the corners move too

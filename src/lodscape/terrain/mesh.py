@@ -20,6 +20,7 @@ from lodscape.geo.tiles import ORIGIN, Tile, lonlat_to_merc, merc_to_lonlat, xy_
 __all__ = [
     "GRIDS",
     "TileMesh",
+    "adaptive_indices",
     "build_mesh",
     "grid_coordinates",
     "grid_indices",
@@ -95,6 +96,24 @@ def grid_indices(segments: int) -> NDArray[np.uint32]:
     return out
 
 
+def adaptive_indices(diag: NDArray[np.bool_]) -> NDArray[np.uint32]:
+    """Triangle list of an (S+1)² grid and its skirts with each cell split along its own
+    diagonal: north-east to south-west where ``diag`` (S, S) is True (the terrain-adaptive split
+    of paper 003, along the diagonal joining the two lowest corners), north-west to south-east
+    elsewhere."""
+    s = diag.shape[0]
+    n = s + 1
+    i, j = np.meshgrid(np.arange(s), np.arange(s), indexing="ij")
+    a = (i * n + j).ravel()
+    b, c, d = a + 1, a + n, a + n + 1
+    flip = diag.ravel()[:, None]
+    # both counter-clockwise seen from above
+    nwse = np.stack([a, c, d, a, d, b], axis=1)
+    nesw = np.stack([a, c, b, b, c, d], axis=1)
+    cells = np.where(flip, nesw, nwse).reshape(-1, 3)
+    return np.concatenate([cells, grid_indices(s)[2 * s * s :]]).astype(np.uint32)
+
+
 def grid_coordinates(
     z: int, x: int, y: int, segments: int
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -115,8 +134,11 @@ def build_mesh(
     x: int,
     y: int,
     heights: NDArray[np.floating],
+    *,
+    adaptive: bool = False,
 ) -> TileMesh:
-    """The tile's mesh from its (S+1)² heights (row 0 north), vertices relative to its centre."""
+    """The tile's mesh from its (S+1)² heights (row 0 north), vertices relative to its centre;
+    with ``adaptive``, each cell split along the diagonal joining its two lowest corners."""
     s = heights.shape[0] - 1
     if heights.shape != (s + 1, s + 1) or s < 1:
         raise ValueError(f"Expected square (S+1)x(S+1) heights, got {heights.shape}")
@@ -133,6 +155,10 @@ def build_mesh(
     skirt[:, 5] = 1.0
     vertices = np.concatenate([grid, skirt]).astype(np.float32)
     up = up_vector(clon, clat).astype(np.float32)
+    if adaptive:
+        h = np.asarray(heights, np.float64)
+        diag = (h[:-1, 1:] + h[1:, :-1]) < (h[:-1, :-1] + h[1:, 1:])
+        return TileMesh(key, s, vertices, center, up, adaptive_indices(diag))
     return TileMesh(key, s, vertices, center, up)
 
 

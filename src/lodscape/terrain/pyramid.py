@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from lodscape.errors import SourceError
 from lodscape.geo.frames import WGS84_A
 from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, merc_to_lonlat, tiles_array
+from lodscape.lod.select import TileStats
 from lodscape.terrain.mesh import GRIDS
 
 __all__ = ["Level", "SampleSource", "TileTree", "build_tree", "level_range"]
@@ -76,6 +77,17 @@ class Level:
         flat = np.where(inside, cy * nx + cx, 0)
         return inside & self.exists.ravel()[flat], flat
 
+    def stats(self, x: NDArray[np.int64], y: NDArray[np.int64]) -> TileStats:
+        """The selection's view of tiles (x, y) of this level."""
+        ok, flat = self.index(x, y)
+        _ny, nx = self.shape
+        return TileStats(
+            ok,
+            self.min_h.ravel()[flat],
+            self.max_h.ravel()[flat],
+            self.error[:, flat // nx, flat % nx],
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class TileTree:
@@ -93,6 +105,11 @@ class TileTree:
     coarsened: int = 0
     #: The finest level that has its own texture (None: every level).
     texture_zmax: int | None = None
+    #: Per tile of the finest level: the largest twist |a + d - b - c| of the data's lattice
+    #: cells under it (bounds how far another diagonal moves the surface); None if unknown.
+    twist: NDArray[np.float32] | None = None
+    #: RMS height difference between neighbouring points of the data's lattice, metres.
+    roughness: float | None = None
 
     @property
     def zmin(self) -> int:
@@ -225,6 +242,8 @@ def build_tree(
     levels: dict[int, tuple[Level, NDArray[np.float32], tuple[int, int, int, int]]] = {}
     height_range = (0.0, 0.0)
     child: tuple[NDArray[np.float32], tuple[int, int, int, int], Level] | None = None
+    twist = np.zeros((0, 0), np.float32)
+    roughness = 0.0
     # the truth: the level whose 16-segment grid samples the finest texture level's texels;
     # meshes reach it through levels below zmax that carry geometry only
     truth = zmax + texel_levels
@@ -238,6 +257,7 @@ def build_tree(
                 raise SourceError(f"{source.name}: no valid heights inside the data's footprint")
             hv = h[valid]
             height_range = (float(hv.min()), float(hv.max()))
+            twist, roughness = _twist(h, valid, ny, nx)
         mn = _blocks(h).min(axis=(2, 3)).astype(np.float32)
         mx = _blocks(h).max(axis=(2, 3)).astype(np.float32)
         exists = np.asarray(_blocks(valid).any(axis=(2, 3)), dtype=bool)
@@ -255,6 +275,8 @@ def build_tree(
             mn = np.minimum(mn, _pool(clv.min_h, (oy, ox), (ny, nx), np.inf, "min"))
             mx = np.maximum(mx, _pool(clv.max_h, (oy, ox), (ny, nx), -np.inf, "max"))
             exists |= _pool(clv.exists.astype(np.float32), (oy, ox), (ny, nx), 0.0, "max") > 0
+            if z >= zgeo:
+                twist = _pool(twist, (oy, ox), (ny, nx), 0.0, "max")
         lv = Level(z, x0, y0, exists, mn, mx, e16[None])
         levels[z] = (lv, e16, rng)
         child = (h, rng, lv)
@@ -273,7 +295,22 @@ def build_tree(
             err = full.reshape(ny, f, nx, f).max(axis=(1, 3))
             errs.append(err + _sag(z, grids[k], y0, ny))
         out.append(Level(z, x0, y0, lv.exists, lv.min_h, lv.max_h, np.stack(errs)))
-    return TileTree(tuple(out), grids, tile_size, height_range, coarsened, zmax)
+    return TileTree(tuple(out), grids, tile_size, height_range, coarsened, zmax, twist, roughness)
+
+
+def _twist(
+    h: NDArray[np.float32], valid: NDArray[np.bool_], ny: int, nx: int
+) -> tuple[NDArray[np.float32], float]:
+    """Per tile (16-segment blocks) the largest cell twist; and the RMS one-step difference."""
+    hh = h.astype(np.float64)
+    ok = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
+    t = np.where(ok, np.abs(hh[:-1, :-1] + hh[1:, 1:] - hh[:-1, 1:] - hh[1:, :-1]), 0.0)
+    per_tile = t.reshape(ny, _BASE, nx, _BASE).max(axis=(1, 3)).astype(np.float32)
+    dx = (hh[:, 1:] - hh[:, :-1])[valid[:, 1:] & valid[:, :-1]]
+    dy = (hh[1:, :] - hh[:-1, :])[valid[1:, :] & valid[:-1, :]]
+    n = dx.size + dy.size
+    rms = math.sqrt((float((dx * dx).sum()) + float((dy * dy).sum())) / n) if n else 0.0
+    return per_tile, rms
 
 
 def _sag(z: int, segments: int, y0: int, ny: int) -> NDArray[np.float32]:
