@@ -189,7 +189,8 @@ def test_error_bounds_hold_on_the_procedural_planet(hurst: float) -> None:
         for i in range(3):
             mesh = provider.heights.tile(z, int(xs[i]), int(ys[i]), 16)
             # the bounds hold the tile's own vertices
-            assert st.min_h[i] <= mesh.min() and mesh.max() <= st.max_h[i]
+            assert st.min_h[i] <= mesh.min()
+            assert mesh.max() <= st.max_h[i]
             for kg, g in enumerate(tree.grids):
                 real = _measured(provider.heights, z, int(xs[i]), int(ys[i]), g)
                 assert real <= st.error[kg, i], (z, g, real, st.error[kg, i])
@@ -290,7 +291,7 @@ def test_cli_detail_and_procedural(
 
     out = Path(str(tmp_path)) / "d.png"
     lon, lat = (float(v) for v in _lonlat_centre(dem))
-    code, text, err = run_cli(
+    code, _, err = run_cli(
         [
             "render",
             dem,
@@ -318,7 +319,7 @@ def test_cli_detail_and_procedural(
     assert code == 0, err
     assert out.stat().st_size > 0
     proc = Path(str(tmp_path)) / "p.png"
-    code, text, err = run_cli(["demo", "--procedural", "--size", "96x64", "-o", str(proc)], capsys)
+    code, _, err = run_cli(["demo", "--procedural", "--size", "96x64", "-o", str(proc)], capsys)
     assert code == 0, err
     from PIL import Image
 
@@ -330,9 +331,10 @@ def test_cli_detail_and_procedural(
         (["render", dem, "--detail", "wavelet", "-o", str(out)], "none or fractal"),
         (["render", "procedural:seed=a", "-o", str(out)], "seed"),
     ):
-        code, text, err = run_cli(argv, capsys)
+        code, _text, err = run_cli(argv, capsys)
         assert code == 2, argv
-        assert msg in err and len(err.strip().splitlines()) == 1, err
+        assert msg in err, err
+        assert len(err.strip().splitlines()) == 1, err
 
 
 def _lonlat_centre(path: str) -> tuple[float, float]:
