@@ -15,7 +15,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from os import PathLike
 from typing import Any, Literal
 
@@ -26,6 +26,7 @@ from lodscape.errors import CameraError, SourceError
 from lodscape.geo.frames import WGS84_A, ecef_to_geodetic
 from lodscape.geo.tiles import merc_to_lonlat, tile_from_id_array, tile_id_array
 from lodscape.lod.camera import Camera
+from lodscape.lod.cull import backfacing
 from lodscape.lod.select import TEXTURE, Selection, SelectOptions, select, tile_boxes
 from lodscape.render import DrawItem, Renderer
 from lodscape.store.provider import FractalProvider, Provider, RasterProvider
@@ -68,6 +69,8 @@ class SceneOptions:
     #: Stream tiles through the staged pipeline (never waiting on a load: missing tiles are
     #: drawn from their ancestors) instead of loading every missing tile before drawing.
     stream: StreamOptions | None = None
+    #: Skip tiles whose every triangle faces away from the camera (normal cones, paper 003).
+    cull_backfacing: bool = True
 
     def __post_init__(self) -> None:
         if not self.gpu_budget_mb > 0.0:
@@ -93,6 +96,9 @@ class FrameStats:
     draw_ms: float
     #: The streaming pipeline's figures for this frame (empty when not streaming).
     stream: dict[str, float] = field(default_factory=dict)
+    #: Tiles skipped as facing away from the camera, and the triangles they held.
+    backfacing: int = 0
+    backfacing_triangles: int = 0
 
     def as_dict(self) -> dict[str, float | int]:
         return {
@@ -104,6 +110,8 @@ class FrameStats:
             "select_ms": round(self.select_ms, 2),
             "load_ms": round(self.load_ms, 2),
             "draw_ms": round(self.draw_ms, 2),
+            "backfacing": self.backfacing,
+            "backfacing_triangles": self.backfacing_triangles,
             **self.stream,
         }
 
@@ -212,7 +220,7 @@ class Scene:
             resident = np.array(sorted(renderer.resident()), dtype=np.uint64)
             sel = select(self.options.select, cam, self.tree, self._previous, resident)
         t2 = time.perf_counter()
-        items = draw_items(sel)
+        items, culled, culled_tris = self._facing(renderer, cam, draw_items(sel))
         rgb, depth = renderer.draw(cam, items, background=self.options.background)
         t3 = time.perf_counter()
         self._previous = sel
@@ -227,8 +235,44 @@ class Scene:
             (t1 - t0) * 1e3,
             (t2 - t1) * 1e3,
             (t3 - t2) * 1e3,
+            backfacing=culled,
+            backfacing_triangles=culled_tris,
         )
         return rgb, depth
+
+    def _facing(
+        self, renderer: Renderer, cam: Camera, items: list[DrawItem]
+    ) -> tuple[list[DrawItem], int, int]:
+        """The draw list less the patches facing away from the camera (paper 003): a tile
+        with none left is dropped, one with some left draws the runs of its other patches (and
+        its skirts). Returns the list, the patches dropped and the triangles they held."""
+        if not self.options.cull_backfacing or not items:
+            return items, 0, 0
+        keys = [it.key for it in items]
+        cones, centres, owner = renderer.cones(keys)
+        away = backfacing(cones, centres, cam.position)
+        if not away.any():
+            return items, 0, 0
+        counts = np.bincount(owner, minlength=len(items))
+        gone = np.bincount(owner, weights=away, minlength=len(items)).astype(np.int64)
+        kept: list[DrawItem] = []
+        saved = 0
+        start = 0
+        for i, item in enumerate(items):
+            n = int(counts[i])
+            if gone[i] == 0:
+                kept.append(item)
+            else:
+                total = renderer.triangles([item.key])
+                if gone[i] == n:
+                    saved += total
+                else:
+                    per = (total - _skirt_triangles(total, n)) // n
+                    runs = _runs(~away[start : start + n], per, total)
+                    saved += total - sum(c for _, c in runs)
+                    kept.append(replace(item, runs=runs))
+            start += n
+        return kept, int(away.sum()), saved
 
     def _render_streaming(
         self, cam: Camera, renderer: Renderer, streamer: Streamer
@@ -265,7 +309,8 @@ class Scene:
         if uploaded:
             sel = select(opts.select, cam, self.tree, self._previous, _keys(renderer))
         t2 = time.perf_counter()
-        rgb, depth = renderer.draw(cam, draw_items(sel), background=opts.background)
+        items, culled, culled_tris = self._facing(renderer, cam, draw_items(sel))
+        rgb, depth = renderer.draw(cam, items, background=opts.background)
         t3 = time.perf_counter()
         self._previous = sel
         self._evict(renderer, sel)
@@ -290,6 +335,8 @@ class Scene:
             (t2 - t1) * 1e3,
             (t3 - t2) * 1e3,
             stream,
+            culled,
+            culled_tris,
         )
         return rgb, depth
 
@@ -429,6 +476,36 @@ def _upload(renderer: Renderer, key: int, made: TileMesh | NDArray[np.uint8]) ->
         renderer.upload(made)
     else:
         renderer.upload_texture(key, made)
+
+
+def _skirt_triangles(total: int, patches: int) -> int:
+    """Skirt triangles of a grid mesh of ``total`` triangles in ``patches`` patches: 8·S for S
+    segments, where total = 2·S² + 8·S."""
+    if patches <= 1:
+        # a TIN's patch is its whole surface; a small grid is one patch: skirts go with it
+        return 0
+    s = int((-8 + (64 + 8 * total) ** 0.5) / 4 + 0.5)
+    return 8 * s
+
+
+def _runs(keep: NDArray[np.bool_], per: int, total: int) -> tuple[tuple[int, int], ...]:
+    """Contiguous (first, count) runs of triangles of the kept patches (``per`` triangles
+    each), then the skirts that follow the last patch."""
+    out: list[tuple[int, int]] = []
+    i = 0
+    n = keep.size
+    while i < n:
+        if not keep[i]:
+            i += 1
+            continue
+        j = i
+        while j < n and keep[j]:
+            j += 1
+        out.append((i * per, (j - i) * per))
+        i = j
+    if total > n * per:
+        out.append((n * per, total - n * per))
+    return tuple(out)
 
 
 def draw_items(sel: Selection) -> list[DrawItem]:

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.lod.camera import Camera
+from lodscape.lod.cull import CONE_SIZE
 from lodscape.render._context import create_context, make_current
 from lodscape.terrain.mesh import TileMesh, grid_indices
 
@@ -95,6 +96,8 @@ class DrawItem:
     skirt: float = 0.0
     #: The window of the texture the tile covers: offset u, offset v, scale (1: all of it).
     uv: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    #: Runs of triangles to draw, (first, count); None: the whole mesh.
+    runs: tuple[tuple[int, int], ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -116,6 +119,7 @@ class _Tile:
     nbytes: int
     center: NDArray[np.float64]
     up: bytes
+    cone: NDArray[np.float64] | None = None
 
 
 @dataclass(eq=False)
@@ -212,6 +216,7 @@ class Renderer:
             mesh.nbytes,
             np.asarray(mesh.center, dtype=np.float64).copy(),
             np.asarray(mesh.up, dtype=np.float32).tobytes(),
+            None if mesh.cone is None else np.asarray(mesh.cone, dtype=np.float64),
         )
 
     def upload_texture(self, key: int, image: NDArray[np.uint8]) -> None:
@@ -262,6 +267,30 @@ class Renderer:
         """Whether mesh or texture ``key`` is uploaded."""
         return key in self._tiles or key in self._textures
 
+    def cones(
+        self, keys: Sequence[int]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+        """Every patch of meshes ``keys``: its normal cone ((M, 10), NaN rows where it has none),
+        its mesh's centre ((M, 3) ECEF) and the position in ``keys`` of its mesh ((M,))."""
+        cones, centres, owner = [], [], []
+        for i, key in enumerate(keys):
+            tile = self._tiles.get(key)
+            if tile is None or tile.cone is None:
+                cones.append(np.full((1, CONE_SIZE), np.nan))
+                centres.append(np.zeros((1, 3)))
+                owner.append(np.full(1, i))
+                continue
+            cones.append(tile.cone)
+            centres.append(np.broadcast_to(tile.center, (tile.cone.shape[0], 3)))
+            owner.append(np.full(tile.cone.shape[0], i))
+        if not cones:
+            return np.zeros((0, CONE_SIZE)), np.zeros((0, 3)), np.zeros(0, np.int64)
+        return np.concatenate(cones), np.concatenate(centres), np.concatenate(owner)
+
+    def triangles(self, keys: Sequence[int]) -> int:
+        """Triangles (skirts included) of the uploaded meshes among ``keys``."""
+        return sum(self._tiles[k].triangles for k in keys if k in self._tiles)
+
     def resident(self) -> dict[int, int]:
         """GPU bytes of every uploaded mesh (its vertices) and texture (with its mips)."""
         out = {key: tile.nbytes for key, tile in self._tiles.items()}
@@ -309,7 +338,7 @@ class Renderer:
         ctx.depth_func = "<"
 
         self._u_rot.write(np.ascontiguousarray(rot.T, dtype=np.float32))
-        triangles = 0
+        triangles = calls = 0
         for item, tile, tex, mvp in zip(items, tiles, textures, view_projections, strict=True):
             # GLSL matrices are column-major: upload the transpose of the row-major numpy one
             self._u_mvp.write(np.ascontiguousarray(mvp.T, dtype=np.float32))
@@ -318,9 +347,16 @@ class Renderer:
             self._u_skirt.value = float(item.skirt)
             self._u_uv.value = item.uv
             tex.use(0)
-            tile.vao.render(moderngl.TRIANGLES)
-            triangles += tile.triangles
-        self.last_stats = DrawStats(len(tiles), triangles)
+            if item.runs is None:
+                tile.vao.render(moderngl.TRIANGLES)
+                triangles += tile.triangles
+                calls += 1
+                continue
+            for first, count in item.runs:
+                tile.vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
+                triangles += count
+                calls += 1
+        self.last_stats = DrawStats(calls, triangles)
 
         h, w = camera.height, camera.width
         # GL rows go bottom-up: flip so row 0 is the top of the picture

@@ -16,14 +16,18 @@ from numpy.typing import NDArray
 
 from lodscape.geo.frames import geodetic_to_ecef, up_vector
 from lodscape.geo.tiles import ORIGIN, Tile, lonlat_to_merc, merc_to_lonlat, xy_bounds
+from lodscape.lod.cull import patch_cones
 
 __all__ = [
     "GRIDS",
+    "PATCH",
     "TileMesh",
     "adaptive_indices",
     "build_mesh",
+    "cell_corners",
     "grid_coordinates",
     "grid_indices",
+    "patches",
     "ring_indices",
     "tin_mesh",
 ]
@@ -49,6 +53,9 @@ class TileMesh:
     up: NDArray[np.float32]
     #: (M, 3) uint32 triangles of an irregular mesh, skirts included; None for a grid.
     indices: NDArray[np.uint32] | None = None
+    #: (P, 10) each surface patch's normal cone and bounding sphere (``lodscape.lod.cull``; NaN
+    #: rows: none); a grid's patches are runs of 2·PATCH² triangles, a TIN is one patch.
+    cone: NDArray[np.float64] | None = None
 
     @property
     def triangles(self) -> int:
@@ -74,6 +81,35 @@ def ring_indices(segments: int) -> NDArray[np.int64]:
     return np.concatenate([top, right, bottom, left])
 
 
+#: Cells a side of the patches a grid's triangles are ordered by (each patch's triangles are one
+#: contiguous run of the index buffer, with its own normal cone, so patches can be skipped).
+PATCH = 8
+
+
+def patches(segments: int) -> int:
+    """Patches of a grid of ``segments`` cells a side."""
+    p = max(1, segments // PATCH)
+    return p * p
+
+
+@cache
+def cell_corners(segments: int) -> NDArray[np.int64]:
+    """North-west corner vertex of each cell, patch by patch (PATCH² cells each, row-major
+    within a patch, patches row-major)."""
+    s = segments
+    n = s + 1
+    b = min(PATCH, s)
+    if s % b:
+        b = s
+    pi, pj, i, j = np.meshgrid(
+        np.arange(s // b), np.arange(s // b), np.arange(b), np.arange(b), indexing="ij"
+    )
+    rows, cols = pi * b + i, pj * b + j
+    out = (rows * n + cols).ravel()
+    out.setflags(write=False)
+    return out
+
+
 @cache
 def grid_indices(segments: int) -> NDArray[np.uint32]:
     """Triangle list for an (S+1)² grid followed by its 4·S skirt vertices (shared per S)."""
@@ -81,8 +117,7 @@ def grid_indices(segments: int) -> NDArray[np.uint32]:
         raise ValueError(f"Expected at least one segment, got {segments}")
     s = segments
     n = s + 1
-    i, j = np.meshgrid(np.arange(s), np.arange(s), indexing="ij")
-    a = (i * n + j).ravel()  # north-west corner of each cell
+    a = cell_corners(s)  # north-west corner of each cell, patch by patch
     b, c, d = a + 1, a + n, a + n + 1  # north-east, south-west, south-east
     # diagonal a-d in both triangles; counter-clockwise seen from above (north up, east right)
     cells = np.stack([a, c, d, a, d, b], axis=1).reshape(-1, 3)
@@ -103,10 +138,10 @@ def adaptive_indices(diag: NDArray[np.bool_]) -> NDArray[np.uint32]:
     elsewhere."""
     s = diag.shape[0]
     n = s + 1
-    i, j = np.meshgrid(np.arange(s), np.arange(s), indexing="ij")
-    a = (i * n + j).ravel()
+    a = cell_corners(s)
     b, c, d = a + 1, a + n, a + n + 1
-    flip = diag.ravel()[:, None]
+    # a cell's north-west corner (row r, column q) is vertex r·n + q
+    flip = diag[a // n, a % n][:, None]
     # both counter-clockwise seen from above
     nwse = np.stack([a, c, d, a, d, b], axis=1)
     nesw = np.stack([a, c, b, b, c, d], axis=1)
@@ -155,11 +190,14 @@ def build_mesh(
     skirt[:, 5] = 1.0
     vertices = np.concatenate([grid, skirt]).astype(np.float32)
     up = up_vector(clon, clat).astype(np.float32)
+    indices = None
     if adaptive:
         h = np.asarray(heights, np.float64)
         diag = (h[:-1, 1:] + h[1:, :-1]) < (h[:-1, :-1] + h[1:, 1:])
-        return TileMesh(key, s, vertices, center, up, adaptive_indices(diag))
-    return TileMesh(key, s, vertices, center, up)
+        indices = adaptive_indices(diag)
+    surface = (grid_indices(s) if indices is None else indices)[: 2 * s * s]
+    cone = patch_cones(vertices[: (s + 1) ** 2], surface.reshape(patches(s), -1, 3), up)
+    return TileMesh(key, s, vertices, center, up, indices, cone)
 
 
 def tin_mesh(
@@ -204,6 +242,8 @@ def tin_mesh(
         skirt_tris.append(np.column_stack([a, sa, b2, b2, sa, sa + 1]).reshape(-1, 3))
         start += idx.size
     vertices = np.concatenate([surface, *rings]).astype(np.float32)
-    indices = np.concatenate([np.asarray(triangles, np.int64).reshape(-1, 3), *skirt_tris])
+    tris = np.asarray(triangles, np.int64).reshape(-1, 3)
+    indices = np.concatenate([tris, *skirt_tris])
     up = up_vector(clon, clat).astype(np.float32)
-    return TileMesh(key, 0, vertices, center, up, indices.astype(np.uint32))
+    cone = patch_cones(vertices[: lon.size], tris[None], up)
+    return TileMesh(key, 0, vertices, center, up, indices.astype(np.uint32), cone)
