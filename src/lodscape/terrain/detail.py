@@ -38,11 +38,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import SourceError
-from lodscape.geo.frames import WGS84_A
-from lodscape.geo.tiles import MAX_LAT, ORIGIN, Bbox, merc_to_lonlat
+from lodscape.geo.tiles import ORIGIN, Bbox
 from lodscape.lod.select import TileStats
 from lodscape.terrain.fractal import MAX_LEVEL, fbm_window
 from lodscape.terrain.mesh import GRIDS
+from lodscape.terrain.pyramid import sag
 
 __all__ = [
     "DetailLevel",
@@ -229,16 +229,6 @@ def detail_bound(fractal: Fractal, sigma: float, start: int, lattice: I64, segme
         * error_factor(fractal.hurst, segments, MAX_LEVEL - lattice)
     )
     out: F64 = np.where(rel >= 0, below, sigma * _amplitude(round(fractal.hurst, 6)))
-    return out
-
-
-def sag(z: int, segments: int, y: I64) -> F64:
-    """Metres straight mesh edges sag below the curved Earth, per tile row y of level z."""
-    step = 2.0 * ORIGIN / float(1 << z) / segments
-    ym = ORIGIN - (np.asarray(y, np.float64) + 0.5) * (2.0 * ORIGIN / float(1 << z))
-    _, lat = merc_to_lonlat(0.0, ym)
-    ground = step * np.cos(np.radians(lat)) * math.sqrt(2.0)
-    out: F64 = ground**2 / (8.0 * WGS84_A)
     return out
 
 
@@ -599,10 +589,8 @@ class ProceduralHeights:
         self.sigma = sigma
         self.name = f"procedural:seed={fractal.seed}"
         self.crs_wkt = ""
-        top = ORIGIN
-        self.bounds_merc = Bbox(-ORIGIN, -top, ORIGIN, top)
+        self.bounds_merc = Bbox(-ORIGIN, -ORIGIN, ORIGIN, ORIGIN)
         self.resolution_merc = 2.0 * ORIGIN / float(1 << MAX_LEVEL)
-        _ = MAX_LAT
 
     def tile(self, z: int, x: int, y: int, segments: int) -> NDArray[np.float32]:
         f = self.fractal

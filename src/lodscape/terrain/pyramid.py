@@ -314,9 +314,16 @@ def _twist(
 
 
 def _sag(z: int, segments: int, y0: int, ny: int) -> NDArray[np.float32]:
-    """How far straight mesh edges sag below the curved Earth: spacing²/(8R), per tile row."""
+    """``sag`` of tile rows y0 .. y0 + ny, as a column."""
+    return sag(z, segments, np.arange(ny) + y0).astype(np.float32)[:, None]
+
+
+def sag(z: int, segments: int, y: NDArray[np.int64]) -> NDArray[np.float64]:
+    """How far straight mesh edges sag below the curved Earth, spacing²/(8R), for tiles of rows
+    ``y`` of level z drawn with ``segments`` segments."""
     step = 2.0 * ORIGIN / float(1 << z) / segments
-    ym = ORIGIN - (np.arange(ny) + y0 + 0.5) * (2.0 * ORIGIN / float(1 << z))
+    ym = ORIGIN - (np.asarray(y, np.float64) + 0.5) * (2.0 * ORIGIN / float(1 << z))
     _, lat = merc_to_lonlat(0.0, ym)
     ground = step * np.cos(np.radians(lat)) * math.sqrt(2.0)
-    return (ground**2 / (8.0 * WGS84_A)).astype(np.float32)[:, None]
+    out: NDArray[np.float64] = ground**2 / (8.0 * WGS84_A)
+    return out
