@@ -491,18 +491,10 @@ def _skirt_triangles(total: int, patches: int) -> int:
 def _runs(keep: NDArray[np.bool_], per: int, total: int) -> tuple[tuple[int, int], ...]:
     """Contiguous (first, count) runs of triangles of the kept patches (``per`` triangles
     each), then the skirts that follow the last patch."""
-    out: list[tuple[int, int]] = []
-    i = 0
+    edges = np.diff(np.concatenate([[0], keep.astype(np.int8), [0]]))
+    starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    out = [(int(a) * per, int(b - a) * per) for a, b in zip(starts, ends, strict=True)]
     n = keep.size
-    while i < n:
-        if not keep[i]:
-            i += 1
-            continue
-        j = i
-        while j < n and keep[j]:
-            j += 1
-        out.append((i * per, (j - i) * per))
-        i = j
     if total > n * per:
         out.append((n * per, total - n * per))
     return tuple(out)
@@ -581,4 +573,5 @@ def procedural_provider(spec: str, override: Fractal | None = None) -> FractalPr
             override.seed,
         )
     sigma = float(f.sigma if f.sigma is not None else 0.0)
-    return FractalProvider(ProceduralHeights(f, sigma), ProceduralTree(f, sigma))
+    tree = ProceduralTree(f, sigma)
+    return FractalProvider(ProceduralHeights(tree), tree)

@@ -35,6 +35,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from lodscape.errors import SourceError
@@ -236,6 +237,11 @@ def _log2(n: int) -> int:
     return round(math.log2(n))
 
 
+def _level_for(spacing: float) -> int:
+    """The lattice level whose cells are ``spacing`` Web Mercator metres wide (clamped)."""
+    return int(np.clip(round(math.log2(2.0 * ORIGIN / max(spacing, 1e-9))), 0, MAX_LEVEL))
+
+
 # --- fractal detail on a DEM's tile tree ----------------------------------------------------
 
 
@@ -283,7 +289,7 @@ class DetailLevel:
                 # cells' diagonals; a cell 2^-j as wide re-split across a fold is off by half
                 # its twist, the data cell's twist · 2^-j
                 _, flat = fin.index(x >> k, y >> k)
-                base = t.twist.ravel()[flat] * 2.0 ** -(lat_lv - t.start + 1)
+                base = t.base.twist.ravel()[flat] * 2.0 ** -(lat_lv - t.start + 1)
             det = detail_bound(t.fractal, t.sigma, t.start, np.full(x.shape, lat_lv), g)
             errs.append(base + det + sag(self.z, g, y))
         return TileStats(st.exists, st.min_h - t.dmax, st.max_h + t.dmax, np.stack(errs))
@@ -299,8 +305,6 @@ class DetailTree:
     #: The DEM's lattice level (detail starts below it) and the first displacement, metres.
     start: int
     sigma: float
-    #: Largest twist |a + d - b - c| of the data's lattice cells under each finest-level tile.
-    twist: NDArray[np.float32]
     _levels: dict[int, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -314,7 +318,7 @@ class DetailTree:
         if sigma is None:
             # the data's one-sample roughness carried one level down by the fBm law
             sigma = float(base.roughness) * 2.0 ** (-fractal.hurst) / 2.0
-        return cls(base, fractal, start, sigma, base.twist)
+        return cls(base, fractal, start, sigma)
 
     @property
     def dmax(self) -> float:
@@ -421,7 +425,7 @@ class DetailHeights:
 
     def _detail_at(self, xm: F64, ym: F64, spacing: float) -> F64:
         t = self.tree
-        lv = int(np.clip(round(math.log2(2.0 * ORIGIN / max(spacing, 1e-9))), 0, MAX_LEVEL))
+        lv = _level_for(spacing)
         if lv <= t.start:
             return np.zeros(np.shape(xm))
         return _field_at(t.fractal.seed, t.fractal.hurst, t.sigma, lv, t.start, xm, ym)
@@ -547,6 +551,11 @@ class ProceduralTree:
     def adaptive(self, z: int, segments: int) -> bool:
         return True
 
+    def lattice(self, level: int, i0: int, j0: int, n: int) -> F64:
+        """The planet's n×n lattice points of ``level`` from (i0, j0)."""
+        f = self.fractal
+        return fbm_window(f.seed, f.hurst, self.sigma, level, i0, j0, n, n, start=self.start)
+
     def block(self, z: int, bx: int, by: int) -> tuple[F64, F64]:
         """(min, max) heights of the block's tiles, (rows, cols), bounds included."""
         key = (z, bx, by)
@@ -556,23 +565,10 @@ class ProceduralTree:
             return hit
         g = GRIDS[0]
         n = min(_BLOCK, 1 << z)
-        f = self.fractal
         lv = z + _log2(g)
-        w = fbm_window(
-            f.seed,
-            f.hurst,
-            self.sigma,
-            lv,
-            bx * _BLOCK * g,
-            by * _BLOCK * g,
-            n * g + 1,
-            n * g + 1,
-            start=self.start,
-        )
-        from numpy.lib.stride_tricks import sliding_window_view
-
+        w = self.lattice(lv, bx * _BLOCK * g, by * _BLOCK * g, n * g + 1)
         tiles = sliding_window_view(w, (g + 1, g + 1))[::g, ::g]
-        e = float(detail_bound(f, self.sigma, self.start, np.array(lv), g)[()])
+        e = float(detail_bound(self.fractal, self.sigma, self.start, np.array(lv), g)[()])
         out = (tiles.min(axis=(2, 3)) - e, tiles.max(axis=(2, 3)) + e)
         with self._lock:
             if len(self._blocks) > 4096:
@@ -582,39 +578,27 @@ class ProceduralTree:
 
 
 class ProceduralHeights:
-    """The procedural planet as a height source: fBm from level 0 over the whole Earth."""
+    """The procedural planet as a height source: fBm below lattice level PROCEDURAL_START over
+    the whole Earth; its lattice is its tree's."""
 
-    def __init__(self, fractal: Fractal, sigma: float) -> None:
-        self.fractal = fractal
-        self.sigma = sigma
-        self.name = f"procedural:seed={fractal.seed}"
+    def __init__(self, tree: ProceduralTree) -> None:
+        self.tree = tree
+        self.name = f"procedural:seed={tree.fractal.seed}"
         self.crs_wkt = ""
         self.bounds_merc = Bbox(-ORIGIN, -ORIGIN, ORIGIN, ORIGIN)
         self.resolution_merc = 2.0 * ORIGIN / float(1 << MAX_LEVEL)
 
     def tile(self, z: int, x: int, y: int, segments: int) -> NDArray[np.float32]:
-        f = self.fractal
-        lv = z + _log2(segments)
-        w = fbm_window(
-            f.seed,
-            f.hurst,
-            self.sigma,
-            lv,
-            x * segments,
-            y * segments,
-            segments + 1,
-            segments + 1,
-            start=PROCEDURAL_START,
-        )
+        w = self.tree.lattice(z + _log2(segments), x * segments, y * segments, segments + 1)
         return w.astype(np.float32)
 
     def sample(
         self, xm: NDArray[np.float64], ym: NDArray[np.float64], spacing: float
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         xb, yb = np.broadcast_arrays(np.asarray(xm, np.float64), np.asarray(ym, np.float64))
-        lv = int(np.clip(round(math.log2(2.0 * ORIGIN / max(spacing, 1e-9))), 0, MAX_LEVEL))
-        f = self.fractal
-        h = _field_at(f.seed, f.hurst, self.sigma, lv, PROCEDURAL_START, xb, yb)
+        t = self.tree
+        f = t.fractal
+        h = _field_at(f.seed, f.hurst, t.sigma, _level_for(spacing), t.start, xb, yb)
         return h.astype(np.float32), np.ones(xb.shape, bool)
 
     def read(
