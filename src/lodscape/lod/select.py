@@ -40,6 +40,7 @@ from lodscape.geo.tiles import (
     tile_id_array,
 )
 from lodscape.lod.camera import Camera
+from lodscape.lod.region import region_view
 
 __all__ = [
     "TEXTURE",
@@ -64,6 +65,8 @@ _THREE = np.uint64(3)
 _EMPTY_U = np.zeros(0, dtype=np.uint64)
 #: Slack around each tile's box, as a share of its side.
 _MARGIN = 1e-3
+#: Fewer children than this go straight to their bounds (the region test would cost more).
+_REGION_MIN = 32
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,6 +129,11 @@ class SelectOptions:
     #: A tile split for its error merges back only when its finest grid's error falls below
     #: this share of ``max_sse`` (hysteresis, as ``merge`` is for the pixel band).
     sse_merge: float = 0.75
+    #: Drop children outside the visible region (frustum ∩ the slab of their parents' heights,
+    #: paper 003's quadrangle made conservative) before asking for their bounds. Off by
+    #: default: each tile's exact box test already prunes, and the region costs more than the
+    #: bounds it spares (bench/bench_detail.py).
+    region: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 < self.merge < self.split:
@@ -171,6 +179,8 @@ class Selection:
     loads: U64
     visited: int = 0
     culled: int = 0
+    #: Tiles dropped by the visible region before their bounds were asked for.
+    outside: int = 0
     #: Tiles whose texture is drawn above split × its size: the data has no finer texture, or
     #: the near plane cuts the tile.
     magnified: int = 0
@@ -212,6 +222,7 @@ class Selection:
             "tiles": self.count,
             "visited": self.visited,
             "culled": self.culled,
+            "outside": self.outside,
             "refined": int(self.refined.size),
             "max_depth": self.max_depth,
             "max_sse_px": round(self.max_sse, 3),
@@ -338,8 +349,9 @@ def select(
     prev = previous.refined if previous is not None else _EMPTY_U
     drawn: list[tuple[NDArray[np.generic], ...]] = []
     refined_ids: list[U64] = []
-    visited = culled = 0
+    visited = culled = outside = 0
 
+    view = region_view(camera) if options.region else None
     x, y = tree.roots()
     for z in range(tree.zmin, zmax + 1):
         if x.size == 0:
@@ -348,10 +360,14 @@ def select(
         ok = st.exists
         x, y = x[ok], y[ok]
         visited += int(x.size)
-        m = _metrics(camera, z, x, y, st.take(ok))
+        if x.size == 0:
+            break
+        st = st.take(ok)
+        m = _metrics(camera, z, x, y, st)
         culled += int((~m.boxes.inside).sum())
         keep = m.boxes.inside
         x, y = x[keep], y[keep]
+        lo_h, hi_h = st.min_h[keep], st.max_h[keep]
         ground, scale, err = m.boxes.ground[keep], m.scale[keep], m.err[:, keep]
         px = ground * scale
         k, too_rough = _grid_choice(options, err, scale)
@@ -388,6 +404,13 @@ def select(
         )
         x = (2 * x[refine][:, None] + np.array([0, 1, 0, 1])).ravel()
         y = (2 * y[refine][:, None] + np.array([0, 0, 1, 1])).ravel()
+        if view is not None and x.size >= _REGION_MIN:
+            # a tile's bounds hold its children's: their slab is their parents'
+            region = view.slab(float(np.min(lo_h[refine])), float(np.max(hi_h[refine])))
+            if region is not None:
+                hit = region.hits(z + 1, x, y)
+                outside += int(x.size - hit.sum())
+                x, y = x[hit], y[hit]
 
     cols = [np.concatenate(c) for c in zip(*drawn, strict=True)] if drawn else [np.zeros(0)] * 9
     ints = [a.astype(np.int64) for a in cols[:4]]
@@ -426,6 +449,7 @@ def select(
         loads=loads,
         visited=visited,
         culled=culled,
+        outside=outside,
         magnified=magnified,
         texture_size=tsize,
         grids=tuple(tree.grids),
