@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["CameraError", "LodscapeError", "SourceError"]
+__all__ = ["CameraError", "CityError", "LodscapeError", "SourceError"]
 
 
 class LodscapeError(Exception):
@@ -15,3 +15,7 @@ class SourceError(LodscapeError, ValueError):
 
 class CameraError(LodscapeError, ValueError):
     """A camera is invalid (NaN, under the ground, zero-sized viewport…)."""
+
+
+class CityError(LodscapeError, ValueError):
+    """A city file (OpenStreetMap .osm.pbf / .osm) cannot be read; the message names it."""

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from lodscape.errors import CameraError, SourceError
 from lodscape.geo.frames import WGS84_A, ecef_to_geodetic
-from lodscape.geo.tiles import merc_to_lonlat, tile_from_id_array, tile_id_array
+from lodscape.geo.tiles import lonlat_to_merc, merc_to_lonlat, tile_from_id_array, tile_id_array
 from lodscape.lod.camera import Camera
 from lodscape.lod.cull import backfacing
 from lodscape.lod.select import TEXTURE, Selection, SelectOptions, select, tile_boxes
@@ -99,6 +99,8 @@ class FrameStats:
     #: Tiles skipped as facing away from the camera, and the triangles they held.
     backfacing: int = 0
     backfacing_triangles: int = 0
+    #: The city pass's figures (draw calls, triangles, objects culled…), when a city is on.
+    city: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, float | int]:
         return {
@@ -113,6 +115,7 @@ class FrameStats:
             "backfacing": self.backfacing,
             "backfacing_triangles": self.backfacing_triangles,
             **self.stream,
+            **self.city,
         }
 
 
@@ -138,6 +141,9 @@ class Scene:
         self.options = options or SceneOptions()
         self.tree = self.provider.tree
         self._renderer: Renderer | None = None
+        self.city: Any = None
+        self.city_options: Any = None
+        self._city_pass: Any = None
         self._previous: Selection | None = None
         self._used: OrderedDict[int, None] = OrderedDict()
         self._pool = ThreadPoolExecutor(max(1, self.options.workers), "lodscape-load")
@@ -221,7 +227,9 @@ class Scene:
             sel = select(self.options.select, cam, self.tree, self._previous, resident)
         t2 = time.perf_counter()
         items, culled, culled_tris = self._facing(renderer, cam, draw_items(sel))
-        rgb, depth = renderer.draw(cam, items, background=self.options.background)
+        rgb, depth = renderer.draw(
+            cam, items, background=self.options.background, after=self._city_passes(renderer)
+        )
         t3 = time.perf_counter()
         self._previous = sel
         self._evict(renderer, sel)
@@ -237,6 +245,7 @@ class Scene:
             (t3 - t2) * 1e3,
             backfacing=culled,
             backfacing_triangles=culled_tris,
+            city=self._city_stats(),
         )
         return rgb, depth
 
@@ -310,7 +319,9 @@ class Scene:
             sel = select(opts.select, cam, self.tree, self._previous, _keys(renderer))
         t2 = time.perf_counter()
         items, culled, culled_tris = self._facing(renderer, cam, draw_items(sel))
-        rgb, depth = renderer.draw(cam, items, background=opts.background)
+        rgb, depth = renderer.draw(
+            cam, items, background=opts.background, after=self._city_passes(renderer)
+        )
         t3 = time.perf_counter()
         self._previous = sel
         self._evict(renderer, sel)
@@ -337,6 +348,7 @@ class Scene:
             stream,
             culled,
             culled_tris,
+            self._city_stats(),
         )
         return rgb, depth
 
@@ -389,6 +401,53 @@ class Scene:
 
     # --- resources --------------------------------------------------------------------------
 
+    # --- the city (paper 001) ---------------------------------------------------------------
+
+    def add_city(self, city: str | PathLike[str] | Any, options: Any = None) -> Any:
+        """Drape a city on the terrain: an OSM file (.osm.pbf, .osm) or a built ``CityModel``;
+        its objects stand on this scene's ground. Returns the model."""
+        from lodscape.city.model import CityModel, CityOptions, build_city
+        from lodscape.city.osm import read_osm
+
+        model = city if isinstance(city, CityModel) else build_city(read_osm(city), self.heights)
+        if self._city_pass is not None:
+            self._city_pass.release()
+            self._city_pass = None
+        self.city = model
+        self.city_options = options or CityOptions()
+        return model
+
+    def heights(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Ground heights at many points (NaN outside the data)."""
+        lon = np.asarray(lon, np.float64)
+        lat = np.asarray(lat, np.float64)
+        source = getattr(self.provider, "source", None)
+        if source is not None and hasattr(source, "sample"):
+            xm, ym = lonlat_to_merc(lon, lat)
+            h, ok = source.sample(xm, ym, source.resolution_merc)
+            return np.where(ok, np.asarray(h, np.float64), np.nan)
+        out = [self.ground_height(float(a), float(b)) for a, b in zip(lon.ravel(), lat.ravel())]
+        return np.array([np.nan if v is None else v for v in out]).reshape(lon.shape)
+
+    def _city_passes(self, renderer: Renderer) -> list[Callable[[Camera, Any], None]]:
+        if self.city is None:
+            return []
+        if self._city_pass is None:
+            from lodscape.render.city_pass import CityPass
+
+            self._city_pass = CityPass(renderer.ctx, self.city)
+        cp, opts = self._city_pass, self.city_options
+
+        def draw(camera: Camera, fbo: Any) -> None:
+            cp.draw(camera, opts, fbo)
+
+        return [draw]
+
+    def _city_stats(self) -> dict[str, int]:
+        if self._city_pass is None or self.city is None:
+            return {}
+        return self._city_pass.last.as_dict()
+
     def _renderer_for(self, camera: Camera) -> Renderer:
         if self._renderer is None:
             self._renderer = Renderer(
@@ -440,6 +499,10 @@ class Scene:
         if self.streamer is not None:
             self.streamer.close()
         if self._renderer is not None:
+            if self._city_pass is not None:
+                self._renderer._use()
+                self._city_pass.release()
+                self._city_pass = None
             self._renderer.close()
             self._renderer = None
         if self._owns:
@@ -529,6 +592,9 @@ def open(
     it closes."""
     if isinstance(source, str) and (source == "procedural" or source.startswith("procedural:")):
         return Scene(procedural_provider(source, detail), options, owns=True, clock=clock)
+    if isinstance(source, str) and source.startswith("flat:"):
+        source_obj = flat_source(source)
+        return Scene(source_obj, options, owns=True, clock=clock)
     if isinstance(source, np.ndarray):
         src: HeightSource = ArraySource(source, **array_kwargs)
     elif isinstance(source, str | PathLike):
@@ -551,6 +617,35 @@ def open(
     except BaseException:
         src.close()
         raise
+
+
+def flat_source(spec: str) -> ArraySource:
+    """``flat:WEST,SOUTH,EAST,NORTH[,HEIGHT]``: level ground (the ellipsoid, or HEIGHT metres
+    above it) over a box in degrees, for cities and tests with no DEM."""
+    try:
+        vals = [float(v) for v in spec.split(":", 1)[1].split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) not in (4, 5) or not all(math.isfinite(v) for v in vals):
+        raise SourceError(f"{spec}: expected flat:WEST,SOUTH,EAST,NORTH[,HEIGHT] in degrees")
+    w, s, e, n = vals[:4]
+    h = vals[4] if len(vals) == 5 else 0.0
+    if not (-180.0 <= w < e <= 180.0 and -85.0 <= s < n <= 85.0):
+        raise SourceError(f"{spec}: the box must have west < east and south < north, in degrees")
+    size = 65
+    from affine import Affine
+
+    transform = Affine(
+        (e - w) / (size - 1),
+        0.0,
+        w - 0.5 * (e - w) / (size - 1),
+        0.0,
+        -(n - s) / (size - 1),
+        n + 0.5 * (n - s) / (size - 1),
+    )
+    src = ArraySource(np.full((size, size), h), transform, crs="EPSG:4326")
+    src.name = spec
+    return src
 
 
 def fractal_provider(source: HeightSource, fractal: Fractal) -> FractalProvider:

@@ -11,7 +11,7 @@ than read back from the depth buffer, whose non-linear 24-bit values lose centim
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Protocol, TypeVar
@@ -304,10 +304,16 @@ class Renderer:
     # --- drawing ----------------------------------------------------------------------------
 
     def draw(
-        self, camera: Camera, items: Sequence[DrawItem], *, background: Rgb | None = None
+        self,
+        camera: Camera,
+        items: Sequence[DrawItem],
+        *,
+        background: Rgb | None = None,
+        after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]] = (),
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """Render ``items`` from ``camera``: RGB (H, W, 3) uint8, row 0 at the top, and view
-        distance (H, W) float32 in metres along the view axis, +inf where nothing was drawn."""
+        distance (H, W) float32 in metres along the view axis, +inf where nothing was drawn.
+        ``after`` passes (the city) draw into the same framebuffer once the terrain is in."""
         self._use()
         # resolve every key before touching GL state, so a bad frame changes nothing
         tiles, textures = [], []
@@ -357,6 +363,9 @@ class Renderer:
                 triangles += count
                 calls += 1
         self.last_stats = DrawStats(calls, triangles)
+        for extra in after:
+            extra(camera, fbo)
+            fbo.use()
 
         h, w = camera.height, camera.width
         # GL rows go bottom-up: flip so row 0 is the top of the picture

@@ -1,0 +1,418 @@
+"""The city pass (paper 001): the city's merged meshes and instanced street objects, drawn into the
+terrain pass's framebuffer with the same camera, after the terrain.
+
+Optimised path, per frame: leaves culled by the frustum (R-tree, from the root) and given a level
+of detail; for each material one ``glMultiDrawElementsIndirect`` over the visible leaves' runs of
+its merged mesh; for each street model part one instanced multi-draw (the leaves' runs of the
+instance buffer); and coherent hierarchical occlusion culling on the leaves (CHC++'s scheme at
+leaf granularity): leaves seen last frame are drawn first, the others are tested with occlusion
+queries on their boxes against that depth (all issued, then all read: one batch) and drawn at
+once if any sample passes, and the leaves drawn first are queried after the frame to learn which
+became hidden. A leaf is never dropped because of a query made in an earlier frame, so
+occlusion culling cannot remove a pixel; a leaf whose box holds the eye is always drawn.
+
+Naive path (``CityOptions.naive()``): every object drawn with its own draw call per material, full
+detail, no culling: the baseline of paper 001's benchmark.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.city.mesh import MODELS
+from lodscape.city.model import CityModel, CityOptions
+from lodscape.lod.camera import Camera
+
+__all__ = ["COLOURS", "CityPass", "CityStats"]
+
+COLOURS: dict[str, tuple[float, float, float]] = {
+    "plaster": (0.86, 0.82, 0.74),
+    "brick": (0.64, 0.33, 0.25),
+    "stone": (0.62, 0.60, 0.56),
+    "concrete": (0.70, 0.70, 0.68),
+    "glass": (0.45, 0.58, 0.66),
+    "metal": (0.55, 0.57, 0.60),
+    "wood": (0.55, 0.40, 0.26),
+    "copper": (0.35, 0.60, 0.50),
+    "tiles": (0.66, 0.30, 0.22),
+    "slate": (0.32, 0.34, 0.38),
+    "roofing": (0.38, 0.38, 0.40),
+    "bark": (0.36, 0.26, 0.18),
+    "foliage": (0.24, 0.45, 0.20),
+    "lamp": (1.00, 0.95, 0.75),
+}
+
+_VERTEX = """
+#version 330
+uniform mat4 u_mvp;      // projection · view for positions in the city's frame
+uniform mat3 u_rot;      // city frame → view rotation
+uniform vec3 u_offset;   // view-space position of the city's origin
+in vec3 in_pos;
+in vec3 in_normal;
+#ifdef INSTANCED
+in vec4 in_inst;         // x, y, z, scale
+in float in_heading;
+#endif
+out vec3 v_normal;
+out float v_dist;
+void main() {
+    vec3 p = in_pos;
+    vec3 n = in_normal;
+#ifdef INSTANCED
+    float c = cos(in_heading), s = sin(in_heading);
+    mat3 r = mat3(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
+    p = in_inst.xyz + r * (in_inst.w * p);
+    n = r * n;
+#endif
+    gl_Position = u_mvp * vec4(p, 1.0);
+    v_normal = n;
+    v_dist = -(u_offset + u_rot * p).z;
+}
+"""
+
+_FRAGMENT = """
+#version 330
+uniform vec3 u_colour;
+uniform vec3 u_sun;
+in vec3 v_normal;
+in float v_dist;
+layout(location = 0) out vec4 f_color;
+layout(location = 1) out float f_dist;
+void main() {
+    vec3 n = normalize(v_normal);
+    float light = 0.45 + 0.55 * max(dot(n, u_sun), 0.0) + 0.1 * n.z;
+    f_color = vec4(u_colour * light, 1.0);
+    f_dist = v_dist;
+}
+"""
+
+_BOX_VERTEX = """
+#version 330
+uniform mat4 u_mvp;
+uniform vec3 u_lo;
+uniform vec3 u_hi;
+in vec3 in_pos;
+void main() { gl_Position = u_mvp * vec4(mix(u_lo, u_hi, in_pos), 1.0); }
+"""
+_BOX_FRAGMENT = """
+#version 330
+layout(location = 0) out vec4 f_color;
+void main() { f_color = vec4(1.0); }
+"""
+_ALL = (True, True, True, True)
+_NONE = (False, False, False, False)
+_CUBE = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], np.float32)
+_CUBE_TRIS = np.array(
+    [
+        0,
+        1,
+        3,
+        0,
+        3,
+        2,
+        4,
+        6,
+        7,
+        4,
+        7,
+        5,
+        0,
+        4,
+        5,
+        0,
+        5,
+        1,
+        2,
+        3,
+        7,
+        2,
+        7,
+        6,
+        0,
+        2,
+        6,
+        0,
+        6,
+        4,
+        1,
+        5,
+        7,
+        1,
+        7,
+        3,
+    ],
+    np.uint32,
+)
+
+
+@dataclass(frozen=True)
+class CityStats:
+    draw_calls: int = 0
+    triangles: int = 0
+    objects_drawn: int = 0
+    culled_frustum: int = 0
+    culled_lod: int = 0
+    culled_occlusion: int = 0
+    queries: int = 0
+    boxes_tested: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {f"city_{k}": int(v) for k, v in self.__dict__.items()}
+
+
+class CityPass:
+    """GL objects of one city in one context; ``draw`` adds it to the bound framebuffer."""
+
+    def __init__(self, ctx: moderngl.Context, model: CityModel) -> None:
+        self.ctx = ctx
+        self.model = model
+        self.indirect_ok = ctx.version_code >= 430
+        self._objs: list[moderngl.Buffer | moderngl.VertexArray | moderngl.Program] = []
+        prog = self._keep(ctx.program(vertex_shader=_VERTEX, fragment_shader=_FRAGMENT))
+        iprog = self._keep(
+            ctx.program(
+                vertex_shader=_VERTEX.replace("#version 330", "#version 330\n#define INSTANCED"),
+                fragment_shader=_FRAGMENT,
+            )
+        )
+        self._prog, self._iprog = prog, iprog
+        self._meshes: dict[tuple[int, str], moderngl.VertexArray] = {}
+        self._tris: dict[tuple[int, str], int] = {}
+        for key, geo in model.geometry.items():
+            if not len(geo.triangles):
+                continue
+            vbo = self._keep(ctx.buffer(np.hstack([geo.positions, geo.normals]).tobytes()))
+            ibo = self._keep(ctx.buffer(geo.triangles.tobytes()))
+            vao = self._keep(
+                ctx.vertex_array(prog, [(vbo, "3f 3f", "in_pos", "in_normal")], ibo, 4)
+            )
+            self._meshes[key] = vao
+        self._models: dict[tuple[str, str], tuple[moderngl.VertexArray, int]] = {}
+        for kind, inst in model.instances.items():
+            if not len(inst):
+                continue
+            ibuf = self._keep(ctx.buffer(np.ascontiguousarray(inst, np.float32).tobytes()))
+            for mat, geo in MODELS[kind].items():
+                vbo = self._keep(ctx.buffer(np.hstack([geo.positions, geo.normals]).tobytes()))
+                ibo = self._keep(ctx.buffer(geo.triangles.tobytes()))
+                vao = self._keep(
+                    ctx.vertex_array(
+                        iprog,
+                        [
+                            (vbo, "3f 3f", "in_pos", "in_normal"),
+                            (ibuf, "4f 1f/i", "in_inst", "in_heading"),
+                        ],
+                        ibo,
+                        4,
+                    )
+                )
+                self._models[(kind, mat)] = (vao, len(geo.triangles))
+        bprog = self._keep(ctx.program(vertex_shader=_BOX_VERTEX, fragment_shader=_BOX_FRAGMENT))
+        self._bprog = bprog
+        cube = self._keep(ctx.buffer(_CUBE.tobytes()))
+        cidx = self._keep(ctx.buffer(_CUBE_TRIS.tobytes()))
+        self._box = self._keep(ctx.vertex_array(bprog, [(cube, "3f", "in_pos")], cidx, 4))
+        self._indirect = self._keep(ctx.buffer(reserve=20 * max(model.tree.leaves, 1)))
+        self._visible = np.zeros(model.tree.leaves, dtype=bool)
+        self._queries: list[moderngl.Query] = []
+        self.last = CityStats()
+
+    def _keep(self, obj: object) -> object:
+        self._objs.append(obj)  # type: ignore[arg-type]
+        return obj
+
+    def release(self) -> None:
+        for obj in reversed(self._objs):
+            obj.release()
+        # moderngl's queries have no release: they go with the context
+        self._objs.clear()
+        self._queries.clear()
+
+    # --- drawing ---------------------------------------------------------------------------
+
+    def _uniforms(self, camera: Camera) -> None:
+        m = self.model
+        basis = m.frame.basis
+        to_ecef = np.eye(4)
+        to_ecef[:3, :3] = basis.T
+        mvp = camera.view_projection(m.frame.origin) @ to_ecef
+        rot = camera.rotation @ basis.T
+        offset = camera.rotation @ (m.frame.origin - camera.position)
+        sun = np.array([math.cos(0.8) * 0.5, math.sin(0.8) * 0.5, 0.75])
+        sun /= np.linalg.norm(sun)
+        for prog in (self._prog, self._iprog):
+            prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
+            prog["u_rot"].write(np.ascontiguousarray(rot.T, np.float32))  # type: ignore[union-attr]
+            prog["u_offset"].write(np.asarray(offset, np.float32))  # type: ignore[union-attr]
+            prog["u_sun"].write(sun.astype(np.float32))  # type: ignore[union-attr]
+        self._bprog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
+
+    def draw(self, camera: Camera, options: CityOptions, fbo: moderngl.Framebuffer) -> CityStats:
+        """Draw the city into ``fbo`` (the terrain's colour + distance target, depth kept)."""
+        self._fbo = fbo
+        self._uniforms(camera)
+        self.ctx.enable_only(moderngl.DEPTH_TEST)
+        if not (options.frustum or options.lod or options.occlusion or options.indirect):
+            self.last = self._draw_naive(options)
+            return self.last
+        m = self.model
+        fl = m.frame_lists(camera, options)
+        shown = fl.lod < 2
+        leaves, lod = fl.leaves[shown], fl.lod[shown]
+        calls = tris = queries = 0
+        occluded = np.zeros(0, dtype=np.int64)
+        if options.occlusion and len(leaves):
+            eye = m.local_eye(camera)
+            boxes = m.tree.levels[0][leaves]
+            margin = (camera.near or 0.0) * 2.0 + 0.01
+            holds_eye = np.all((boxes[:, :3] - margin <= eye) & (eye <= boxes[:, 3:] + margin), 1)
+            before = self._visible[leaves] | holds_eye
+            c, t = self._draw_leaves(leaves[before], lod[before], options)
+            calls, tris = calls + c, tris + t
+            # the others: one batch of queries against the depth drawn so far
+            rest = np.nonzero(~before)[0]
+            seen = self._query(leaves[rest])
+            queries += len(rest)
+            now = rest[seen]
+            c, t = self._draw_leaves(leaves[now], lod[now], options)
+            calls, tris = calls + c, tris + t
+            occluded = leaves[rest[~seen]]
+            # which of the leaves drawn first are hidden now (for the next frame)
+            first = np.nonzero(before)[0]
+            still = self._query(leaves[first])
+            queries += len(first)
+            vis = np.zeros_like(self._visible)
+            vis[leaves[first[still | holds_eye[first]]]] = True
+            vis[leaves[now]] = True
+            self._visible = vis
+        else:
+            c, t = self._draw_leaves(leaves, lod, options)
+            calls, tris = calls + c, tris + t
+        drawn_objects = int(m.leaf_objects[leaves].sum()) - int(m.leaf_objects[occluded].sum())
+        self.last = CityStats(
+            calls,
+            tris,
+            drawn_objects,
+            fl.culled_frustum,
+            fl.culled_lod,
+            int(m.leaf_objects[occluded].sum()),
+            queries,
+            fl.boxes_tested,
+        )
+        return self.last
+
+    def _draw_leaves(
+        self, leaves: NDArray[np.int64], lod: NDArray[np.int64], options: CityOptions
+    ) -> tuple[int, int]:
+        if not len(leaves):
+            return 0, 0
+        m = self.model
+        calls = tris = 0
+        for (level, mat), vao in self._meshes.items():
+            sel = leaves[lod == level]
+            if not len(sel):
+                continue
+            first, count = m.runs[(level, mat)]
+            f, c = first[sel], count[sel]
+            ok = c > 0
+            f, c = f[ok], c[ok]
+            if not len(f):
+                continue
+            self._prog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))  # type: ignore[index]
+            tris += int(c.sum()) // 3
+            if options.indirect and self.indirect_ok:
+                cmd = np.zeros((len(f), 5), np.uint32)
+                cmd[:, 0], cmd[:, 1], cmd[:, 2] = c, 1, f
+                self._indirect.orphan(max(cmd.nbytes, 20))
+                self._indirect.write(cmd.tobytes())
+                vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(f))
+                calls += 1
+            else:
+                for fi, ci in zip(f.tolist(), c.tolist(), strict=True):
+                    vao.render(moderngl.TRIANGLES, vertices=ci, first=fi)
+                    calls += 1
+        full = leaves[lod == 0]
+        for (kind, mat), (vao, ntri) in self._models.items():
+            start, count = m.instance_runs[kind]
+            s, c = start[full], count[full]
+            ok = c > 0
+            s, c = s[ok], c[ok]
+            if not len(s):
+                continue
+            self._iprog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))  # type: ignore[index]
+            tris += int(c.sum()) * ntri
+            if options.instancing and self.indirect_ok:
+                cmd = np.zeros((len(s), 5), np.uint32)
+                cmd[:, 0], cmd[:, 1], cmd[:, 4] = 3 * ntri, c, s
+                self._indirect.orphan(max(cmd.nbytes, 20))
+                self._indirect.write(cmd.tobytes())
+                vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(s))
+                calls += 1
+            else:
+                calls += self._one_by_one(vao, ntri, s, c)
+        return calls, tris
+
+    def _one_by_one(
+        self,
+        vao: moderngl.VertexArray,
+        ntri: int,
+        start: NDArray[np.int64],
+        count: NDArray[np.int64],
+    ) -> int:
+        """One draw per street object (the naive path): single indirect commands."""
+        idx = np.concatenate([np.arange(a, a + b) for a, b in zip(start, count, strict=True)])
+        cmd = np.zeros((len(idx), 5), np.uint32)
+        cmd[:, 0], cmd[:, 1], cmd[:, 4] = 3 * ntri, 1, idx
+        self._indirect.orphan(max(cmd.nbytes, 20))
+        self._indirect.write(cmd.tobytes())
+        if not self.indirect_ok:
+            raise RuntimeError("street objects need OpenGL 4.3 (multi-draw-indirect)")
+        for i in range(len(idx)):
+            vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=1, first=i)
+        return len(idx)
+
+    def _draw_naive(self, options: CityOptions) -> CityStats:
+        m = self.model
+        calls = tris = 0
+        for (level, mat), vao in self._meshes.items():
+            if level != 0:
+                continue
+            first, count = m.object_runs[mat]
+            self._prog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))  # type: ignore[index]
+            for fi, ci in zip(first.tolist(), count.tolist(), strict=True):
+                if ci:
+                    vao.render(moderngl.TRIANGLES, vertices=ci, first=fi)
+                    calls += 1
+                    tris += ci // 3
+        everything = np.arange(m.tree.leaves)
+        for (kind, mat), (vao, ntri) in self._models.items():
+            start, count = m.instance_runs[kind]
+            self._iprog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))  # type: ignore[index]
+            calls += self._one_by_one(vao, ntri, start[everything], count[everything])
+            tris += int(count.sum()) * ntri
+        return CityStats(calls, tris, m.objects)
+
+    def _query(self, leaves: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Whether any sample of each leaf's box passes the depth test (one batch)."""
+        if not len(leaves):
+            return np.zeros(0, dtype=bool)
+        while len(self._queries) < len(leaves):
+            self._queries.append(self.ctx.query(samples=True))
+        boxes = self.model.tree.levels[0][leaves]
+        fbo = self._fbo
+        fbo.color_mask = (_NONE, _NONE)  # type: ignore[assignment]
+        fbo.depth_mask = False
+        lo_u, hi_u = self._bprog["u_lo"], self._bprog["u_hi"]
+        for q, b in zip(self._queries, boxes, strict=False):
+            lo_u.value = tuple(b[:3] - 0.05)  # type: ignore[union-attr]
+            hi_u.value = tuple(b[3:] + 0.05)  # type: ignore[union-attr]
+            with q:
+                self._box.render(moderngl.TRIANGLES)
+        fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
+        fbo.depth_mask = True
+        return np.array([q.samples > 0 for q in self._queries[: len(leaves)]], dtype=bool)
