@@ -11,7 +11,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -151,6 +151,29 @@ def _open(
     return Scene(provider, options, owns=True, clock=clock)
 
 
+CityOpt = Annotated[
+    Path | None,
+    typer.Option(help="An OpenStreetMap file (.osm.pbf, .osm) whose city to drape on the terrain."),
+]
+
+
+def _city_source(source: str, city: Path | None) -> tuple[str, Any]:
+    """The source to open and the city read from --city; SOURCE ``flat`` is level ground
+    under the city."""
+    if city is None:
+        if source == "flat":
+            raise LodscapeError("SOURCE flat (level ground) needs --city to know where")
+        return source, None
+    from lodscape.city.osm import read_osm
+
+    c = read_osm(city)
+    if source == "flat":
+        w, s, e, n = c.bounds
+        pw, ps = 0.3 * (e - w) + 0.002, 0.3 * (n - s) + 0.001
+        source = f"flat:{w - pw},{s - ps},{e + pw},{n + ps}"
+    return source, c
+
+
 def _scene_options(*, max_sse: float, anisotropy: float) -> SceneOptions:
     """Scene options from flags; a value the engine refuses is a one-line usage error."""
     try:
@@ -260,15 +283,21 @@ def render(
     hurst: HurstOpt = None,
     sigma: SigmaOpt = None,
     seed: SeedOpt = None,
+    city: CityOpt = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
 ) -> None:
-    """Render one view of SOURCE (a DEM, a .lods tileset, or procedural:seed=N). Without
-    --lon/--lat/--alt, a view of the whole data."""
+    """Render one view of SOURCE (a DEM, a .lods tileset, procedural:seed=N, or flat with
+    --city). Without --lon/--lat/--alt, a view of the whole data (or of the city)."""
     w, h = _size(size)
     options = _scene_options(max_sse=max_sse, anisotropy=anisotropy)
     fractal = _detail(source, detail, hurst, sigma, seed)
+    source, town = _city_source(source, city)
     with _open(source, options, imagery, imagery_cache, strict=False, detail=fractal) as scene:
-        if lon is None and lat is None and alt is None:
+        if town is not None:
+            scene.add_city(town)
+        if lon is None and lat is None and alt is None and town is not None:
+            camera = scene.city_camera(w, h, fov)
+        elif lon is None and lat is None and alt is None:
             camera = scene.overview_camera(w, h, fov)
             camera = camera.moved(heading=camera.heading if heading == 0.0 else heading)
         else:
@@ -320,6 +349,7 @@ def fly(
     hurst: HurstOpt = None,
     sigma: SigmaOpt = None,
     seed: SeedOpt = None,
+    city: CityOpt = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Fly a camera over SOURCE along a route, an orbit or a line into an MP4, streaming tiles
@@ -344,6 +374,7 @@ def fly(
         if target is not None and not (target.parent if str(target.parent) else Path(".")).is_dir():
             raise LodscapeError(f"{target}: folder {target.parent} does not exist")
     fractal = _detail(source, detail, hurst, sigma, seed)
+    source, town = _city_source(source, city)
     given = [p for p in (path, orbit, line) if p is not None]
     if len(given) != 1:
         raise LodscapeError("give one of --path, --orbit or --line")
@@ -371,6 +402,8 @@ def fly(
         _open(source, options, imagery, imagery_cache, clock=SimClock(), detail=fractal) as scene,
         Progress(*columns, disable=quiet) as bar,
     ):
+        if town is not None:
+            scene.add_city(town)
         task = bar.add_task("frames", total=len(cams))
         rows = flight.fly(
             scene,

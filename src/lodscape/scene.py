@@ -407,9 +407,14 @@ class Scene:
         """Drape a city on the terrain: an OSM file (.osm.pbf, .osm) or a built ``CityModel``;
         its objects stand on this scene's ground. Returns the model."""
         from lodscape.city.model import CityModel, CityOptions, build_city
-        from lodscape.city.osm import read_osm
+        from lodscape.city.osm import City, read_osm
 
-        model = city if isinstance(city, CityModel) else build_city(read_osm(city), self.heights)
+        if isinstance(city, CityModel):
+            model = city
+        else:
+            model = build_city(
+                city if isinstance(city, City) else read_osm(str(city)), self.heights
+            )
         if self._city_pass is not None:
             self._city_pass.release()
             self._city_pass = None
@@ -426,8 +431,26 @@ class Scene:
             xm, ym = lonlat_to_merc(lon, lat)
             h, ok = source.sample(xm, ym, source.resolution_merc)
             return np.where(ok, np.asarray(h, np.float64), np.nan)
-        out = [self.ground_height(float(a), float(b)) for a, b in zip(lon.ravel(), lat.ravel())]
+        out = [
+            self.ground_height(float(a), float(b))
+            for a, b in zip(lon.ravel(), lat.ravel(), strict=False)
+        ]
         return np.array([np.nan if v is None else v for v in out]).reshape(lon.shape)
+
+    def city_camera(self, width: int = 1280, height: int = 720, fov_y: float = 60.0) -> Camera:
+        """A camera south of the city looking north over it, a little above its roofs."""
+        if self.city is None:
+            raise ValueError("no city in this scene (add_city first)")
+        box = self.city.tree.levels[-1][0]
+        extent = float(max(box[3] - box[0], box[4] - box[1], 50.0))
+        lon, lat = self.city.frame.lon, self.city.frame.lat
+        back = 0.6 * extent
+        dlat = math.degrees(back / 6_371_000.0)
+        ground = self.ground_height(lon, lat - dlat) or 0.0
+        alt = ground + max(0.25 * extent, float(box[5] - box[2]) + 30.0)
+        return Camera.looking_at(
+            lon, lat - dlat, alt, (lon, lat, ground), fov_y=fov_y, width=width, height=height
+        )
 
     def _city_passes(self, renderer: Renderer) -> list[Callable[[Camera, Any], None]]:
         if self.city is None:
@@ -446,7 +469,8 @@ class Scene:
     def _city_stats(self) -> dict[str, int]:
         if self._city_pass is None or self.city is None:
             return {}
-        return self._city_pass.last.as_dict()
+        stats: dict[str, int] = self._city_pass.last.as_dict()
+        return stats
 
     def _renderer_for(self, camera: Camera) -> Renderer:
         if self._renderer is None:

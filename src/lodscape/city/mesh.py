@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import shapely
@@ -79,7 +80,7 @@ class Geometry:
         )
 
 
-def _geometry(pos: F64, nrm: F64, tri: NDArray[np.integer]) -> Geometry:
+def _geometry(pos: F64, nrm: F64, tri: NDArray[Any]) -> Geometry:
     return Geometry(
         np.asarray(pos, np.float32), np.asarray(nrm, np.float32), np.asarray(tri, np.uint32)
     )
@@ -116,10 +117,10 @@ def _planes(shape: str, a: float, b: float, rise: float) -> F64:
     if shape == "gabled":
         return np.array(sides)
     if shape == "hipped":
-        return np.array(sides + [[s * a, -s, 0.0], [s * a, s, 0.0]])
+        return np.array([*sides, [s * a, -s, 0.0], [s * a, s, 0.0]])
     # pyramidal: every face rises to the centre
     su = rise / max(a, 1e-6)
-    return np.array(sides + [[rise, -su, 0.0], [rise, su, 0.0]])
+    return np.array([*sides, [rise, -su, 0.0], [rise, su, 0.0]])
 
 
 def _roof_z(planes: F64, uv: F64) -> F64:
@@ -285,14 +286,16 @@ def box_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
     corners = np.array(
         [centre + sa * a * u + sb * bb * v for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
     )
-    pos, nrm, tri = [], [], []
+    pos: list[Any] = []
+    nrm: list[Any] = []
+    tri: list[Any] = []
     for i in range(4):
         p0, p1 = corners[i], corners[(i + 1) % 4]
         e = p1 - p0
         n = np.array([e[1], -e[0], 0.0])
         n /= max(float(np.linalg.norm(n)), 1e-9)
         pos += [[*p0, bottom], [*p1, bottom], [*p1, top], [*p0, top]]
-        nrm += [n] * 4
+        nrm += [list(n)] * 4
         tri += [[4 * i, 4 * i + 1, 4 * i + 2], [4 * i, 4 * i + 2, 4 * i + 3]]
     pos += [[*c, top] for c in corners]
     nrm += [[0.0, 0.0, 1.0]] * 4
@@ -306,14 +309,16 @@ def box_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
 def _prism(r: float, z0: float, z1: float, sides: int) -> tuple[F64, F64, F64]:
     ang = np.linspace(0.0, 2.0 * math.pi, sides, endpoint=False)
     ring = np.stack([r * np.cos(ang), r * np.sin(ang)], axis=1)
-    pos, nrm, tri = [], [], []
+    pos: list[Any] = []
+    nrm: list[Any] = []
+    tri: list[Any] = []
     for i in range(sides):
         p0, p1 = ring[i], ring[(i + 1) % sides]
         mid = (p0 + p1) / 2.0
         n = np.array([mid[0], mid[1], 0.0]) / max(float(np.linalg.norm(mid)), 1e-9)
         k = len(pos)
         pos += [[*p0, z0], [*p1, z0], [*p1, z1], [*p0, z1]]
-        nrm += [n] * 4
+        nrm += [list(n)] * 4
         tri += [[k, k + 1, k + 2], [k, k + 2, k + 3]]
     k = len(pos)
     pos += [[0.0, 0.0, z1]] + [[*p, z1] for p in ring]
@@ -332,11 +337,13 @@ def _box(x0: float, y0: float, z0: float, x1: float, y1: float, z1: float) -> tu
         ([0, 2, 6, 4], [-1, 0, 0]),
         ([1, 5, 7, 3], [1, 0, 0]),
     ]
-    pos, nrm, tri = [], [], []
+    pos: list[Any] = []
+    nrm: list[Any] = []
+    tri: list[Any] = []
     for idx, n in faces:
         k = len(pos)
         pos += [c[i] for i in idx]
-        nrm += [n] * 4
+        nrm += [list(n)] * 4
         tri += [[k, k + 1, k + 2], [k, k + 2, k + 3]]
     return np.array(pos), np.array(nrm, float), np.array(tri)
 
@@ -385,23 +392,28 @@ def _sphere(r: float, z: float, levels: int) -> tuple[F64, F64, F64]:
         ]
     )
     for _ in range(levels):
-        verts = list(map(tuple, v))
-        index = {p: i for i, p in enumerate(verts)}
-        out = []
-
-        def mid(i: int, j: int) -> int:
-            p = tuple((v[i] + v[j]) / 2.0)
-            if p not in index:
-                index[p] = len(verts)
-                verts.append(p)
-            return index[p]
-
-        for a, b, c in f:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            out += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        v, f = np.array(verts), np.array(out)
+        v, f = _subdivide(v, f)
     n = v / np.linalg.norm(v, axis=1, keepdims=True)
     return n * r + np.array([0.0, 0.0, z]), n, f
+
+
+def _subdivide(v: F64, f: NDArray[np.int64]) -> tuple[F64, NDArray[np.int64]]:
+    """Each triangle into four, new vertices at the edges' midpoints (shared)."""
+    verts = [tuple(p) for p in v]
+    index = {p: i for i, p in enumerate(verts)}
+    out = []
+
+    def mid(i: int, j: int) -> int:
+        p = tuple((v[i] + v[j]) / 2.0)
+        if p not in index:
+            index[p] = len(verts)
+            verts.append(p)
+        return index[p]
+
+    for a, b, c in f:
+        ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+        out += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+    return np.array(verts), np.array(out)
 
 
 def _model(parts: dict[str, list[tuple[F64, F64, F64]]]) -> dict[str, Geometry]:

@@ -363,13 +363,31 @@ def read_osm(path: str | Path) -> City:
             if r.tags.get("type") == "multipolygon" and "building" in r.tags:
                 building_relations.add(r.id)
 
+        def way(self, w: osmium.osm.Way) -> None:
+            # closed ways are read here, not by the area assembler, which drops the rings it
+            # cannot assemble (a bow-tie) where make_valid can still save them
+            tags = {t.k: t.v for t in w.tags}
+            if "building" not in tags or tags.get("building") == "no":
+                return
+            nodes = w.nodes
+            if len(nodes) < 4 or nodes[0].ref != nodes[len(nodes) - 1].ref:
+                city.skipped["not a closed ring"] += 1
+                return
+            try:
+                coords = [(n.lon, n.lat) for n in nodes]
+            except osmium.InvalidLocationError:
+                city.skipped["missing node"] += 1
+                return
+            _add_building(city, f"w{w.id}", Polygon(coords), tags, multipolygon=False)
+
         def area(self, a: osmium.osm.Area) -> None:
+            if a.from_way():
+                return
             tags = {t.k: t.v for t in a.tags}
             if "building" not in tags or tags.get("building") == "no":
                 return
-            osm_id = f"w{a.orig_id()}" if a.from_way() else f"r{a.orig_id()}"
-            if not a.from_way():
-                assembled.add(a.orig_id())
+            osm_id = f"r{a.orig_id()}"
+            assembled.add(a.orig_id())
             try:
                 geom = shapely.from_wkb(bytes.fromhex(wkb.create_multipolygon(a)))
             except (RuntimeError, shapely.errors.GEOSException):

@@ -29,7 +29,7 @@ DEFAULT_PACKING = "str"
 
 @dataclass(frozen=True, eq=False)
 class RTree:
-    """A packed R-tree: objects reordered (``order``), leaves of ``leaf_size`` consecutive objects."""
+    """A packed R-tree: objects reordered (``order``), each leaf a run of consecutive objects."""
 
     #: Objects in leaf order (indices into the caller's arrays).
     order: I64

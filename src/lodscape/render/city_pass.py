@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import moderngl
 import numpy as np
@@ -29,6 +30,8 @@ from lodscape.city.model import CityModel, CityOptions
 from lodscape.lod.camera import Camera
 
 __all__ = ["COLOURS", "CityPass", "CityStats"]
+
+_G = TypeVar("_G")
 
 COLOURS: dict[str, tuple[float, float, float]] = {
     "plaster": (0.86, 0.82, 0.74),
@@ -172,7 +175,7 @@ class CityPass:
         self.ctx = ctx
         self.model = model
         self.indirect_ok = ctx.version_code >= 430
-        self._objs: list[moderngl.Buffer | moderngl.VertexArray | moderngl.Program] = []
+        self._objs: list[Any] = []
         prog = self._keep(ctx.program(vertex_shader=_VERTEX, fragment_shader=_FRAGMENT))
         iprog = self._keep(
             ctx.program(
@@ -180,7 +183,9 @@ class CityPass:
                 fragment_shader=_FRAGMENT,
             )
         )
-        self._prog, self._iprog = prog, iprog
+        # programs are indexed by uniform name: moderngl types members as a union
+        self._prog: Any = prog
+        self._iprog: Any = iprog
         self._meshes: dict[tuple[int, str], moderngl.VertexArray] = {}
         self._tris: dict[tuple[int, str], int] = {}
         for key, geo in model.geometry.items():
@@ -213,7 +218,7 @@ class CityPass:
                 )
                 self._models[(kind, mat)] = (vao, len(geo.triangles))
         bprog = self._keep(ctx.program(vertex_shader=_BOX_VERTEX, fragment_shader=_BOX_FRAGMENT))
-        self._bprog = bprog
+        self._bprog: Any = bprog
         cube = self._keep(ctx.buffer(_CUBE.tobytes()))
         cidx = self._keep(ctx.buffer(_CUBE_TRIS.tobytes()))
         self._box = self._keep(ctx.vertex_array(bprog, [(cube, "3f", "in_pos")], cidx, 4))
@@ -222,8 +227,8 @@ class CityPass:
         self._queries: list[moderngl.Query] = []
         self.last = CityStats()
 
-    def _keep(self, obj: object) -> object:
-        self._objs.append(obj)  # type: ignore[arg-type]
+    def _keep(self, obj: _G) -> _G:
+        self._objs.append(obj)
         return obj
 
     def release(self) -> None:
@@ -246,11 +251,11 @@ class CityPass:
         sun = np.array([math.cos(0.8) * 0.5, math.sin(0.8) * 0.5, 0.75])
         sun /= np.linalg.norm(sun)
         for prog in (self._prog, self._iprog):
-            prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
-            prog["u_rot"].write(np.ascontiguousarray(rot.T, np.float32))  # type: ignore[union-attr]
-            prog["u_offset"].write(np.asarray(offset, np.float32))  # type: ignore[union-attr]
-            prog["u_sun"].write(sun.astype(np.float32))  # type: ignore[union-attr]
-        self._bprog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
+            prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))
+            prog["u_rot"].write(np.ascontiguousarray(rot.T, np.float32))
+            prog["u_offset"].write(np.asarray(offset, np.float32))
+            prog["u_sun"].write(sun.astype(np.float32))
+        self._bprog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))
 
     def draw(self, camera: Camera, options: CityOptions, fbo: moderngl.Framebuffer) -> CityStats:
         """Draw the city into ``fbo`` (the terrain's colour + distance target, depth kept)."""
@@ -323,7 +328,7 @@ class CityPass:
             f, c = f[ok], c[ok]
             if not len(f):
                 continue
-            self._prog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))  # type: ignore[index]
+            self._prog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))
             tris += int(c.sum()) // 3
             if options.indirect and self.indirect_ok:
                 cmd = np.zeros((len(f), 5), np.uint32)
@@ -344,7 +349,7 @@ class CityPass:
             s, c = s[ok], c[ok]
             if not len(s):
                 continue
-            self._iprog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))  # type: ignore[index]
+            self._iprog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))
             tris += int(c.sum()) * ntri
             if options.instancing and self.indirect_ok:
                 cmd = np.zeros((len(s), 5), np.uint32)
@@ -383,7 +388,7 @@ class CityPass:
             if level != 0:
                 continue
             first, count = m.object_runs[mat]
-            self._prog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))  # type: ignore[index]
+            self._prog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))
             for fi, ci in zip(first.tolist(), count.tolist(), strict=True):
                 if ci:
                     vao.render(moderngl.TRIANGLES, vertices=ci, first=fi)
@@ -392,7 +397,7 @@ class CityPass:
         everything = np.arange(m.tree.leaves)
         for (kind, mat), (vao, ntri) in self._models.items():
             start, count = m.instance_runs[kind]
-            self._iprog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))  # type: ignore[index]
+            self._iprog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))
             calls += self._one_by_one(vao, ntri, start[everything], count[everything])
             tris += int(count.sum()) * ntri
         return CityStats(calls, tris, m.objects)
@@ -409,8 +414,8 @@ class CityPass:
         fbo.depth_mask = False
         lo_u, hi_u = self._bprog["u_lo"], self._bprog["u_hi"]
         for q, b in zip(self._queries, boxes, strict=False):
-            lo_u.value = tuple(b[:3] - 0.05)  # type: ignore[union-attr]
-            hi_u.value = tuple(b[3:] + 0.05)  # type: ignore[union-attr]
+            lo_u.value = tuple(b[:3] - 0.05)
+            hi_u.value = tuple(b[3:] + 0.05)
             with q:
                 self._box.render(moderngl.TRIANGLES)
         fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]

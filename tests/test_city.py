@@ -1,0 +1,271 @@
+"""The city from OSM attributes (paper 001): tags, geometry, the scene tree, and culling that
+never changes the picture."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon
+
+import lodscape
+from _synthetic import run_cli
+from lodscape import Camera, SceneOptions
+from lodscape.city.mesh import building_mesh
+from lodscape.city.model import CityOptions, build_city
+from lodscape.city.osm import Building, parse_length, parse_levels, read_osm
+from lodscape.city.rtree import box_planes, pack
+from lodscape.data import sample_city_path
+from lodscape.errors import CityError
+
+
+@pytest.mark.parametrize(
+    ("text", "metres"),
+    [
+        ("12", 12.0),
+        ("12.5 m", 12.5),
+        ("12,5", 12.5),
+        ("40 ft", 12.192),
+        ("40'", 12.192),
+        ("6'6\"", 1.9812),
+        ("tall", None),
+        ("-3", None),
+        (None, None),
+        ("1e9", None),
+    ],
+)
+def test_lengths(text: str | None, metres: float | None) -> None:
+    got = parse_length(text)
+    assert (got is None) == (metres is None)
+    if metres is not None:
+        assert got == pytest.approx(metres, abs=1e-3)
+
+
+def test_levels() -> None:
+    assert parse_levels("3") == 3.0
+    assert parse_levels("2;4") == 4.0
+    assert parse_levels("3.5") == 3.5
+    assert parse_levels("many") is None
+
+
+def test_the_helsinki_extract() -> None:
+    city = read_osm(sample_city_path())
+    r = city.report()
+    assert len(city.buildings) > 400
+    assert city.multipolygons > 20
+    assert city.holes > 20
+    assert set(r["heights"]) == {"height", "levels", "default"}  # type: ignore[arg-type]
+    kinds = Counter(f.kind for f in city.features)
+    assert kinds["tree"] > 500
+    assert kinds["street_lamp"] > 500
+    assert kinds["bench"] > 100
+    # relations whose rings do not close in the extract are counted, not raised
+    assert sum(city.skipped.values()) >= 1
+    for b in city.buildings:
+        assert b.footprint.is_valid
+        assert b.footprint.area > 0
+        assert b.height > b.min_height >= 0.0
+        assert 0.0 <= b.roof_height < b.height - b.min_height
+    levels = [b for b in city.buildings if b.height_from == "levels"]
+    assert levels
+    assert all(b.height >= 3.0 for b in levels)
+
+
+_OSM = """<?xml version='1.0' encoding='UTF-8'?>
+<osm version="0.6" generator="test">
+  <node id="1" lat="60.0000" lon="24.0000"/><node id="2" lat="60.0000" lon="24.0010"/>
+  <node id="3" lat="60.0005" lon="24.0010"/><node id="4" lat="60.0005" lon="24.0000"/>
+  <node id="5" lat="60.0010" lon="24.0000"/><node id="6" lat="60.0010" lon="24.0010"/>
+  <node id="7" lat="60.0015" lon="24.0000"/><node id="8" lat="60.0015" lon="24.0010"/>
+  <node id="9" lat="60.0020" lon="24.0000"/><node id="10" lat="60.0020" lon="24.0004"/>
+  <node id="11" lat="60.0030" lon="24.0000"/><node id="12" lat="60.0030" lon="24.0020"/>
+  <node id="13" lat="60.0040" lon="24.0020"/><node id="14" lat="60.0040" lon="24.0000"/>
+  <node id="15" lat="60.0033" lon="24.0005"/><node id="16" lat="60.0033" lon="24.0015"/>
+  <node id="17" lat="60.0037" lon="24.0015"/><node id="18" lat="60.0037" lon="24.0005"/>
+  <node id="20" lat="60.001" lon="24.003"><tag k="natural" v="tree"/></node>
+  <way id="100"><nd ref="1"/><nd ref="2"/><nd ref="3"/><nd ref="4"/><nd ref="1"/>
+    <tag k="building" v="house"/><tag k="roof:shape" v="gabled"/>
+    <tag k="building:levels" v="2"/></way>
+  <way id="101"><nd ref="5"/><nd ref="8"/><nd ref="6"/><nd ref="7"/><nd ref="5"/>
+    <tag k="building" v="yes"/><tag k="height" v="9 m"/></way>
+  <way id="102"><nd ref="9"/><nd ref="10"/><nd ref="9"/><tag k="building" v="yes"/></way>
+  <way id="103"><nd ref="11"/><nd ref="12"/><nd ref="13"/><nd ref="14"/><nd ref="11"/></way>
+  <way id="104"><nd ref="15"/><nd ref="16"/><nd ref="17"/><nd ref="18"/><nd ref="15"/></way>
+  <way id="105"><nd ref="1"/><nd ref="999"/><nd ref="3"/><nd ref="1"/>
+    <tag k="building" v="yes"/></way>
+  <relation id="200"><member type="way" ref="103" role="outer"/>
+    <member type="way" ref="104" role="inner"/>
+    <tag k="type" v="multipolygon"/><tag k="building" v="apartments"/>
+    <tag k="roof:shape" v="onion"/></relation>
+</osm>
+"""
+
+
+def test_broken_footprints_are_repaired_or_skipped(tmp_path: Path) -> None:
+    p = tmp_path / "small.osm"
+    p.write_text(_OSM)
+    city = read_osm(p)
+    ids = {b.osm_id.split(".")[0] for b in city.buildings}
+    # the bow-tie (101) is repaired into two triangles, the multipolygon keeps its hole
+    assert city.repaired == 1
+    assert {"w100", "w101", "r200"} <= ids
+    mp = [b for b in city.buildings if b.osm_id == "r200"]
+    assert len(mp) == 1
+    assert len(mp[0].footprint.interiors) == 1
+    assert mp[0].kind == "apartments"
+    assert mp[0].roof_shape == "flat"
+    assert city.other_roofs["onion"] == 1
+    house = next(b for b in city.buildings if b.osm_id == "w100")
+    assert house.roof_shape == "gabled"
+    assert house.height_from == "levels"
+    assert house.height == pytest.approx(6.0 + house.roof_height)
+    # the two-node way and the way with a missing node are not buildings
+    assert "w102" not in ids
+    assert "w105" not in ids
+    assert [f.kind for f in city.features] == ["tree"]
+
+
+@pytest.mark.parametrize("content", [b"", b"garbage" * 10, b"<osm><node"])
+def test_unreadable_files_fail_in_one_line(tmp_path: Path, content: bytes) -> None:
+    p = tmp_path / "bad.osm.pbf"
+    p.write_bytes(content)
+    with pytest.raises(CityError, match=r"bad\.osm\.pbf"):
+        read_osm(p)
+    with pytest.raises(CityError, match="no such file"):
+        read_osm(tmp_path / "missing.osm.pbf")
+
+
+@pytest.mark.parametrize("shape", ["flat", "gabled", "hipped", "pyramidal"])
+def test_buildings_are_closed_and_as_tall_as_tagged(shape: str) -> None:
+    poly = Polygon(
+        [(0, 0), (24, 0), (24, 10), (12, 16), (0, 10)], [[(4, 3), (8, 3), (8, 6), (4, 6)]]
+    )
+    b = Building(
+        "t",
+        poly,
+        14.0,
+        2.0,
+        shape,
+        0.0 if shape == "flat" else 4.0,
+        "yes",
+        "brick",
+        "tiles",
+        "height",
+    )
+    parts = building_mesh(b, poly, 100.0)
+    pos = np.concatenate([g.positions for g in parts.values()]).astype(np.float64)
+    tri = []
+    off = 0
+    for g in parts.values():
+        tri.append(g.triangles.astype(np.int64) + off)
+        off += len(g.positions)
+    t = np.concatenate(tri)
+    assert pos[:, 2].max() == pytest.approx(114.0, abs=1e-3)
+    assert pos[:, 2].min() == pytest.approx(102.0, abs=1e-3)
+    # weld vertices and count each edge's triangles: all twice but the open bottom rings
+    key = np.round(pos, 4)
+    _, ids = np.unique(key, axis=0, return_inverse=True)
+    e = np.sort(np.concatenate([ids[t][:, [0, 1]], ids[t][:, [1, 2]], ids[t][:, [2, 0]]]), axis=1)
+    edges, counts = np.unique(e, axis=0, return_counts=True)
+    once = edges[counts == 1]
+    z = np.round(pos[:, 2], 4)
+    zs = {float(z[np.nonzero(ids == i)[0][0]]) for i in once.ravel()}
+    assert zs == {102.0}, f"open edges above the bottom: {zs}"
+    assert (counts <= 2).all()
+
+
+@pytest.mark.parametrize("packing", ["str", "hilbert"])
+def test_rtree_cull_equals_testing_every_leaf(packing: str) -> None:
+    rng = np.random.default_rng(3)
+    c = rng.uniform(0, 2000, (3000, 3))
+    boxes = np.concatenate(
+        [c - rng.uniform(1, 20, (3000, 3)), c + rng.uniform(1, 20, (3000, 3))], 1
+    )
+    tree = pack(boxes, packing=packing)
+    assert sorted(tree.order.tolist()) == list(range(3000))
+    for _ in range(20):
+        cam = Camera(
+            0.0, 0.0, 10.0, heading=float(rng.uniform(0, 360)), pitch=float(rng.uniform(-60, 10))
+        )
+        cam = cam.with_clip(1.0, float(rng.uniform(200, 3000)))
+        planes = cam.frustum_planes()
+        eye = rng.uniform(0, 2000, 3)
+        planes = np.concatenate([planes[:, :3], (planes[:, 3] - planes[:, :3] @ eye)[:, None]], 1)
+        vis, tested = tree.cull(planes)
+        brute = box_planes(tree.levels[0], planes) >= 0
+        assert np.array_equal(vis, brute)
+        assert tested <= sum(len(level) for level in tree.levels)
+
+
+@pytest.fixture(scope="module")
+def city_scene():  # type: ignore[no-untyped-def]
+    city = read_osm(sample_city_path())
+    w, s, e, n = city.bounds
+    # anisotropic filtering on llvmpipe stalls for minutes on a grazing, magnified ground texture
+    scene = lodscape.open(
+        f"flat:{w - 0.01},{s - 0.005},{e + 0.01},{n + 0.005}", SceneOptions(anisotropy=1.0)
+    )
+    scene.add_city(build_city(city, scene.heights))
+    yield scene
+    scene.close()
+
+
+VIEWS = {
+    "street": dict(lon=24.9425, lat=60.1675, alt=25.0, heading=60.0, pitch=-5.0),
+    "oblique": dict(lon=24.944, lat=60.160, alt=300.0, heading=10.0, pitch=-25.0),
+    "down": dict(lon=24.945, lat=60.170, alt=800.0, heading=0.0, pitch=-89.0),
+}
+
+
+@pytest.mark.gl
+@pytest.mark.parametrize("view", VIEWS)
+def test_optimised_city_draws_the_naive_picture(city_scene, view: str) -> None:  # type: ignore[no-untyped-def]
+    cam = Camera(**VIEWS[view], width=320, height=180)  # type: ignore[arg-type]
+    pictures = {}
+    stats = {}
+    for name, opts in {
+        "naive": CityOptions.naive(),
+        "culled": CityOptions(lod=False),
+        "no-occlusion": CityOptions(lod=False, occlusion=False),
+    }.items():
+        city_scene.city_options = opts
+        city_scene._city_pass and city_scene._city_pass._visible.fill(False)
+        city_scene.render(cam)  # the occlusion queries learn from one frame
+        pictures[name], _ = city_scene.render(cam)
+        stats[name] = city_scene.last.city
+    # the city is in the picture
+    assert stats["naive"]["city_triangles"] > 0
+    for name in ("culled", "no-occlusion"):
+        diff = np.any(pictures[name] != pictures["naive"], axis=2)
+        assert diff.mean() < 0.002, (name, diff.sum())
+        assert stats[name]["city_triangles"] <= stats["naive"]["city_triangles"]
+        assert stats[name]["city_draw_calls"] < stats["naive"]["city_draw_calls"]
+    if view == "street":
+        assert stats["culled"]["city_culled_occlusion"] > 0
+        assert stats["culled"]["city_triangles"] < stats["no-occlusion"]["city_triangles"]
+
+
+@pytest.mark.gl
+def test_cli_renders_a_city_on_flat_ground(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "city.png"
+    argv = ["render", "flat", "--city", str(sample_city_path()), "-o", str(out)]
+    code, _, err = run_cli([*argv, "--size", "320x180", "-q"], capsys)
+    assert code == 0, err
+    from PIL import Image
+
+    img = np.asarray(Image.open(out))
+    # roofs and walls: many pixels that are neither sky nor the flat ground's tint
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50
+    bad = tmp_path / "bad.osm.pbf"
+    bad.write_bytes(b"nope")
+    code, _, err = run_cli(
+        ["render", "flat", "--city", str(bad), "-o", str(tmp_path / "x.png")], capsys
+    )
+    assert code == 2
+    assert "bad.osm.pbf" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.png").exists()
