@@ -24,6 +24,7 @@ def test_exported_members_resolve() -> None:
         "build",
         "data",
         "cli",
+        "city",
         "annotations",
     }
 
