@@ -71,33 +71,29 @@ def main() -> None:
         f"built in {time.perf_counter() - t:.1f} s"
     )
     scene.add_city(model)
-    _lon0, lat0 = model.frame.lon, model.frame.lat
+    lat0 = model.frame.lat
     span_lon, span_lat = (e - w), (n - s)
+
+    def path(lat: float, alt: float, heading: float, pitch: float) -> list[Camera]:
+        """Cameras moving east across the grown city."""
+        return [
+            Camera(
+                w + span_lon * (0.05 + 0.9 * i / args.frames),
+                lat,
+                alt,
+                heading=heading,
+                pitch=pitch,
+                width=width,
+                height=height,
+            )
+            for i in range(args.frames + 1)
+        ]
+
     paths = {
-        "street level (2 m above the roofs' feet, looking along)": [
-            Camera(
-                w + span_lon * (0.05 + 0.9 * i / args.frames),
-                lat0 - 0.15 * span_lat,
-                25.0,
-                heading=80.0,
-                pitch=-3.0,
-                width=width,
-                height=height,
-            )
-            for i in range(args.frames + 1)
-        ],
-        "bird's-eye (400 m, 35° down)": [
-            Camera(
-                w + span_lon * (0.05 + 0.9 * i / args.frames),
-                lat0 - 0.35 * span_lat,
-                400.0,
-                heading=20.0,
-                pitch=-35.0,
-                width=width,
-                height=height,
-            )
-            for i in range(args.frames + 1)
-        ],
+        "street level (25 m, looking along the blocks)": path(
+            lat0 - 0.15 * span_lat, 25.0, 80.0, -3.0
+        ),
+        "bird's-eye (400 m, 35° down)": path(lat0 - 0.35 * span_lat, 400.0, 20.0, -35.0),
     }
     full = CityOptions()
     runs = {
@@ -113,9 +109,7 @@ def main() -> None:
         print(f"\n{pname}, {width}×{height}, {args.frames} frames:")
         base_ms = None
         for rname, opts in runs.items():
-            scene.city_options = opts
-            if scene._city_pass is not None:
-                scene._city_pass._visible[:] = False
+            scene.set_city_options(opts)
             scene.render(cams[0])
             times, calls, tris = [], [], []
             for cam in cams[1:]:

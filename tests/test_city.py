@@ -230,8 +230,7 @@ def test_optimised_city_draws_the_naive_picture(city_scene, view: str) -> None: 
         "culled": CityOptions(lod=False),
         "no-occlusion": CityOptions(lod=False, occlusion=False),
     }.items():
-        city_scene.city_options = opts
-        city_scene._city_pass and city_scene._city_pass._visible.fill(False)
+        city_scene.set_city_options(opts)
         city_scene.render(cam)  # the occlusion queries learn from one frame
         pictures[name], _ = city_scene.render(cam)
         stats[name] = city_scene.last.city

@@ -422,6 +422,12 @@ class Scene:
         self.city_options = options or CityOptions()
         return model
 
+    def set_city_options(self, options: Any) -> None:
+        """Change how the city is drawn (``CityOptions``); occlusion culling starts afresh."""
+        self.city_options = options
+        if self._city_pass is not None:
+            self._city_pass.reset()
+
     def heights(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
         """Ground heights at many points (NaN outside the data)."""
         lon = np.asarray(lon, np.float64)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -37,12 +38,12 @@ class Frame:
     lon: float
     lat: float
 
-    @property
+    @cached_property
     def basis(self) -> F64:
         basis: F64 = enu_basis(self.lon, self.lat)
         return basis
 
-    @property
+    @cached_property
     def origin(self) -> F64:
         origin: F64 = geodetic_to_ecef(self.lon, self.lat, 0.0)
         return origin

@@ -53,6 +53,11 @@ class CityOptions:
     def naive(cls) -> CityOptions:
         return cls(frustum=False, lod=False, occlusion=False, indirect=False, instancing=False)
 
+    @property
+    def is_naive(self) -> bool:
+        """Every optimisation off: one draw per object (paper 001's baseline)."""
+        return not (self.frustum or self.lod or self.occlusion or self.indirect or self.instancing)
+
 
 @dataclass(frozen=True, eq=False)
 class CityFrame:
@@ -241,19 +246,21 @@ def build_city(
                 object_runs[m] = (first, counts)
     instances: dict[str, NDArray[np.float32]] = {}
     instance_runs: dict[str, tuple[I64, I64]] = {}
-    kinds = sorted({f.kind for f in feats})
     rng = np.random.default_rng(0)
     heading = rng.uniform(0.0, 2.0 * np.pi, len(feats))
-    for kind in kinds:
-        sel = [o for o in order if o >= nb and feats[o - nb].kind == kind]
-        idx = np.array(sel, dtype=np.int64) - nb
+    kinds = np.array([f.kind for f in feats])
+    is_feat = order >= nb
+    # street objects in leaf order, and the leaf of each
+    in_order, leaf_feat = order[is_feat] - nb, leaf_of[is_feat]
+    for kind in sorted(set(kinds.tolist())):
+        m = kinds[in_order] == kind
+        idx = in_order[m]
         inst = np.zeros((len(idx), 5), np.float32)
         inst[:, :3] = pos[idx]
         inst[:, 3] = [_scale(kind, feats[i].height) for i in idx]
         inst[:, 4] = heading[idx]
         instances[kind] = inst
-        leaf_k = leaf_of[_positions(order, np.array(sel, dtype=np.int64))]
-        cnt = np.bincount(leaf_k, minlength=tree.leaves).astype(np.int64)
+        cnt = np.bincount(leaf_feat[m], minlength=tree.leaves).astype(np.int64)
         instance_runs[kind] = (np.concatenate([[0], np.cumsum(cnt)[:-1]]).astype(np.int64), cnt)
     leaf_size = np.zeros(tree.leaves)
     np.maximum.at(leaf_size, leaf_of, size[order])
@@ -273,14 +280,6 @@ def build_city(
         len(feats),
         report,
     )
-
-
-def _positions(order: I64, objs: I64) -> I64:
-    """Where each object sits in ``order``."""
-    where = np.empty(len(order), dtype=np.int64)
-    where[order] = np.arange(len(order))
-    out: I64 = where[objs] if len(objs) else np.zeros(0, dtype=np.int64)
-    return out
 
 
 def _scale(kind: str, height: float | None) -> float:

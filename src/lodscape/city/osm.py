@@ -268,7 +268,6 @@ def _material(value: str | None, fallback: str) -> str:
 def building_from_tags(osm_id: str, footprint: Polygon, tags: dict[str, str]) -> Building:
     """A building's heights, roof and materials from its tags (OSM's Simple 3D Buildings)."""
     kind = tags.get("building", "yes")
-    kind = kind if kind != "yes" or "building:part" not in tags else "yes"
     shape = (tags.get("roof:shape") or "flat").strip().lower()
     height = parse_length(tags.get("height"))
     levels = parse_levels(tags.get("building:levels"))

@@ -52,17 +52,13 @@ class RTree:
         inside = np.zeros(len(nodes), dtype=bool)
         tested = 0
         for k in range(top, -1, -1):
-            boxes = self.levels[k][nodes]
-            todo = ~inside
-            tested += int(todo.sum())
-            state = box_planes(boxes[todo], planes)
-            keep = np.ones(len(nodes), dtype=bool)
-            sub = keep[todo]
-            sub[state < 0] = False
-            keep[todo] = sub
-            full = inside.copy()
-            full[np.nonzero(todo)[0][state > 0]] = True
-            nodes, inside = nodes[keep], full[keep]
+            # nodes under one wholly inside are not tested again
+            todo = np.nonzero(~inside)[0]
+            tested += len(todo)
+            state = np.ones(len(nodes), dtype=np.int8)
+            state[todo] = box_planes(self.levels[k][nodes[todo]], planes)
+            keep = state >= 0
+            nodes, inside = nodes[keep], state[keep] > 0
             if k == 0:
                 break
             n_below = len(self.levels[k - 1])
@@ -124,9 +120,8 @@ def _order(boxes: F64, leaf: int, packing: str) -> I64:
     leaves = math.ceil(n / leaf)
     slabs = max(1, math.ceil(math.sqrt(leaves)))
     by_x = np.argsort(c[:, 0], kind="stable")
-    per = slabs and math.ceil(n / slabs)
     slab = np.empty(n, dtype=np.int64)
-    slab[by_x] = np.arange(n) // max(per, 1)
+    slab[by_x] = np.arange(n) // math.ceil(n / slabs)
     result: I64 = np.lexsort((c[:, 1], slab))
     return result
 

@@ -227,6 +227,10 @@ class CityPass:
         self._queries: list[moderngl.Query] = []
         self.last = CityStats()
 
+    def reset(self) -> None:
+        """Forget last frame's visibility (occlusion culling starts from nothing seen)."""
+        self._visible[:] = False
+
     def _keep(self, obj: _G) -> _G:
         self._objs.append(obj)
         return obj
@@ -262,7 +266,7 @@ class CityPass:
         self._fbo = fbo
         self._uniforms(camera)
         self.ctx.enable_only(moderngl.DEPTH_TEST)
-        if not (options.frustum or options.lod or options.occlusion or options.indirect):
+        if options.is_naive:
             self.last = self._draw_naive(options)
             return self.last
         m = self.model
@@ -370,13 +374,13 @@ class CityPass:
         count: NDArray[np.int64],
     ) -> int:
         """One draw per street object (the naive path): single indirect commands."""
+        if not self.indirect_ok:
+            raise RuntimeError("street objects need OpenGL 4.3 (multi-draw-indirect)")
         idx = np.concatenate([np.arange(a, a + b) for a, b in zip(start, count, strict=True)])
         cmd = np.zeros((len(idx), 5), np.uint32)
         cmd[:, 0], cmd[:, 1], cmd[:, 4] = 3 * ntri, 1, idx
         self._indirect.orphan(max(cmd.nbytes, 20))
         self._indirect.write(cmd.tobytes())
-        if not self.indirect_ok:
-            raise RuntimeError("street objects need OpenGL 4.3 (multi-draw-indirect)")
         for i in range(len(idx)):
             vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=1, first=i)
         return len(idx)
