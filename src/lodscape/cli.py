@@ -174,6 +174,21 @@ def _city_source(source: str, city: Path | None) -> tuple[str, Any]:
     return source, c
 
 
+def _drape(scene: Scene, town: Any) -> Any:
+    """Add the cities a tileset stores and the one from --city to the scene; the city drawn,
+    or None."""
+    provider: Any = scene.provider
+    while provider is not None and not hasattr(provider, "city"):
+        provider = getattr(provider, "base", None)
+    stored = provider.city() if provider is not None else None
+    if stored is not None and town is not None:
+        stored = stored.merged(town)
+    city = stored if stored is not None else town
+    if city is not None:
+        scene.add_city(city)
+    return city
+
+
 def _scene_options(*, max_sse: float, anisotropy: float) -> SceneOptions:
     """Scene options from flags; a value the engine refuses is a one-line usage error."""
     try:
@@ -293,8 +308,7 @@ def render(
     fractal = _detail(source, detail, hurst, sigma, seed)
     source, town = _city_source(source, city)
     with _open(source, options, imagery, imagery_cache, strict=False, detail=fractal) as scene:
-        if town is not None:
-            scene.add_city(town)
+        town = _drape(scene, town)
         if lon is None and lat is None and alt is None and town is not None:
             camera = scene.city_camera(w, h, fov)
         elif lon is None and lat is None and alt is None:
@@ -402,8 +416,7 @@ def fly(
         _open(source, options, imagery, imagery_cache, clock=SimClock(), detail=fractal) as scene,
         Progress(*columns, disable=quiet) as bar,
     ):
-        if town is not None:
-            scene.add_city(town)
+        _drape(scene, town)
         task = bar.add_task("frames", total=len(cams))
         rows = flight.fly(
             scene,
@@ -607,6 +620,78 @@ def export(
 
     n = export_cesium(tileset, cesium)
     typer.echo(f"wrote {n} terrain tiles and layer.json to {cesium}")
+
+
+city_app = typer.Typer(
+    help="Cities stored in a tileset: add an OpenStreetMap file, list, remove.",
+    no_args_is_help=True,
+)
+app.add_typer(city_app, name="city")
+
+
+@city_app.command("add")
+def city_add(
+    tileset: Annotated[Path, typer.Argument(help="A .lods tileset (built by lodscape build).")],
+    osm: Annotated[Path, typer.Argument(help="An OpenStreetMap file (.osm.pbf, .osm).")],
+    name: Annotated[
+        str | None, typer.Option(help="The city's name in the tileset (default: the file's).")
+    ] = None,
+    replace: Annotated[
+        bool, typer.Option("--replace", help="Replace a stored city of the same name.")
+    ] = False,
+) -> None:
+    """Store the buildings, trees, lamps and benches of an OSM file in a tileset (one
+    transaction); render, fly and view then drape them on its terrain."""
+    from lodscape.city.osm import read_osm
+    from lodscape.store.city import add_city
+    from lodscape.store.tileset import TilesetProvider, lonlat_bounds
+
+    provider = TilesetProvider(tileset)
+    try:
+        box = lonlat_bounds(provider.bounds_merc)
+    finally:
+        provider.close()
+    town = read_osm(osm)
+    got = add_city(tileset, town, name=name, replace=replace, bounds=box)
+    rep = town.report()
+    typer.echo(
+        f"stored {name or osm.name} in {tileset}: {got['buildings']:,} buildings, "
+        f"{got['features']:,} street objects ({got['outside']:,} outside the tileset left out; "
+        f"{rep['repaired']} footprints repaired, {sum(town.skipped.values())} skipped)"
+    )
+
+
+@city_app.command("list")
+def city_list(
+    tileset: Annotated[Path, typer.Argument(help="A .lods tileset.")],
+) -> None:
+    """The cities a tileset stores."""
+    from lodscape.store.tileset import TilesetProvider
+
+    provider = TilesetProvider(tileset)
+    try:
+        rows = provider.cities()
+    finally:
+        provider.close()
+    if not rows:
+        typer.echo(f"{tileset}: no city stored")
+    for r in rows:
+        typer.echo(
+            f"{r['name']}: {r['buildings']:,} buildings, {r['features']:,} street objects "
+            f"(from {r['source']})"
+        )
+
+
+@city_app.command("remove")
+def city_remove(
+    tileset: Annotated[Path, typer.Argument(help="A .lods tileset.")],
+    name: Annotated[str, typer.Argument(help="The stored city's name (see lodscape city list).")],
+) -> None:
+    """Remove a stored city (one transaction)."""
+    from lodscape.store.city import remove_city
+
+    remove_city(tileset, name)
+    typer.echo(f"removed {name} from {tileset}")
 
 
 def _usage_errors() -> tuple[type[Exception], ...]:

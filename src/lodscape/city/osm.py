@@ -207,6 +207,19 @@ class City:
             raise CityError(f"{self.name}: no buildings, trees, lamps or benches in the file")
         return min(xs), min(ys), max(xs), max(ys)
 
+    def merged(self, other: City) -> City:
+        """This city and ``other`` as one (their counts added)."""
+        return City(
+            f"{self.name} + {other.name}",
+            self.buildings + other.buildings,
+            self.features + other.features,
+            self.repaired + other.repaired,
+            self.skipped + other.skipped,
+            self.multipolygons + other.multipolygons,
+            self.holes + other.holes,
+            self.other_roofs + other.other_roofs,
+        )
+
     def report(self) -> dict[str, object]:
         kinds = Counter(f.kind for f in self.features)
         return {

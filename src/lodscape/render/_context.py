@@ -10,6 +10,9 @@ __all__ = ["create_context", "make_current"]
 
 #: GLSL 330 is all the terrain pass needs; Mesa's llvmpipe offers 4.5 through EGL.
 REQUIRED_GL = 330
+#: Versions asked for, newest first: some drivers (NVIDIA's EGL) give exactly the version asked
+#: for, so asking for 3.3 alone would hide multi-draw-indirect (4.3) and tessellation (4.0).
+WANTED_GL = (460, 450, 430, REQUIRED_GL)
 
 
 def create_context() -> moderngl.Context:
@@ -19,10 +22,12 @@ def create_context() -> moderngl.Context:
     failures: list[str] = []
     for backend in ("egl", None):
         kwargs = {} if backend is None else {"backend": backend}
-        try:
-            return standalone(require=REQUIRED_GL, **kwargs)
-        except Exception as exc:  # moderngl raises bare Exception subclasses per backend
-            failures.append(f"{backend or 'default'}: {exc}")
+        for version in WANTED_GL:
+            try:
+                return standalone(require=version, **kwargs)
+            except Exception as exc:  # moderngl raises bare Exception subclasses per backend
+                if version == REQUIRED_GL:
+                    failures.append(f"{backend or 'default'}: {exc}")
     raise RuntimeError(
         "cannot create a headless OpenGL 3.3 context (" + "; ".join(failures) + "); "
         "install Mesa's EGL and OpenGL drivers (e.g. libegl1 and libgl1-mesa-dri)"

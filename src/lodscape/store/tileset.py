@@ -405,6 +405,18 @@ class TilesetProvider:
             return _height_in(decode(data), bounds(t), lon, lat)
         return None
 
+    def city(self, names: list[str] | None = None) -> Any:
+        """The cities stored in this tileset (``lodscape city add``) as one ``City``, or None."""
+        from lodscape.store.city import read_city
+
+        return read_city(self._db(), self.name, names=names)
+
+    def cities(self) -> list[dict[str, object]]:
+        """Name, source and counts of each stored city."""
+        from lodscape.store.city import list_cities
+
+        return list_cities(self._db())
+
     def close(self) -> None:
         with self._lock:
             for db in self._connections:

@@ -1,0 +1,211 @@
+"""Cities stored in a tileset: ``lodscape city add/list/remove``, read back whole, draped by
+render, refused cleanly when the input is wrong, and never half-written."""
+
+from __future__ import annotations
+
+import shutil
+import sqlite3
+from contextlib import closing
+from pathlib import Path
+
+import numpy as np
+import pytest
+import shapely
+
+from _synthetic import fbm_heights, run_cli, write_dem
+from lodscape.city.osm import read_osm
+from lodscape.cli import main
+from lodscape.data import sample_city_path
+from lodscape.store.city import add_city, read_city
+from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
+
+pytestmark = pytest.mark.gl
+
+#: The DEM's west edge and spacing: it covers the sample city's west part only.
+WEST, NORTH, RES = 24.930, 60.182, 0.0001
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("city-store")
+    heights = fbm_heights(257, seed=5, relief=40.0)[:, :160] - 290.0
+    dem = write_dem(
+        str(folder / "helsinki_dem.tif"),
+        np.ascontiguousarray(heights),
+        crs="EPSG:4326",
+        west=WEST,
+        north=NORTH,
+        res=RES,
+    )
+    out = folder / "site.lods"
+    main(["build", dem, "-o", str(out), "-q"])
+    return out
+
+
+@pytest.fixture
+def fresh(site: Path, tmp_path: Path) -> Path:
+    copy = tmp_path / "site.lods"
+    shutil.copy(site, copy)
+    return copy
+
+
+def _count(path: Path, table: str) -> int:
+    with closing(sqlite3.connect(path)) as db:
+        try:
+            return int(db.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
+        except sqlite3.OperationalError:
+            return 0
+
+
+def test_add_list_read_back_and_remove(fresh: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    osm = sample_city_path()
+    code, out, err = run_cli(["city", "add", str(fresh), str(osm), "--name", "centre"], capsys)
+    assert code == 0, err
+    assert "stored centre" in out
+    city = read_osm(osm)
+    w, s, e, n = lonlat_bounds(TilesetProvider(fresh).bounds_merc)
+    box = shapely.box(w, s, e, n)
+    inside = [b for b in city.buildings if b.footprint.intersects(box)]
+    feats = [f for f in city.features if w <= f.lon <= e and s <= f.lat <= n]
+    # the DEM covers part of the city: some objects are left out, and say so
+    assert 0 < len(inside) < len(city.buildings)
+    outside = len(city.buildings) - len(inside) + len(city.features) - len(feats)
+    assert f"{outside:,} outside" in out
+    provider = TilesetProvider(fresh)
+    try:
+        back = provider.city()
+        assert back is not None
+        assert len(back.buildings) == len(inside)
+        assert len(back.features) == len(feats)
+        for a, b in zip(inside, back.buildings, strict=True):
+            assert a.osm_id == b.osm_id
+            assert a.footprint.equals_exact(b.footprint, 0.0)
+            assert (a.height, a.min_height, a.roof_shape, a.roof_height) == (
+                b.height,
+                b.min_height,
+                b.roof_shape,
+                b.roof_height,
+            )
+            assert (a.wall_material, a.roof_material, a.height_from) == (
+                b.wall_material,
+                b.roof_material,
+                b.height_from,
+            )
+        assert [(f.kind, f.lon, f.lat, f.height) for f in feats] == [
+            (f.kind, f.lon, f.lat, f.height) for f in back.features
+        ]
+        assert back.repaired == city.repaired
+        assert back.holes == city.holes
+        # the R*Tree index reads a box's objects only
+        with closing(sqlite3.connect(fresh)) as db:
+            part = read_city(db, "t", box=(w, s, (w + e) / 2, n))
+        assert part is not None
+        half = shapely.box(w, s, (w + e) / 2, n)
+        assert len(part.buildings) == sum(b.footprint.intersects(half) for b in inside)
+        assert 0 < len(part.buildings) < len(back.buildings)
+    finally:
+        provider.close()
+
+    code, out, err = run_cli(["city", "list", str(fresh)], capsys)
+    assert code == 0
+    assert f"centre: {len(inside):,} buildings" in out
+    # a second add under the same name is refused and changes nothing
+    before = _count(fresh, "city_buildings")
+    code, out, err = run_cli(["city", "add", str(fresh), str(osm), "--name", "centre"], capsys)
+    assert code == 2
+    assert "already holds a city named 'centre'" in err
+    assert err.count("\n") == 1
+    assert _count(fresh, "city_buildings") == before
+    code, out, err = run_cli(
+        ["city", "add", str(fresh), str(osm), "--name", "centre", "--replace"], capsys
+    )
+    assert code == 0, err
+    assert _count(fresh, "city_buildings") == before
+    assert _count(fresh, "city_building_index") == before
+    code, out, err = run_cli(["city", "remove", str(fresh), "centre"], capsys)
+    assert code == 0, err
+    assert _count(fresh, "city_buildings") == 0
+    assert _count(fresh, "city_building_index") == 0
+    assert TilesetProvider(fresh).city() is None
+    code, out, err = run_cli(["city", "remove", str(fresh), "centre"], capsys)
+    assert code == 2
+    assert "no city named 'centre'" in err
+
+
+def test_render_drapes_the_stored_city(
+    fresh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from PIL import Image
+
+    view = ["--lon", "24.9395", "--lat", "60.1655", "--alt", "160", "--heading", "20"]
+    view += ["--pitch", "-25", "--size", "240x160", "--anisotropy", "1"]
+    code, out, err = run_cli(
+        ["render", str(fresh), "-o", str(tmp_path / "bare.png"), *view], capsys
+    )
+    assert code == 0, err
+    assert "city" not in out
+    code, out, err = run_cli(["city", "add", str(fresh), str(sample_city_path())], capsys)
+    assert code == 0, err
+    code, out, err = run_cli(
+        ["render", str(fresh), "-o", str(tmp_path / "city.png"), *view], capsys
+    )
+    assert code == 0, err
+    stats = dict(line.strip().split(": ", 1) for line in out.splitlines() if ": " in line)
+    assert int(stats["city_draw_calls"]) > 0
+    assert int(stats["city_triangles"]) > 1000
+    a = np.asarray(Image.open(tmp_path / "bare.png"), np.int16)
+    b = np.asarray(Image.open(tmp_path / "city.png"), np.int16)
+    changed = float((np.abs(a - b).max(axis=2) > 24).mean())
+    assert changed > 0.05, changed
+
+
+def test_bad_inputs_are_one_line_errors(
+    fresh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    osm = str(sample_city_path())
+    not_lods = tmp_path / "dem.tif"
+    not_lods.write_bytes(b"II*\x00garbage")
+    garbage = tmp_path / "broken.osm.pbf"
+    garbage.write_bytes(b"\x00\x01 not a pbf")
+    far = tmp_path / "far.osm"
+    far.write_text(
+        "<?xml version='1.0'?><osm version='0.6'>"
+        "<node id='1' lat='48.85' lon='2.35'><tag k='natural' v='tree'/></node></osm>"
+    )
+    cases = [
+        (["city", "add", str(not_lods), osm], "not a lodscape tileset"),
+        (["city", "add", str(tmp_path / "missing.lods"), osm], "no such file"),
+        (["city", "add", str(fresh), str(garbage)], "broken.osm.pbf"),
+        (["city", "add", str(fresh), str(far)], "no object lies inside"),
+    ]
+    for argv, message in cases:
+        code, _out, err = run_cli(argv, capsys)
+        assert code == 2, (argv, err)
+        assert message in err, err
+        assert err.count("\n") == 1, err
+        assert "Traceback" not in err
+    assert _count(fresh, "city_sets") == 0
+
+
+def test_a_failed_add_leaves_nothing(fresh: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    city = read_osm(sample_city_path())
+    add_city(fresh, city, name="kept")
+    kept = _count(fresh, "city_buildings")
+    calls = {"n": 0}
+    real = shapely.to_wkb
+
+    def failing(geom: object, *a: object, **k: object) -> object:
+        calls["n"] += 1
+        if calls["n"] > 50:
+            raise sqlite3.OperationalError("database or disk is full")
+        return real(geom, *a, **k)
+
+    monkeypatch.setattr(shapely, "to_wkb", failing)
+    with pytest.raises(TilesetError, match="cannot store the city"):
+        add_city(fresh, city, name="second")
+    assert calls["n"] > 50
+    assert _count(fresh, "city_buildings") == kept
+    assert _count(fresh, "city_features") == _count(fresh, "city_feature_index")
+    with closing(sqlite3.connect(fresh)) as db:
+        names = [r[0] for r in db.execute("SELECT name FROM city_sets")]
+    assert names == ["kept"]
