@@ -176,6 +176,46 @@ def test_buildings_are_closed_and_as_tall_as_tagged(shape: str) -> None:
     assert (counts <= 2).all()
 
 
+def test_wall_texture_runs_round_the_ring_and_up_from_the_base() -> None:
+    poly = Polygon([(0, 0), (20, 0), (20, 10), (0, 10)])
+    b = Building("t", poly, 12.0, 3.0, "flat", 0.0, "yes", "brick", "roofing", "height")
+    walls = building_mesh(b, poly, 50.0)["brick"]
+    pos, uv = walls.positions.astype(np.float64), walls.uvs.astype(np.float64)
+    # v is metres above the walls' base (so windows sit on the storeys), u metres along them
+    np.testing.assert_allclose(uv[:, 1], pos[:, 2] - 53.0, atol=1e-4)
+    assert uv[:, 0].min() == pytest.approx(0.0)
+    assert uv[:, 0].max() == pytest.approx(60.0, abs=1e-3)  # the perimeter
+    # along each wall, u grows as fast as the distance: the texture is not stretched
+    tri = walls.triangles.astype(np.int64)
+    for a, c in ((0, 1), (1, 2), (2, 0)):
+        d3 = np.linalg.norm(pos[tri[:, a], :2] - pos[tri[:, c], :2], axis=1)
+        du = np.abs(uv[tri[:, a], 0] - uv[tri[:, c], 0])
+        np.testing.assert_allclose(du, d3, atol=1e-3)
+
+
+def test_materials_are_distinct_tileable_layers() -> None:
+    from lodscape.city.materials import MATERIALS, layers
+
+    names = sorted(MATERIALS)
+    tex = layers(names).astype(np.float64) / 255.0
+    assert tex.shape == (len(names), 128, 128, 4)
+    flat = tex[..., :3].reshape(len(names), -1)
+    # no two materials share a texture
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            assert np.abs(flat[i] - flat[j]).mean() > 0.02, (names[i], names[j])
+    # each repeats without a seam: the jump across an edge is like the jump inside
+    for i, name in enumerate(names):
+        t = tex[i, ..., :3]
+        inner = np.abs(np.diff(t, axis=1)).mean()
+        seam = np.abs(t[:, 0] - t[:, -1]).mean()
+        assert seam <= 3 * inner + 0.02, name
+    # facades have windows: dark, bluish glass over a fifth or so of the wall
+    t = tex[names.index("plaster"), ..., :3]
+    glass = (t.sum(axis=2) < 0.9) & (t[..., 2] > t[..., 0])
+    assert 0.1 < glass.mean() < 0.4
+
+
 @pytest.mark.parametrize("packing", ["str", "hilbert"])
 def test_rtree_cull_equals_testing_every_leaf(packing: str) -> None:
     rng = np.random.default_rng(3)
@@ -234,8 +274,11 @@ def test_optimised_city_draws_the_naive_picture(city_scene, view: str) -> None: 
         city_scene.render(cam)  # the occlusion queries learn from one frame
         pictures[name], _ = city_scene.render(cam)
         stats[name] = city_scene.last.city
-    # the city is in the picture
+    # the city is in the picture, its walls textured: windows' dark glass shows
     assert stats["naive"]["city_triangles"] > 0
+    rgb = pictures["naive"].astype(np.int16)
+    glass = (rgb.sum(axis=2) < 240) & (rgb[..., 2] > rgb[..., 0] + 8)
+    assert glass.mean() > 0.002, glass.mean()
     for name in ("culled", "no-occlusion"):
         diff = np.any(pictures[name] != pictures["naive"], axis=2)
         assert diff.mean() < 0.002, (name, diff.sum())

@@ -56,10 +56,12 @@ class Frame:
 
 @dataclass(frozen=True, eq=False)
 class Geometry:
-    """Triangles of one material: positions and normals (N, 3) float32, triangles (M, 3)."""
+    """Triangles of one material: positions and normals (N, 3) float32, texture coordinates
+    (N, 2) float32 in metres (``materials`` says how far a texture repeats), triangles (M, 3)."""
 
     positions: NDArray[np.float32]
     normals: NDArray[np.float32]
+    uvs: NDArray[np.float32]
     triangles: NDArray[np.uint32]
 
     @staticmethod
@@ -69,21 +71,49 @@ class Geometry:
             return Geometry(
                 np.zeros((0, 3), np.float32),
                 np.zeros((0, 3), np.float32),
+                np.zeros((0, 2), np.float32),
                 np.zeros((0, 3), np.uint32),
             )
         offsets = np.cumsum([0] + [len(p.positions) for p in parts[:-1]])
         return Geometry(
             np.concatenate([p.positions for p in parts]),
             np.concatenate([p.normals for p in parts]),
+            np.concatenate([p.uvs for p in parts]),
             np.concatenate(
                 [p.triangles + np.uint32(o) for p, o in zip(parts, offsets, strict=True)]
             ),
         )
 
+    def vertices(self) -> NDArray[np.float32]:
+        """(N, 8) interleaved position, normal, texture coordinates: the vertex buffer."""
+        return np.ascontiguousarray(np.hstack([self.positions, self.normals, self.uvs]))
 
-def _geometry(pos: F64, nrm: F64, tri: NDArray[Any]) -> Geometry:
+
+def planar_uv(pos: F64, nrm: F64) -> F64:
+    """Texture coordinates (metres) projected along each vertex's dominant axis: plan x, y on
+    faces that look up or down, (along the face, up) on the others."""
+    pos = np.asarray(pos, np.float64).reshape(-1, 3)
+    nrm = np.asarray(nrm, np.float64).reshape(-1, 3)
+    flat = np.abs(nrm[:, 2]) >= np.hypot(nrm[:, 0], nrm[:, 1])
+    horiz = np.hypot(nrm[:, 0], nrm[:, 1])
+    tx = np.where(horiz > 1e-9, -nrm[:, 1] / np.maximum(horiz, 1e-9), 1.0)
+    ty = np.where(horiz > 1e-9, nrm[:, 0] / np.maximum(horiz, 1e-9), 0.0)
+    along = pos[:, 0] * tx + pos[:, 1] * ty
+    return np.where(
+        flat[:, None],
+        pos[:, :2],
+        np.stack([along, pos[:, 2]], axis=1),
+    )
+
+
+def _geometry(pos: F64, nrm: F64, tri: NDArray[Any], uv: F64 | None = None) -> Geometry:
+    if uv is None:
+        uv = planar_uv(pos, nrm)
     return Geometry(
-        np.asarray(pos, np.float32), np.asarray(nrm, np.float32), np.asarray(tri, np.uint32)
+        np.asarray(pos, np.float32),
+        np.asarray(nrm, np.float32),
+        np.asarray(uv, np.float32).reshape(-1, 2),
+        np.asarray(tri, np.uint32),
     )
 
 
@@ -190,7 +220,7 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
         return np.stack([d @ u, d @ v], axis=-1)
 
     # walls: each ring (holes included) cut where the roof folds, one quad per edge
-    wpos, wnrm, wtri = [], [], []
+    wpos, wnrm, wuv, wtri = [], [], [], []
     count = 0
     rings = [np.asarray(xy.exterior.coords)[:-1]] + [
         np.asarray(r.coords)[:-1] for r in xy.interiors
@@ -202,8 +232,11 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
         p0, p1 = ring, ring[nxt]
         edge = p1 - p0
         length = np.linalg.norm(edge, axis=1)
+        # texture coordinates run on around the ring, so windows continue round corners
+        s0 = np.concatenate([[0.0], np.cumsum(length)[:-1]])
         keep = length > 1e-6
         p0, p1, t0, t1, edge = p0[keep], p1[keep], top[keep], top[nxt][keep], edge[keep]
+        s0, s1 = s0[keep], s0[keep] + length[keep]
         m = len(p0)
         if m == 0:
             continue
@@ -220,11 +253,24 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
         )
         wpos.append(quad.reshape(-1, 3))
         wnrm.append(np.repeat(normal, 4, axis=0))
+        wuv.append(
+            np.stack(
+                [
+                    np.column_stack([s0, np.zeros(m)]),
+                    np.column_stack([s1, np.zeros(m)]),
+                    np.column_stack([s1, t1 - bottom]),
+                    np.column_stack([s0, t0 - bottom]),
+                ],
+                axis=1,
+            ).reshape(-1, 2)
+        )
         base_i = count + 4 * np.arange(m)[:, None]
         wtri.append((base_i + np.array([[0, 1, 2], [0, 2, 3]]).reshape(1, 6)).reshape(-1, 3))
         count += 4 * m
     walls = (
-        _geometry(np.concatenate(wpos), np.concatenate(wnrm), np.concatenate(wtri))
+        _geometry(
+            np.concatenate(wpos), np.concatenate(wnrm), np.concatenate(wtri), np.concatenate(wuv)
+        )
         if wpos
         else Geometry.join([])
     )
@@ -280,7 +326,7 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
 
 def box_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
     """The simplified level: the smallest rotated rectangle raised to the roof's mid height
-    (five faces, ten triangles), in the wall material."""
+    (five faces, ten triangles): walls in the wall material, the top in the roof's."""
     centre, u, v, a, bb = _rectangle(xy)
     top = base + b.height - 0.5 * b.roof_height
     bottom = base + b.min_height
@@ -289,19 +335,27 @@ def box_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
     )
     pos: list[Any] = []
     nrm: list[Any] = []
+    uvs: list[Any] = []
     tri: list[Any] = []
+    s = 0.0
     for i in range(4):
         p0, p1 = corners[i], corners[(i + 1) % 4]
         e = p1 - p0
+        length = float(np.linalg.norm(e))
         n = np.array([e[1], -e[0], 0.0])
-        n /= max(float(np.linalg.norm(n)), 1e-9)
+        n /= max(length, 1e-9)
         pos += [[*p0, bottom], [*p1, bottom], [*p1, top], [*p0, top]]
         nrm += [list(n)] * 4
+        h = top - bottom
+        uvs += [[s, 0.0], [s + length, 0.0], [s + length, h], [s, h]]
+        s += length
         tri += [[4 * i, 4 * i + 1, 4 * i + 2], [4 * i, 4 * i + 2, 4 * i + 3]]
-    pos += [[*c, top] for c in corners]
-    nrm += [[0.0, 0.0, 1.0]] * 4
-    tri += [[16, 17, 18], [16, 18, 19]]
-    return {b.wall_material: _geometry(np.array(pos), np.array(nrm), np.array(tri))}
+    walls = _geometry(np.array(pos), np.array(nrm), np.array(tri), np.array(uvs))
+    top_pos = np.array([[*c, top] for c in corners])
+    roof = _geometry(top_pos, np.tile([0.0, 0.0, 1.0], (4, 1)), np.array([[0, 1, 2], [0, 2, 3]]))
+    if b.wall_material == b.roof_material:
+        return {b.wall_material: Geometry.join([walls, roof])}
+    return {b.wall_material: walls, b.roof_material: roof}
 
 
 # --- shared models of street objects ---------------------------------------------------------

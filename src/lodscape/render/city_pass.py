@@ -25,30 +25,14 @@ import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape.city.materials import layers, material
 from lodscape.city.mesh import MODELS
 from lodscape.city.model import CityModel, CityOptions
 from lodscape.lod.camera import Camera
 
-__all__ = ["COLOURS", "CityPass", "CityStats"]
+__all__ = ["CityPass", "CityStats"]
 
 _G = TypeVar("_G")
-
-COLOURS: dict[str, tuple[float, float, float]] = {
-    "plaster": (0.86, 0.82, 0.74),
-    "brick": (0.64, 0.33, 0.25),
-    "stone": (0.62, 0.60, 0.56),
-    "concrete": (0.70, 0.70, 0.68),
-    "glass": (0.45, 0.58, 0.66),
-    "metal": (0.55, 0.57, 0.60),
-    "wood": (0.55, 0.40, 0.26),
-    "copper": (0.35, 0.60, 0.50),
-    "tiles": (0.66, 0.30, 0.22),
-    "slate": (0.32, 0.34, 0.38),
-    "roofing": (0.38, 0.38, 0.40),
-    "bark": (0.36, 0.26, 0.18),
-    "foliage": (0.24, 0.45, 0.20),
-    "lamp": (1.00, 0.95, 0.75),
-}
 
 _VERTEX = """
 #version 330
@@ -57,11 +41,13 @@ uniform mat3 u_rot;      // city frame → view rotation
 uniform vec3 u_offset;   // view-space position of the city's origin
 in vec3 in_pos;
 in vec3 in_normal;
+in vec2 in_uv;
 #ifdef INSTANCED
 in vec4 in_inst;         // x, y, z, scale
 in float in_heading;
 #endif
 out vec3 v_normal;
+out vec2 v_uv;
 out float v_dist;
 void main() {
     vec3 p = in_pos;
@@ -74,22 +60,27 @@ void main() {
 #endif
     gl_Position = u_mvp * vec4(p, 1.0);
     v_normal = n;
+    v_uv = in_uv;
     v_dist = -(u_offset + u_rot * p).z;
 }
 """
 
 _FRAGMENT = """
 #version 330
-uniform vec3 u_colour;
+uniform sampler2DArray u_materials;
+uniform float u_layer;   // the material's layer
+uniform vec2 u_repeat;   // metres one repeat of its texture covers
 uniform vec3 u_sun;
 in vec3 v_normal;
+in vec2 v_uv;
 in float v_dist;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
     vec3 n = normalize(v_normal);
     float light = 0.45 + 0.55 * max(dot(n, u_sun), 0.0) + 0.1 * n.z;
-    f_color = vec4(u_colour * light, 1.0);
+    vec3 albedo = texture(u_materials, vec3(v_uv / u_repeat, u_layer)).rgb;
+    f_color = vec4(albedo * light, 1.0);
     f_dist = v_dist;
 }
 """
@@ -191,10 +182,10 @@ class CityPass:
         for key, geo in model.geometry.items():
             if not len(geo.triangles):
                 continue
-            vbo = self._keep(ctx.buffer(np.hstack([geo.positions, geo.normals]).tobytes()))
+            vbo = self._keep(ctx.buffer(geo.vertices().tobytes()))
             ibo = self._keep(ctx.buffer(geo.triangles.tobytes()))
             vao = self._keep(
-                ctx.vertex_array(prog, [(vbo, "3f 3f", "in_pos", "in_normal")], ibo, 4)
+                ctx.vertex_array(prog, [(vbo, "3f 3f 2f", "in_pos", "in_normal", "in_uv")], ibo, 4)
             )
             self._meshes[key] = vao
         self._models: dict[tuple[str, str], tuple[moderngl.VertexArray, int]] = {}
@@ -203,13 +194,13 @@ class CityPass:
                 continue
             ibuf = self._keep(ctx.buffer(np.ascontiguousarray(inst, np.float32).tobytes()))
             for mat, geo in MODELS[kind].items():
-                vbo = self._keep(ctx.buffer(np.hstack([geo.positions, geo.normals]).tobytes()))
+                vbo = self._keep(ctx.buffer(geo.vertices().tobytes()))
                 ibo = self._keep(ctx.buffer(geo.triangles.tobytes()))
                 vao = self._keep(
                     ctx.vertex_array(
                         iprog,
                         [
-                            (vbo, "3f 3f", "in_pos", "in_normal"),
+                            (vbo, "3f 3f 2f", "in_pos", "in_normal", "in_uv"),
                             (ibuf, "4f 1f/i", "in_inst", "in_heading"),
                         ],
                         ibo,
@@ -217,6 +208,19 @@ class CityPass:
                     )
                 )
                 self._models[(kind, mat)] = (vao, len(geo.triangles))
+        # materials: one texture array, a layer each (deduplicated by name), mipmapped
+        names = sorted({mat for _, mat in model.geometry} | {mat for _, mat in self._models}) or [
+            "plaster"
+        ]
+        self._layer = {name: i for i, name in enumerate(names)}
+        texels = layers(names)
+        size = texels.shape[1]
+        tex = self._keep(ctx.texture_array((size, size, len(names)), 4, texels.tobytes()))
+        tex.build_mipmaps()
+        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        tex.repeat_x = tex.repeat_y = True
+        tex.anisotropy = 8.0
+        self._materials = tex
         bprog = self._keep(ctx.program(vertex_shader=_BOX_VERTEX, fragment_shader=_BOX_FRAGMENT))
         self._bprog: Any = bprog
         cube = self._keep(ctx.buffer(_CUBE.tobytes()))
@@ -259,7 +263,14 @@ class CityPass:
             prog["u_rot"].write(np.ascontiguousarray(rot.T, np.float32))
             prog["u_offset"].write(np.asarray(offset, np.float32))
             prog["u_sun"].write(sun.astype(np.float32))
+            prog["u_materials"].value = 0
+        self._materials.use(0)
         self._bprog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))
+
+    def _use(self, prog: Any, mat: str) -> None:
+        """Point ``prog`` at ``mat``'s layer of the material array."""
+        prog["u_layer"].value = float(self._layer[mat])
+        prog["u_repeat"].value = material(mat).repeat
 
     def draw(self, camera: Camera, options: CityOptions, fbo: moderngl.Framebuffer) -> CityStats:
         """Draw the city into ``fbo`` (the terrain's colour + distance target, depth kept)."""
@@ -332,7 +343,7 @@ class CityPass:
             f, c = f[ok], c[ok]
             if not len(f):
                 continue
-            self._prog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))
+            self._use(self._prog, mat)
             tris += int(c.sum()) // 3
             if options.indirect and self.indirect_ok:
                 cmd = np.zeros((len(f), 5), np.uint32)
@@ -353,7 +364,7 @@ class CityPass:
             s, c = s[ok], c[ok]
             if not len(s):
                 continue
-            self._iprog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))
+            self._use(self._iprog, mat)
             tris += int(c.sum()) * ntri
             if options.instancing and self.indirect_ok:
                 cmd = np.zeros((len(s), 5), np.uint32)
@@ -392,7 +403,7 @@ class CityPass:
             if level != 0:
                 continue
             first, count = m.object_runs[mat]
-            self._prog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))
+            self._use(self._prog, mat)
             for fi, ci in zip(first.tolist(), count.tolist(), strict=True):
                 if ci:
                     vao.render(moderngl.TRIANGLES, vertices=ci, first=fi)
@@ -401,7 +412,7 @@ class CityPass:
         everything = np.arange(m.tree.leaves)
         for (kind, mat), (vao, ntri) in self._models.items():
             start, count = m.instance_runs[kind]
-            self._iprog["u_colour"].value = COLOURS.get(mat, (0.8, 0.8, 0.8))
+            self._use(self._iprog, mat)
             calls += self._one_by_one(vao, ntri, start[everything], count[everything])
             tris += int(count.sum()) * ntri
         return CityStats(calls, tris, m.objects)
