@@ -217,6 +217,19 @@ def test_materials_are_distinct_tileable_layers() -> None:
 
 
 @pytest.mark.parametrize("packing", ["str", "hilbert"])
+def test_rtree_leaves_are_compact(packing: str) -> None:
+    """Over evenly spread objects the leaves' boxes tile the ground with little overlap (a leaf
+    cut across two STR slabs would span the whole city)."""
+    rng = np.random.default_rng(1)
+    for n in (1000, 12_901):
+        c = rng.uniform(0, 1000, (n, 3))
+        tree = pack(np.concatenate([c - 2, c + 2], 1), packing=packing)
+        leaf = tree.levels[0]
+        area = float(np.prod(leaf[:, 3:5] - leaf[:, :2], axis=1).sum())
+        assert area < 1.45e6, (n, area)
+
+
+@pytest.mark.parametrize("packing", ["str", "hilbert"])
 def test_rtree_cull_equals_testing_every_leaf(packing: str) -> None:
     rng = np.random.default_rng(3)
     c = rng.uniform(0, 2000, (3000, 3))
@@ -268,24 +281,34 @@ def test_optimised_city_draws_the_naive_picture(city_scene, view: str) -> None: 
     for name, opts in {
         "naive": CityOptions.naive(),
         "culled": CityOptions(lod=False),
+        "leaf queries": CityOptions(lod=False, hierarchical=False),
         "no-occlusion": CityOptions(lod=False, occlusion=False),
     }.items():
         city_scene.set_city_options(opts)
-        city_scene.render(cam)  # the occlusion queries learn from one frame
-        pictures[name], _ = city_scene.render(cam)
+        for _ in range(5):  # coherence: visibility learnt from frames before
+            pictures[name], _ = city_scene.render(cam)
+            diff = np.any(pictures[name] != pictures.get("naive", pictures[name]), axis=2)
+            assert diff.mean() < 0.002, (name, diff.sum())
         stats[name] = city_scene.last.city
     # the city is in the picture, its walls textured: windows' dark glass shows
     assert stats["naive"]["city_triangles"] > 0
     rgb = pictures["naive"].astype(np.int16)
     glass = (rgb.sum(axis=2) < 240) & (rgb[..., 2] > rgb[..., 0] + 8)
     assert glass.mean() > 0.002, glass.mean()
-    for name in ("culled", "no-occlusion"):
+    for name in ("culled", "leaf queries", "no-occlusion"):
         diff = np.any(pictures[name] != pictures["naive"], axis=2)
         assert diff.mean() < 0.002, (name, diff.sum())
         assert stats[name]["city_triangles"] <= stats["naive"]["city_triangles"]
         assert stats[name]["city_draw_calls"] < stats["naive"]["city_draw_calls"]
+    # a parent's box holds its leaves': asking it first hides exactly what the leaves would
+    assert (
+        stats["culled"]["city_culled_occlusion"] == stats["leaf queries"]["city_culled_occlusion"]
+    )
     if view == "street":
-        assert stats["culled"]["city_culled_occlusion"] > 0
+        # hidden parents are asked as one: fewer queries
+        assert stats["culled"]["city_node_queries"] > 0
+        assert stats["culled"]["city_queries"] < stats["leaf queries"]["city_queries"]
+        assert stats["culled"]["city_culled_occlusion"] > 100
         assert stats["culled"]["city_triangles"] < stats["no-occlusion"]["city_triangles"]
 
 

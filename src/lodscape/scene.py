@@ -464,7 +464,7 @@ class Scene:
         if self._city_pass is None:
             from lodscape.render.city_pass import CityPass
 
-            self._city_pass = CityPass(renderer.ctx, self.city)
+            self._city_pass = CityPass(renderer.ctx, self.city, renderer.anisotropy)
         cp, opts = self._city_pass, self.city_options
 
         def draw(camera: Camera, fbo: Any) -> None:

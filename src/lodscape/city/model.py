@@ -44,6 +44,9 @@ class CityOptions:
     frustum: bool = True
     lod: bool = True
     occlusion: bool = True
+    #: Occlusion queries on the leaves' parents first where every shown leaf of one was hidden
+    #: last frame (CHC++'s hierarchy); else on each leaf.
+    hierarchical: bool = True
     #: Merged meshes drawn with multi-draw-indirect (else one draw per leaf and material).
     indirect: bool = True
     #: Street objects drawn instanced (else one draw per object).

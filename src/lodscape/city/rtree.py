@@ -3,8 +3,9 @@
 Two bulk packings of the leaves, both vectorised: STR (sort-tile-recursive: slabs by x, runs by
 y) and Hilbert (objects in the order of their centres' Hilbert index); the levels above group
 consecutive nodes of that order. Paper 001 found a Priority R-tree best;
-``bench/bench_city.py`` compares these two on the benchmark's paths (boxes tested per frame) and
-the scene keeps the better (``DEFAULT_PACKING``).
+``bench/bench_city.py`` compares these two on the benchmark's paths (frame time, triangles and
+boxes tested per frame) and the scene keeps the better (``DEFAULT_PACKING``): Hilbert, though
+its leaves' boxes cover more ground than STR's.
 
 A tree is stored level by level, leaves first: ``levels[0]`` holds the leaves' boxes (each leaf a
 run of ``order`` objects), ``levels[k]`` the boxes of groups of ``fanout`` nodes of level k-1.
@@ -24,7 +25,7 @@ __all__ = ["DEFAULT_PACKING", "RTree", "box_planes", "pack"]
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
-DEFAULT_PACKING = "str"
+DEFAULT_PACKING = "hilbert"
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,9 +120,11 @@ def _order(boxes: F64, leaf: int, packing: str) -> I64:
         raise ValueError(f"unknown R-tree packing {packing!r} (str or hilbert)")
     leaves = math.ceil(n / leaf)
     slabs = max(1, math.ceil(math.sqrt(leaves)))
+    # a slab holds whole leaves: a leaf cut by a slab's end would span the whole y range
+    per_slab = math.ceil(leaves / slabs) * leaf
     by_x = np.argsort(c[:, 0], kind="stable")
     slab = np.empty(n, dtype=np.int64)
-    slab[by_x] = np.arange(n) // math.ceil(n / slabs)
+    slab[by_x] = np.arange(n) // per_slab
     result: I64 = np.lexsort((c[:, 1], slab))
     return result
 

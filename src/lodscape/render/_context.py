@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import moderngl
 
-__all__ = ["create_context", "make_current"]
+__all__ = ["create_context", "is_software", "make_current"]
 
 #: GLSL 330 is all the terrain pass needs; Mesa's llvmpipe offers 4.5 through EGL.
 REQUIRED_GL = 330
@@ -43,3 +43,9 @@ def make_current(ctx: moderngl.Context) -> None:
     does not do reliably; binding on entry alone costs about 2 µs.
     """
     ctx.__enter__()  # type: ignore[no-untyped-call]
+
+
+def is_software(ctx: moderngl.Context) -> bool:
+    """Whether ``ctx`` rasterises on the CPU (Mesa's llvmpipe, softpipe, swrast)."""
+    renderer = str(ctx.info.get("GL_RENDERER", "")).lower()
+    return any(name in renderer for name in ("llvmpipe", "softpipe", "swrast"))

@@ -4,12 +4,14 @@ terrain pass's framebuffer with the same camera, after the terrain.
 Optimised path, per frame: leaves culled by the frustum (R-tree, from the root) and given a level
 of detail; for each material one ``glMultiDrawElementsIndirect`` over the visible leaves' runs of
 its merged mesh; for each street model part one instanced multi-draw (the leaves' runs of the
-instance buffer); and coherent hierarchical occlusion culling on the leaves (CHC++'s scheme at
-leaf granularity): leaves seen last frame are drawn first, the others are tested with occlusion
-queries on their boxes against that depth (all issued, then all read: one batch) and drawn at
-once if any sample passes, and the leaves drawn first are queried after the frame to learn which
-became hidden. A leaf is never dropped because of a query made in an earlier frame, so
-occlusion culling cannot remove a pixel; a leaf whose box holds the eye is always drawn.
+instance buffer); and coherent hierarchical occlusion culling (CHC++'s scheme on the tree's two
+lowest levels): leaves seen last frame are drawn first; the others are tested with occlusion
+queries against that depth (all issued, then all read: one batch; a parent hidden as a whole
+last frame is asked with its box first, and its leaves only if it is seen) and drawn at once if
+any sample passes; the leaves drawn first are queried after the frame to learn which became
+hidden. A leaf is never dropped because of a query made in an earlier frame, so occlusion
+culling cannot remove a pixel; a leaf whose box holds the eye is always drawn. Materials are the
+layers of one texture array (``city.materials``).
 
 Naive path (``CityOptions.naive()``): every object drawn with its own draw call per material, full
 detail, no culling: the baseline of paper 001's benchmark.
@@ -33,6 +35,7 @@ from lodscape.lod.camera import Camera
 __all__ = ["CityPass", "CityStats"]
 
 _G = TypeVar("_G")
+F64 = NDArray[np.float64]
 
 _VERTEX = """
 #version 330
@@ -153,6 +156,8 @@ class CityStats:
     culled_lod: int = 0
     culled_occlusion: int = 0
     queries: int = 0
+    #: Of the queries, those asked of inner nodes (parents of leaves) rather than leaves.
+    node_queries: int = 0
     boxes_tested: int = 0
 
     def as_dict(self) -> dict[str, int]:
@@ -162,7 +167,7 @@ class CityStats:
 class CityPass:
     """GL objects of one city in one context; ``draw`` adds it to the bound framebuffer."""
 
-    def __init__(self, ctx: moderngl.Context, model: CityModel) -> None:
+    def __init__(self, ctx: moderngl.Context, model: CityModel, anisotropy: float = 1.0) -> None:
         self.ctx = ctx
         self.model = model
         self.indirect_ok = ctx.version_code >= 430
@@ -219,7 +224,7 @@ class CityPass:
         tex.build_mipmaps()
         tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
         tex.repeat_x = tex.repeat_y = True
-        tex.anisotropy = 8.0
+        tex.anisotropy = anisotropy
         self._materials = tex
         bprog = self._keep(ctx.program(vertex_shader=_BOX_VERTEX, fragment_shader=_BOX_FRAGMENT))
         self._bprog: Any = bprog
@@ -228,12 +233,17 @@ class CityPass:
         self._box = self._keep(ctx.vertex_array(bprog, [(cube, "3f", "in_pos")], cidx, 4))
         self._indirect = self._keep(ctx.buffer(reserve=20 * max(model.tree.leaves, 1)))
         self._visible = np.zeros(model.tree.leaves, dtype=bool)
+        self._parent_hidden = np.zeros(
+            len(model.tree.levels[min(1, len(model.tree.levels) - 1)]), bool
+        )
         self._queries: list[moderngl.Query] = []
         self.last = CityStats()
+        self._node_queries = 0
 
     def reset(self) -> None:
         """Forget last frame's visibility (occlusion culling starts from nothing seen)."""
         self._visible[:] = False
+        self._parent_hidden[:] = False
 
     def _keep(self, obj: _G) -> _G:
         self._objs.append(obj)
@@ -294,10 +304,12 @@ class CityPass:
             before = self._visible[leaves] | holds_eye
             c, t = self._draw_leaves(leaves[before], lod[before], options)
             calls, tris = calls + c, tris + t
-            # the others: one batch of queries against the depth drawn so far
+            # the others: queries against the depth drawn so far, hierarchical (CHC++): where
+            # every shown leaf of a node was hidden last frame, the node's box is asked first
             rest = np.nonzero(~before)[0]
-            seen = self._query(leaves[rest])
-            queries += len(rest)
+            self._node_queries = 0
+            seen, asked = self._query_hierarchy(leaves, rest, options)
+            queries += asked
             now = rest[seen]
             c, t = self._draw_leaves(leaves[now], lod[now], options)
             calls, tris = calls + c, tris + t
@@ -322,6 +334,7 @@ class CityPass:
             fl.culled_lod,
             int(m.leaf_objects[occluded].sum()),
             queries,
+            self._node_queries if options.occlusion else 0,
             fl.boxes_tested,
         )
         return self.last
@@ -417,13 +430,55 @@ class CityPass:
             tris += int(count.sum()) * ntri
         return CityStats(calls, tris, m.objects)
 
-    def _query(self, leaves: NDArray[np.int64]) -> NDArray[np.bool_]:
-        """Whether any sample of each leaf's box passes the depth test (one batch)."""
+    def _query_hierarchy(
+        self, shown: NDArray[np.int64], rest: NDArray[np.int64], options: CityOptions
+    ) -> tuple[NDArray[np.bool_], int]:
+        """Which of ``shown[rest]`` (leaves hidden last frame) pass the depth test now, and how
+        many queries it took. A parent found hidden as a whole last frame (every shown leaf of
+        it hidden) is asked first, with its box, where all its shown leaves are among them; its
+        leaves are asked only if it is seen (a second batch). A parent's box holds its leaves',
+        so a hidden parent hides them all. Asking only parents hidden last frame keeps the
+        hierarchy from adding queries where little is hidden (CHC++'s coherence, one level up)."""
+        tree = self.model.tree
+        leaves = shown[rest]
+        if not options.hierarchical or len(tree.levels) < 2 or not len(leaves):
+            return self._query(leaves), len(leaves)
+        n_parents = len(tree.levels[1])
+        parent = leaves // tree.fanout
+        shown_per = np.bincount(shown // tree.fanout, minlength=n_parents)
+        rest_per = np.bincount(parent, minlength=n_parents)
+        whole = (rest_per == shown_per) & (rest_per >= 2)
+        grouped = whole & self._parent_hidden
+        ask_parent = grouped[parent]
+        parents = np.nonzero(grouped)[0]
+        direct = leaves[~ask_parent]
+        # batch one: the parents hidden last frame, and the other leaves themselves
+        first = self._query(
+            np.concatenate([direct, parents]),
+            np.concatenate([tree.levels[0][direct], tree.levels[1][parents]]),
+        )
+        seen = np.zeros(len(leaves), dtype=bool)
+        seen[~ask_parent] = first[: len(direct)]
+        parent_seen = np.zeros(n_parents, dtype=bool)
+        parent_seen[parents] = first[len(direct) :]
+        # batch two: the leaves of the parents that were seen
+        again = np.nonzero(ask_parent & parent_seen[parent])[0]
+        seen[again] = self._query(leaves[again])
+        # next frame's hidden parents: every shown leaf was in question and none is seen
+        any_seen = np.bincount(parent[seen], minlength=n_parents) > 0
+        self._parent_hidden = whole & ~any_seen
+        self._node_queries = len(parents)
+        return seen, len(first) + len(again)
+
+    def _query(self, leaves: NDArray[np.int64], boxes: F64 | None = None) -> NDArray[np.bool_]:
+        """Whether any sample of each leaf's box (or of ``boxes``) passes the depth test (one
+        batch)."""
         if not len(leaves):
             return np.zeros(0, dtype=bool)
         while len(self._queries) < len(leaves):
             self._queries.append(self.ctx.query(samples=True))
-        boxes = self.model.tree.levels[0][leaves]
+        if boxes is None:
+            boxes = self.model.tree.levels[0][leaves]
         fbo = self._fbo
         fbo.color_mask = (_NONE, _NONE)  # type: ignore[assignment]
         fbo.depth_mask = False

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from lodscape.lod.camera import Camera
 from lodscape.lod.cull import CONE_SIZE
-from lodscape.render._context import create_context, make_current
+from lodscape.render._context import create_context, is_software, make_current
 from lodscape.terrain.mesh import TileMesh, grid_indices
 
 __all__ = ["DrawItem", "DrawStats", "Renderer"]
@@ -135,7 +135,8 @@ class Renderer:
     """Owns the GL objects of the tiles uploaded to it and draws any subset of them per frame.
 
     Every method must be called from the thread that created the renderer (the GL thread).
-    ``anisotropy`` caps the anisotropic filtering of tile textures (1 disables it).
+    ``anisotropy`` caps the anisotropic filtering of tile textures (1 disables it; software
+    rasterisers always get 1).
     """
 
     def __init__(
@@ -169,10 +170,17 @@ class Renderer:
         self._u_skirt = self._uniform("u_skirt")
         self._u_uv = self._uniform("u_uv")
         self._uniform("u_tex").value = 0
-        # 1 turns it off: on llvmpipe any anisotropic filtering triples the cost of a frame
-        self._anisotropy = max(1.0, min(float(self.ctx.max_anisotropy), float(anisotropy)))
+        # 1 turns it off. On a software rasteriser (llvmpipe) anisotropic filtering triples the
+        # cost of a frame and takes minutes at a grazing view over a magnified texture: off there
+        cap = 1.0 if is_software(self.ctx) else float(self.ctx.max_anisotropy)
+        self._anisotropy = max(1.0, min(cap, float(anisotropy)))
         self._target: _Target | None = None
         self._target_for(width, height)
+
+    @property
+    def anisotropy(self) -> float:
+        """The anisotropic filtering cap textures get in this context."""
+        return self._anisotropy
 
     # --- resources --------------------------------------------------------------------------
 
