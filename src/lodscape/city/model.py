@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import shapely
@@ -51,6 +52,15 @@ class CityOptions:
     indirect: bool = True
     #: Street objects drawn instanced (else one draw per object).
     instancing: bool = True
+    #: CHC++'s query skipping: a leaf seen in the last frame is asked again only every this many
+    #: frames (staggered by leaf), and drawn meanwhile.
+    revisit: int = 8
+    #: A leaf with fewer triangles than this at its level of detail is drawn, never asked: a
+    #: query costs about as much as drawing it.
+    query_min_triangles: int = 512
+    #: Wait for the GPU before and after the city pass and report its time (for benchmarks;
+    #: the waits cost a little).
+    timed: bool = False
 
     @classmethod
     def naive(cls) -> CityOptions:
@@ -110,6 +120,17 @@ class CityModel:
             for kind, inst in self.instances.items():
                 tri += len(inst) * sum(len(g.triangles) for g in MODELS[kind].values())
         return tri
+
+    @cached_property
+    def leaf_triangles(self) -> NDArray[np.int64]:
+        """(levels, L) triangles of each leaf at each level of detail, street objects included
+        at the full level."""
+        out = np.zeros((len(LODS), self.tree.leaves), dtype=np.int64)
+        for (lod, _), (_, count) in self.runs.items():
+            out[lod] += count // 3
+        for kind, (_, count) in self.instance_runs.items():
+            out[0] += count * sum(len(g.triangles) for g in MODELS[kind].values())
+        return out
 
     def local_planes(self, camera: Camera) -> F64:
         """The camera's frustum planes in the city's frame."""

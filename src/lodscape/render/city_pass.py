@@ -20,7 +20,8 @@ detail, no culling: the baseline of paper 001's benchmark.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 import moderngl
@@ -159,6 +160,8 @@ class CityStats:
     #: Of the queries, those asked of inner nodes (parents of leaves) rather than leaves.
     node_queries: int = 0
     boxes_tested: int = 0
+    #: Microseconds the pass took, submission and GPU work (``CityOptions.timed``; else 0).
+    pass_us: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return {f"city_{k}": int(v) for k, v in self.__dict__.items()}
@@ -237,6 +240,10 @@ class CityPass:
             len(model.tree.levels[min(1, len(model.tree.levels) - 1)]), bool
         )
         self._queries: list[moderngl.Query] = []
+        #: Queries read a frame later, and the leaves (and which hold the eye) they ask about.
+        self._later: list[moderngl.Query] = []
+        self._pending: tuple[NDArray[np.int64], NDArray[np.bool_]] | None = None
+        self._frame = 0
         self.last = CityStats()
         self._node_queries = 0
 
@@ -244,6 +251,8 @@ class CityPass:
         """Forget last frame's visibility (occlusion culling starts from nothing seen)."""
         self._visible[:] = False
         self._parent_hidden[:] = False
+        self._pending = None
+        self._frame = 0
 
     def _keep(self, obj: _G) -> _G:
         self._objs.append(obj)
@@ -255,6 +264,8 @@ class CityPass:
         # moderngl's queries have no release: they go with the context
         self._objs.clear()
         self._queries.clear()
+        self._later.clear()
+        self._pending = None
 
     # --- drawing ---------------------------------------------------------------------------
 
@@ -284,6 +295,16 @@ class CityPass:
 
     def draw(self, camera: Camera, options: CityOptions, fbo: moderngl.Framebuffer) -> CityStats:
         """Draw the city into ``fbo`` (the terrain's colour + distance target, depth kept)."""
+        if not options.timed:
+            return self._draw(camera, options, fbo)
+        self.ctx.finish()
+        t = time.perf_counter()
+        stats = self._draw(camera, options, fbo)
+        self.ctx.finish()
+        self.last = replace(stats, pass_us=int((time.perf_counter() - t) * 1e6))
+        return self.last
+
+    def _draw(self, camera: Camera, options: CityOptions, fbo: moderngl.Framebuffer) -> CityStats:
         self._fbo = fbo
         self._uniforms(camera)
         self.ctx.enable_only(moderngl.DEPTH_TEST)
@@ -296,12 +317,15 @@ class CityPass:
         leaves, lod = fl.leaves[shown], fl.lod[shown]
         calls = tris = queries = 0
         occluded = np.zeros(0, dtype=np.int64)
+        self._resolve_pending()
         if options.occlusion and len(leaves):
             eye = m.local_eye(camera)
             boxes = m.tree.levels[0][leaves]
             margin = (camera.near or 0.0) * 2.0 + 0.01
             holds_eye = np.all((boxes[:, :3] - margin <= eye) & (eye <= boxes[:, 3:] + margin), 1)
-            before = self._visible[leaves] | holds_eye
+            # drawn without asking: seen last frame, holding the eye, or cheaper than a query
+            cheap = m.leaf_triangles[lod, leaves] < options.query_min_triangles
+            before = self._visible[leaves] | holds_eye | cheap
             c, t = self._draw_leaves(leaves[before], lod[before], options)
             calls, tris = calls + c, tris + t
             # the others: queries against the depth drawn so far, hierarchical (CHC++): where
@@ -314,14 +338,19 @@ class CityPass:
             c, t = self._draw_leaves(leaves[now], lod[now], options)
             calls, tris = calls + c, tris + t
             occluded = leaves[rest[~seen]]
-            # which of the leaves drawn first are hidden now (for the next frame)
-            first = np.nonzero(before)[0]
-            still = self._query(leaves[first])
+            # which of the leaves drawn first are hidden now: asked after the frame, read at the
+            # start of the next (by then the GPU has answered: no wait)
+            # (CHC++: each only every ``revisit`` frames, staggered; the others stay visible)
+            self._frame += 1
+            due = (leaves + self._frame) % max(options.revisit, 1) == 0
+            first = np.nonzero(before & ~cheap & due)[0]
+            kept = np.nonzero(before & ~cheap & ~due)[0]
+            self._issue(leaves[first], self._later, m.tree.levels[0][leaves[first]])
             queries += len(first)
-            vis = np.zeros_like(self._visible)
-            vis[leaves[first[still | holds_eye[first]]]] = True
-            vis[leaves[now]] = True
-            self._visible = vis
+            self._visible = np.zeros_like(self._visible)
+            self._visible[leaves[now]] = True
+            self._visible[leaves[kept]] = True
+            self._pending = (leaves[first], holds_eye[first])
         else:
             c, t = self._draw_leaves(leaves, lod, options)
             calls, tris = calls + c, tris + t
@@ -470,24 +499,39 @@ class CityPass:
         self._node_queries = len(parents)
         return seen, len(first) + len(again)
 
+    def _resolve_pending(self) -> None:
+        """Read last frame's after-the-frame queries into the visibility of its leaves."""
+        if self._pending is None:
+            return
+        first, holds_eye = self._pending
+        self._pending = None
+        still = np.array([q.samples > 0 for q in self._later[: len(first)]], dtype=bool)
+        self._visible[first[still | holds_eye]] = True
+
     def _query(self, leaves: NDArray[np.int64], boxes: F64 | None = None) -> NDArray[np.bool_]:
         """Whether any sample of each leaf's box (or of ``boxes``) passes the depth test (one
-        batch)."""
+        batch, read at once)."""
         if not len(leaves):
             return np.zeros(0, dtype=bool)
-        while len(self._queries) < len(leaves):
-            self._queries.append(self.ctx.query(samples=True))
         if boxes is None:
             boxes = self.model.tree.levels[0][leaves]
+        self._issue(leaves, self._queries, boxes)
+        return np.array([q.samples > 0 for q in self._queries[: len(leaves)]], dtype=bool)
+
+    def _issue(self, leaves: NDArray[np.int64], pool: list[moderngl.Query], boxes: F64) -> None:
+        """Draw each box (depth test on, no writes) inside its own query of ``pool``."""
+        if not len(leaves):
+            return
+        while len(pool) < len(leaves):
+            pool.append(self.ctx.query(samples=True))
         fbo = self._fbo
         fbo.color_mask = (_NONE, _NONE)  # type: ignore[assignment]
         fbo.depth_mask = False
         lo_u, hi_u = self._bprog["u_lo"], self._bprog["u_hi"]
-        for q, b in zip(self._queries, boxes, strict=False):
+        for q, b in zip(pool, boxes, strict=False):
             lo_u.value = tuple(b[:3] - 0.05)
             hi_u.value = tuple(b[3:] + 0.05)
             with q:
                 self._box.render(moderngl.TRIANGLES)
         fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
         fbo.depth_mask = True
-        return np.array([q.samples > 0 for q in self._queries[: len(leaves)]], dtype=bool)
