@@ -290,7 +290,9 @@ def render(
     max_sse: SseOpt = 2.0,
     anisotropy: Annotated[
         float,
-        typer.Option(callback=_finite, help="Anisotropic filtering cap; 1 is faster on llvmpipe."),
+        typer.Option(
+            callback=_finite, help="Anisotropic filtering cap (software rasterisers: always 1)."
+        ),
     ] = 16.0,
     imagery: ImageryOpt = None,
     imagery_cache: CacheOpt = None,
@@ -355,7 +357,10 @@ def fly(
     ] = 256.0,
     max_sse: SseOpt = 2.0,
     anisotropy: Annotated[
-        float, typer.Option(callback=_finite, help="Anisotropic filtering cap.")
+        float,
+        typer.Option(
+            callback=_finite, help="Anisotropic filtering cap (software rasterisers: always 1)."
+        ),
     ] = 16.0,
     imagery: ImageryOpt = None,
     imagery_cache: CacheOpt = None,
