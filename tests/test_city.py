@@ -282,12 +282,12 @@ def test_optimised_city_draws_the_naive_picture(city_scene, view: str) -> None: 
     stats = {}
     for name, opts in {
         "naive": CityOptions.naive(),
-        "defaults without occlusion": CityOptions(occlusion=False),
         "defaults": CityOptions(),
+        "defaults with occlusion": CityOptions(occlusion=True),
         # every leaf asked every frame, so the two query schemes see the same history
-        "culled": CityOptions(lod=False, revisit=1, query_min_triangles=0),
+        "culled": CityOptions(lod=False, occlusion=True, revisit=1, query_min_triangles=0),
         "leaf queries": CityOptions(
-            lod=False, hierarchical=False, revisit=1, query_min_triangles=0
+            lod=False, occlusion=True, hierarchical=False, revisit=1, query_min_triangles=0
         ),
         "no-occlusion": CityOptions(lod=False, occlusion=False),
     }.items():
@@ -295,9 +295,9 @@ def test_optimised_city_draws_the_naive_picture(city_scene, view: str) -> None: 
         pictures[name] = [city_scene.render(c)[0] for c in turn]
         stats[name] = city_scene.last.city
     # occlusion culling never changes the picture, in any frame of the turn (levels of detail
-    # do: the defaults are compared with the defaults without occlusion culling)
+    # do: the defaults with occlusion culling are compared with the defaults)
     for name, ref in (
-        ("defaults", "defaults without occlusion"),
+        ("defaults with occlusion", "defaults"),
         ("culled", "naive"),
         ("leaf queries", "naive"),
         ("no-occlusion", "naive"),

@@ -44,7 +44,10 @@ class CityOptions:
     min_px: float = 2.0
     frustum: bool = True
     lod: bool = True
-    occlusion: bool = True
+    #: Coherent hierarchical occlusion culling (CHC++). Off by default: on the benchmark's
+    #: city (BENCHMARKS.md) its queries cost more than the triangles they save, on llvmpipe and
+    #: on an H100 alike, because levels of detail already thin what lies behind.
+    occlusion: bool = False
     #: Occlusion queries on the leaves' parents first where every shown leaf of one was hidden
     #: last frame (CHC++'s hierarchy); else on each leaf.
     hierarchical: bool = True
