@@ -15,8 +15,8 @@ addition, being off by default. Each optimisation's share: the defaults with tha
 the two R-tree packings (STR, Hilbert) compared on the same paths. "frame" is the whole frame
 (terrain, city, read-back of the picture); "city pass" the city's draw alone, GPU waits
 included. Medians over the path's frames after one warm-up frame; draw calls, triangles,
-queries and boxes tested are per frame (medians). On a software rasteriser (llvmpipe) textures get no
-anisotropic filtering, which would cost more than everything else.
+queries and boxes tested are per frame (medians). On a software rasteriser (llvmpipe) textures
+get no anisotropic filtering, which would cost more than everything else.
 """
 
 from __future__ import annotations

@@ -54,6 +54,14 @@ def _finite(value: float | None) -> float | None:
 SizeOpt = Annotated[str, typer.Option("--size", help="Viewport WIDTHxHEIGHT in pixels.")]
 OutOpt = Annotated[Path, typer.Option("-o", "--output", help="Image to write (.png, .jpg, .tif).")]
 SseOpt = Annotated[float, typer.Option("--max-sse", help="Screen-space error bound, pixels.")]
+TerrainModeOpt = Annotated[
+    str,
+    typer.Option(
+        "--terrain-mode",
+        help="cpu: tile meshes (the quadtree); gpu: height textures tessellated in hardware "
+        "(falls back to cpu, with a notice, where tessellation is missing).",
+    ),
+]
 ImageryOpt = Annotated[
     str | None,
     typer.Option(
@@ -189,12 +197,22 @@ def _drape(scene: Scene, town: Any) -> Any:
     return city
 
 
-def _scene_options(*, max_sse: float, anisotropy: float) -> SceneOptions:
+def _scene_options(*, max_sse: float, anisotropy: float, terrain_mode: str) -> SceneOptions:
     """Scene options from flags; a value the engine refuses is a one-line usage error."""
     try:
-        return SceneOptions(select=SelectOptions(max_sse=max_sse), anisotropy=anisotropy)
+        return SceneOptions(
+            select=SelectOptions(max_sse=max_sse),
+            anisotropy=anisotropy,
+            terrain_mode=terrain_mode,
+        )
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None
+
+
+def _mode_notice(scene: Scene) -> None:
+    """Say on stderr when the GPU terrain mode was asked for and is not there."""
+    if scene.terrain_mode_note:
+        typer.echo(f"lodscape: notice: {scene.terrain_mode_note}", err=True)
 
 
 def _write_atomic(path: Path, write: object) -> None:
@@ -254,6 +272,7 @@ def _render(
     scene: Scene, camera: Camera, output: Path, depth_path: Path | None, quiet: bool
 ) -> None:
     rgb, depth = scene.render(camera)
+    _mode_notice(scene)
     _save_image(output, rgb)
     if depth_path is not None:
         _save_depth(depth_path, depth)
@@ -288,6 +307,7 @@ def render(
         typer.Option(help="Also write depth (metres along the view axis) as .npy or .tif."),
     ] = None,
     max_sse: SseOpt = 2.0,
+    terrain_mode: TerrainModeOpt = "cpu",
     anisotropy: Annotated[
         float,
         typer.Option(
@@ -306,7 +326,7 @@ def render(
     """Render one view of SOURCE (a DEM, a .lods tileset, procedural:seed=N, or flat with
     --city). Without --lon/--lat/--alt, a view of the whole data (or of the city)."""
     w, h = _size(size)
-    options = _scene_options(max_sse=max_sse, anisotropy=anisotropy)
+    options = _scene_options(max_sse=max_sse, anisotropy=anisotropy, terrain_mode=terrain_mode)
     fractal = _detail(source, detail, hurst, sigma, seed)
     source, town = _city_source(source, city)
     with _open(source, options, imagery, imagery_cache, strict=False, detail=fractal) as scene:
@@ -356,6 +376,7 @@ def fly(
         float, typer.Option(callback=_finite, help="MiB each of GPU, memory and cache.")
     ] = 256.0,
     max_sse: SseOpt = 2.0,
+    terrain_mode: TerrainModeOpt = "cpu",
     anisotropy: Annotated[
         float,
         typer.Option(
@@ -410,6 +431,7 @@ def fly(
         options = SceneOptions(
             select=SelectOptions(max_sse=max_sse),
             anisotropy=anisotropy,
+            terrain_mode=terrain_mode,
             gpu_budget_mb=budget_mb,
             stream=StreamOptions(cache_mb=budget_mb, memory_mb=budget_mb),
         )
@@ -431,6 +453,7 @@ def fly(
             stats=stats,
             on_frame=lambda i: bar.update(task, completed=i + 1),
         )
+        _mode_notice(scene)
     if not quiet:
         after = [r for r in rows if r["time_s"] >= 1.0] or rows
         typer.echo(

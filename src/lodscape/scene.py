@@ -29,6 +29,7 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.cull import backfacing
 from lodscape.lod.select import TEXTURE, Selection, SelectOptions, select, tile_boxes
 from lodscape.render import DrawItem, Renderer
+from lodscape.render.tess_pass import TessellationUnavailable
 from lodscape.store.provider import FractalProvider, Provider, RasterProvider
 from lodscape.store.tileset import TilesetProvider, is_tileset
 from lodscape.stream import RealClock, Streamer, StreamOptions
@@ -71,6 +72,10 @@ class SceneOptions:
     stream: StreamOptions | None = None
     #: Skip tiles whose every triangle faces away from the camera (normal cones, paper 003).
     cull_backfacing: bool = True
+    #: "cpu": the quadtree's meshes (the spine); "gpu": each tile a few patches tessellated in
+    #: hardware and displaced by its height texture (paper 001). Without tessellation (OpenGL
+    #: < 4.0) "gpu" falls back to "cpu", and ``Scene.terrain_mode_note`` says why.
+    terrain_mode: str = "cpu"
 
     def __post_init__(self) -> None:
         if not self.gpu_budget_mb > 0.0:
@@ -79,6 +84,8 @@ class SceneOptions:
             raise ValueError(f"Expected at least one worker, got {self.workers}")
         if not self.anisotropy >= 1.0:
             raise ValueError(f"Expected anisotropy >= 1, got {self.anisotropy}")
+        if self.terrain_mode not in ("cpu", "gpu"):
+            raise ValueError(f"Expected terrain_mode cpu or gpu, got {self.terrain_mode!r}")
 
 
 @dataclass(frozen=True)
@@ -101,6 +108,9 @@ class FrameStats:
     backfacing_triangles: int = 0
     #: The city pass's figures (draw calls, triangles, objects culled…), when a city is on.
     city: dict[str, int] = field(default_factory=dict)
+    #: Milliseconds the CPU spent issuing the terrain's draws (in ``draw_ms``, no GPU wait).
+    submit_ms: float = 0.0
+    terrain_mode: str = "cpu"
 
     def as_dict(self) -> dict[str, float | int]:
         return {
@@ -112,6 +122,7 @@ class FrameStats:
             "select_ms": round(self.select_ms, 2),
             "load_ms": round(self.load_ms, 2),
             "draw_ms": round(self.draw_ms, 2),
+            "submit_ms": round(self.submit_ms, 2),
             "backfacing": self.backfacing,
             "backfacing_triangles": self.backfacing_triangles,
             **self.stream,
@@ -141,6 +152,8 @@ class Scene:
         self.options = options or SceneOptions()
         self.tree = self.provider.tree
         self._renderer: Renderer | None = None
+        #: Why frames are drawn in the CPU terrain mode though the options asked for "gpu".
+        self.terrain_mode_note: str | None = None
         self.city: Any = None
         self.city_options: Any = None
         self._city_pass: Any = None
@@ -226,7 +239,9 @@ class Scene:
             resident = np.array(sorted(renderer.resident()), dtype=np.uint64)
             sel = select(self.options.select, cam, self.tree, self._previous, resident)
         t2 = time.perf_counter()
-        items, culled, culled_tris = self._facing(renderer, cam, draw_items(sel))
+        items, culled, culled_tris = self._facing(
+            renderer, cam, draw_items(sel, self.options.select.max_sse)
+        )
         rgb, depth = renderer.draw(
             cam, items, background=self.options.background, after=self._city_passes(renderer)
         )
@@ -246,6 +261,8 @@ class Scene:
             backfacing=culled,
             backfacing_triangles=culled_tris,
             city=self._city_stats(),
+            submit_ms=renderer.last_stats.submit_ms,
+            terrain_mode=renderer.terrain_mode,
         )
         return rgb, depth
 
@@ -269,7 +286,8 @@ class Scene:
         start = 0
         for i, item in enumerate(items):
             n = int(counts[i])
-            if gone[i] == 0:
+            if gone[i] == 0 or (gone[i] < n and renderer.terrain_mode == "gpu"):
+                # the GPU mode draws a tile whole: it is kept unless all of it faces away
                 kept.append(item)
             else:
                 total = renderer.triangles([item.key])
@@ -318,7 +336,9 @@ class Scene:
         if uploaded:
             sel = select(opts.select, cam, self.tree, self._previous, _keys(renderer))
         t2 = time.perf_counter()
-        items, culled, culled_tris = self._facing(renderer, cam, draw_items(sel))
+        items, culled, culled_tris = self._facing(
+            renderer, cam, draw_items(sel, self.options.select.max_sse)
+        )
         rgb, depth = renderer.draw(
             cam, items, background=opts.background, after=self._city_passes(renderer)
         )
@@ -349,6 +369,8 @@ class Scene:
             culled,
             culled_tris,
             self._city_stats(),
+            renderer.last_stats.submit_ms,
+            renderer.terrain_mode,
         )
         return rgb, depth
 
@@ -480,13 +502,31 @@ class Scene:
 
     def _renderer_for(self, camera: Camera) -> Renderer:
         if self._renderer is None:
-            self._renderer = Renderer(
-                camera.width,
-                camera.height,
-                background=self.options.background,
-                anisotropy=self.options.anisotropy,
-            )
+            mode = self.options.terrain_mode
+            try:
+                self._renderer = Renderer(
+                    camera.width,
+                    camera.height,
+                    background=self.options.background,
+                    anisotropy=self.options.anisotropy,
+                    terrain_mode=mode,
+                )
+            except TessellationUnavailable as exc:
+                self.terrain_mode_note = f"{exc}; drawing in the CPU terrain mode"
+                self._renderer = Renderer(
+                    camera.width,
+                    camera.height,
+                    background=self.options.background,
+                    anisotropy=self.options.anisotropy,
+                )
         return self._renderer
+
+    @property
+    def terrain_mode(self) -> str:
+        """The terrain mode frames are drawn in ("gpu" only where tessellation is there)."""
+        if self._renderer is not None:
+            return self._renderer.terrain_mode
+        return self.options.terrain_mode
 
     def _prepare(self, key: int) -> TileMesh | NDArray[np.uint8]:
         p = self.provider
@@ -593,17 +633,20 @@ def _runs(keep: NDArray[np.bool_], per: int, total: int) -> tuple[tuple[int, int
     return tuple(out)
 
 
-def draw_items(sel: Selection) -> list[DrawItem]:
+def draw_items(sel: Selection, max_sse: float = 2.0) -> list[DrawItem]:
     """The renderer's draw list for a selection: each tile's mesh, its texture and the window of
-    that texture it covers (a half per level up), and its skirt."""
+    that texture it covers (a half per level up), its skirt, and the screen-space error the GPU
+    terrain mode's tessellation may add to the tile's own (``max_sse`` less it, at least a
+    tenth of ``max_sse``)."""
     up = sel.texture_up
     scale = np.exp2(-up.astype(np.float64))
     u = (sel.x & ((1 << up) - 1)) * scale
     v = (sel.y & ((1 << up) - 1)) * scale
-    cols = zip(sel.keys, sel.texture_keys, sel.skirt, u, v, scale, strict=True)
+    budget = np.maximum(max_sse - sel.sse, 0.1 * max_sse)
+    cols = zip(sel.keys, sel.texture_keys, sel.skirt, u, v, scale, budget, strict=True)
     return [
-        DrawItem(int(k), int(t), float(sk), (float(a), float(b), float(c)))
-        for k, t, sk, a, b, c in cols
+        DrawItem(int(k), int(t), float(sk), (float(a), float(b), float(c)), sse_budget=float(e))
+        for k, t, sk, a, b, c, e in cols
     ]
 
 

@@ -11,6 +11,7 @@ than read back from the depth buffer, whose non-linear 24-bit values lose centim
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
@@ -20,9 +21,12 @@ import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape.geo.tiles import tile_from_id
 from lodscape.lod.camera import Camera
 from lodscape.lod.cull import CONE_SIZE
 from lodscape.render._context import create_context, is_software, make_current
+from lodscape.render.tess_pass import TessTerrain
+from lodscape.terrain.heightmap import height_tile
 from lodscape.terrain.mesh import TileMesh, grid_indices
 
 __all__ = ["DrawItem", "DrawStats", "Renderer"]
@@ -98,6 +102,8 @@ class DrawItem:
     uv: tuple[float, float, float] = (0.0, 0.0, 1.0)
     #: Runs of triangles to draw, (first, count); None: the whole mesh.
     runs: tuple[tuple[int, int], ...] | None = None
+    #: Screen-space error (pixels) the GPU terrain mode's tessellation may add to this tile's.
+    sse_budget: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -106,6 +112,9 @@ class DrawStats:
 
     draw_calls: int = 0
     triangles: int = 0
+    #: Milliseconds the CPU spent issuing the terrain's draws (uniforms and calls, no waiting
+    #: for the GPU): the CPU side of a frame's terrain.
+    submit_ms: float = 0.0
 
 
 @dataclass(eq=False)
@@ -120,6 +129,17 @@ class _Tile:
     center: NDArray[np.float64]
     up: bytes
     cone: NDArray[np.float64] | None = None
+
+
+@dataclass(eq=False)
+class _GpuTile:
+    """What the renderer keeps on the CPU of a tile drawn by the GPU terrain mode."""
+
+    center: NDArray[np.float64]
+    cone: NDArray[np.float64] | None
+    nbytes: int
+    #: Triangles of the tile's CPU mesh (the full tessellation draws about as many).
+    triangles: int
 
 
 @dataclass(eq=False)
@@ -147,7 +167,10 @@ class Renderer:
         ctx: moderngl.Context | None = None,
         background: Rgb = (0.53, 0.70, 0.90),
         anisotropy: float = _MAX_ANISOTROPY,
+        terrain_mode: str = "cpu",
     ) -> None:
+        if terrain_mode not in ("cpu", "gpu"):
+            raise ValueError(f"terrain mode is cpu or gpu, got {terrain_mode!r}")
         self._owns_ctx = ctx is None
         self.ctx: moderngl.Context = create_context() if ctx is None else ctx
         self._thread = threading.get_ident()
@@ -176,6 +199,12 @@ class Renderer:
         self._anisotropy = max(1.0, min(cap, float(anisotropy)))
         self._target: _Target | None = None
         self._target_for(width, height)
+        #: "gpu": tiles are height textures tessellated in hardware (``render.tess_pass``).
+        self.terrain_mode = terrain_mode
+        self._tess: TessTerrain | None = None
+        self._gpu_tiles: dict[int, _GpuTile] = {}
+        if terrain_mode == "gpu":
+            self._tess = TessTerrain(self.ctx, _FRAGMENT_SHADER)
 
     @property
     def anisotropy(self) -> float:
@@ -187,7 +216,18 @@ class Renderer:
     def upload(self, mesh: TileMesh) -> None:
         """Make ``mesh`` drawable under its key; uploading a key again is a no-op."""
         self._use()
-        if mesh.key in self._tiles:
+        if mesh.key in self._tiles or mesh.key in self._gpu_tiles:
+            return
+        if self._tess is not None:
+            t = tile_from_id(mesh.key >> 3)
+            nbytes = self._tess.upload(height_tile(mesh, t.z, t.x, t.y))
+            self._gpu_tiles[mesh.key] = _GpuTile(
+                np.asarray(mesh.center, np.float64).copy(),
+                None if mesh.cone is None else np.asarray(mesh.cone, np.float64),
+                nbytes,
+                mesh.triangles,
+            )
+            self._live += 2
             return
         s = mesh.segments
         vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
@@ -256,6 +296,11 @@ class Renderer:
         texture = self._textures.pop(key, None)
         if texture is not None:
             self._free(texture[0])
+        if self._gpu_tiles.pop(key, None) is not None:
+            assert self._tess is not None
+            self._tess.release(key)
+            self._live -= 2
+            return
         tile = self._tiles.pop(key, None)
         if tile is None:
             return
@@ -273,7 +318,7 @@ class Renderer:
 
     def has(self, key: int) -> bool:
         """Whether mesh or texture ``key`` is uploaded."""
-        return key in self._tiles or key in self._textures
+        return key in self._tiles or key in self._textures or key in self._gpu_tiles
 
     def cones(
         self, keys: Sequence[int]
@@ -282,7 +327,7 @@ class Renderer:
         its mesh's centre ((M, 3) ECEF) and the position in ``keys`` of its mesh ((M,))."""
         cones, centres, owner = [], [], []
         for i, key in enumerate(keys):
-            tile = self._tiles.get(key)
+            tile: _Tile | _GpuTile | None = self._tiles.get(key) or self._gpu_tiles.get(key)
             if tile is None or tile.cone is None:
                 cones.append(np.full((1, CONE_SIZE), np.nan))
                 centres.append(np.zeros((1, 3)))
@@ -297,11 +342,14 @@ class Renderer:
 
     def triangles(self, keys: Sequence[int]) -> int:
         """Triangles (skirts included) of the uploaded meshes among ``keys``."""
+        if self._tess is not None:
+            return sum(self._gpu_tiles[k].triangles for k in keys if k in self._gpu_tiles)
         return sum(self._tiles[k].triangles for k in keys if k in self._tiles)
 
     def resident(self) -> dict[int, int]:
         """GPU bytes of every uploaded mesh (its vertices) and texture (with its mips)."""
         out = {key: tile.nbytes for key, tile in self._tiles.items()}
+        out.update((key, tile.nbytes) for key, tile in self._gpu_tiles.items())
         out.update((key, nbytes) for key, (_, nbytes) in self._textures.items())
         return out
 
@@ -324,9 +372,12 @@ class Renderer:
         ``after`` passes (the city) draw into the same framebuffer once the terrain is in."""
         self._use()
         # resolve every key before touching GL state, so a bad frame changes nothing
-        tiles, textures = [], []
+        tiles: list[_Tile | _GpuTile] = []
+        textures = []
         for item in items:
-            tile = self._tiles.get(item.key)
+            tile: _Tile | _GpuTile | None = self._tiles.get(item.key) or self._gpu_tiles.get(
+                item.key
+            )
             texture = self._textures.get(item.texture)
             if tile is None or texture is None:
                 what = f"mesh {item.key}" if tile is None else f"texture {item.texture}"
@@ -334,7 +385,6 @@ class Renderer:
             tiles.append(tile)
             textures.append(texture[0])
         rot = camera.rotation
-        view_projections = [camera.view_projection(tile.center) for tile in tiles]
         target = self._target_for(camera.width, camera.height)
         bg = self.background if background is None else _rgb(background)
 
@@ -351,9 +401,22 @@ class Renderer:
         ctx.enable_only(moderngl.DEPTH_TEST)
         ctx.depth_func = "<"
 
+        t_submit = time.perf_counter()
+        if self._tess is not None:
+            calls, triangles, submit_s = self._tess.draw(
+                camera,
+                [
+                    (it.key, tex, it.skirt, it.uv, it.sse_budget)
+                    for it, tex in zip(items, textures, strict=True)
+                ],
+            )
+            self.last_stats = DrawStats(calls, triangles, submit_s * 1e3)
+            return self._finish(camera, fbo, after)
         self._u_rot.write(np.ascontiguousarray(rot.T, dtype=np.float32))
         triangles = calls = 0
-        for item, tile, tex, mvp in zip(items, tiles, textures, view_projections, strict=True):
+        cpu_tiles = [t for t in tiles if isinstance(t, _Tile)]
+        view_projections = [camera.view_projection(tile.center) for tile in cpu_tiles]
+        for item, tile, tex, mvp in zip(items, cpu_tiles, textures, view_projections, strict=True):
             # GLSL matrices are column-major: upload the transpose of the row-major numpy one
             self._u_mvp.write(np.ascontiguousarray(mvp.T, dtype=np.float32))
             self._u_offset.write(np.asarray(_view_offset(rot, tile.center, camera), np.float32))
@@ -370,7 +433,16 @@ class Renderer:
                 tile.vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
                 triangles += count
                 calls += 1
-        self.last_stats = DrawStats(calls, triangles)
+        self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
+        return self._finish(camera, fbo, after)
+
+    def _finish(
+        self,
+        camera: Camera,
+        fbo: moderngl.Framebuffer,
+        after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]],
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        """The other passes, then the read-back."""
         for extra in after:
             extra(camera, fbo)
             fbo.use()
@@ -393,11 +465,14 @@ class Renderer:
         if self._closed:
             return
         self._use()
-        for key in [*self._tiles, *self._textures]:
+        for key in [*self._tiles, *self._textures, *self._gpu_tiles]:
             self.release(key)
         if self._target is not None:
             self._free_target(self._target)
             self._target = None
+        if self._tess is not None:
+            self._tess.close()
+            self._tess = None
         self._free(self._program)
         self._closed = True
         if self._owns_ctx:

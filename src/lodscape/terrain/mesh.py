@@ -56,6 +56,9 @@ class TileMesh:
     #: (P, 10) each surface patch's normal cone and bounding sphere (``lodscape.lod.cull``; NaN
     #: rows: none); a grid's patches are runs of 2·PATCH² triangles, a TIN is one patch.
     cone: NDArray[np.float64] | None = None
+    #: The (S+1)² heights a grid was built from (row 0 north), for the GPU terrain mode's
+    #: height textures; None for an irregular mesh.
+    heights: NDArray[np.float32] | None = None
 
     @property
     def triangles(self) -> int:
@@ -197,7 +200,7 @@ def build_mesh(
         indices = adaptive_indices(diag)
     surface = (grid_indices(s) if indices is None else indices)[: 2 * s * s]
     cone = patch_cones(vertices[: (s + 1) ** 2], surface.reshape(patches(s), -1, 3), up)
-    return TileMesh(key, s, vertices, center, up, indices, cone)
+    return TileMesh(key, s, vertices, center, up, indices, cone, np.asarray(heights, np.float32))
 
 
 def tin_mesh(

@@ -1,0 +1,378 @@
+"""The GPU terrain mode (paper 001): each tile a few quad patches, tessellated in hardware and
+displaced by the tile's height texture, so the CPU sends a handful of uniforms and one draw per
+tile whatever the detail.
+
+Control shader: each patch edge gets a level, a power of two up to the patch's cells, that is
+the larger of two rules. The pixel rule of paper 000: the edge's length on screen
+(length · d / distance, d the camera's pixels per unit of tangent) over ``px_per_segment``. The
+error rule: the tile's error table says how far each level strays from the full grid (metres);
+projected from the nearest the edge can be, it must stay under the tile's share of the frame's
+screen-space error (``max_sse`` less the error the tile's own level already has). An edge's
+level depends on its two ends and its own table row only, so the two patches on an edge (and,
+up to rounding, the two tiles on a border) split it alike; the tiles' skirts, as in the CPU
+mode, close what a border between levels leaves.
+
+Evaluation shader: a vertex is the bilinear blend of the grid's base positions and normals on
+the ellipsoid (``terrain.heightmap.tile_frame``) displaced by the bilinear height, in the tile's
+east-north-up frame, which the draw's matrix turns into the camera's in float64 on the CPU.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.errors import LodscapeError
+from lodscape.lod.camera import Camera
+from lodscape.terrain.heightmap import LEVELS, HeightTile, patch_layout, tile_frame
+
+__all__ = ["TessTerrain", "TessellationUnavailable", "patch_grid"]
+
+F64 = NDArray[np.float64]
+
+_VERTEX = """
+#version 410
+in vec3 in_patch;        // u, v over the tile (0..1, v from the north), skirt flag
+out vec3 c_patch;
+void main() { c_patch = in_patch; }
+"""
+
+_CONTROL = """
+#version 410
+layout(vertices = 4) out;
+in vec3 c_patch[];
+out vec3 e_patch[];
+uniform sampler2D u_frame;    // (S+1) x 2(S+1): base positions, then normals (tile frame)
+uniform sampler2D u_height;   // (S+1)^2 metres
+uniform sampler2D u_errors;   // LEVELS + 2 columns: per patch, then per patch edge
+uniform vec3 u_eye;           // camera position in the tile frame
+uniform float u_scale;        // pixels per unit of tangent (the d of H = h·d/dist)
+uniform float u_px;           // target pixels per segment (the pixel rule)
+uniform float u_budget;       // screen-space error this tile may add, pixels
+uniform float u_near;
+uniform float u_cells;        // S
+uniform float u_patches;      // P
+uniform float u_max;          // cells a patch side: the finest level
+
+vec3 corner(vec2 uv) {
+    ivec2 t = ivec2(round(uv * u_cells));
+    int n = int(u_cells) + 1;
+    vec3 base = texelFetch(u_frame, t, 0).xyz;
+    vec3 up = texelFetch(u_frame, ivec2(t.x, t.y + n), 0).xyz;
+    return base + texelFetch(u_height, t, 0).r * up;
+}
+
+float error_level(int row, float dist) {
+    // the coarsest level whose error, seen from the nearest the piece can be, fits the budget
+    for (int i = 0; i < 5; ++i) {
+        float e = texelFetch(u_errors, ivec2(i, row), 0).r;
+        if (e * u_scale <= u_budget * dist) return float(1 << i);
+    }
+    return u_max;
+}
+
+float quantise(float l) { return min(exp2(ceil(log2(clamp(l, 1.0, u_max)))), u_max); }
+
+float edge_level(vec2 a, vec2 b) {
+    // the same arithmetic whichever patch asks: ends in a fixed order
+    if (a.x > b.x || (a.x == b.x && a.y > b.y)) { vec2 t = a; a = b; b = t; }
+    vec3 pa = corner(a), pb = corner(b);
+    float len = length(pb - pa);
+    int P = int(u_patches);
+    int row;
+    if (a.y == b.y) {
+        row = P * P + int(round(a.y * u_patches)) * P + int(round(a.x * u_patches));
+    } else {
+        row = P * P + P * (P + 1) + int(round(a.x * u_patches)) * P + int(round(a.y * u_patches));
+    }
+    float lo = texelFetch(u_errors, ivec2(5, row), 0).r;
+    float hi = texelFetch(u_errors, ivec2(6, row), 0).r;
+    float dist = max(min(distance(u_eye, pa), distance(u_eye, pb)) - 0.5 * len - (hi - lo), u_near);
+    return quantise(max(len * u_scale / dist / u_px, error_level(row, dist)));
+}
+
+void main() {
+    e_patch[gl_InvocationID] = c_patch[gl_InvocationID];
+    if (gl_InvocationID != 0) return;
+    vec3 q0 = c_patch[0], q1 = c_patch[1], q2 = c_patch[2], q3 = c_patch[3];
+    if (q3.z > 0.5) {
+        // a skirt: q0-q1 on the tile's edge, q3-q2 hanging below it
+        float l = edge_level(q0.xy, q1.xy);
+        gl_TessLevelOuter[0] = 1.0; gl_TessLevelOuter[1] = l;
+        gl_TessLevelOuter[2] = 1.0; gl_TessLevelOuter[3] = l;
+        gl_TessLevelInner[0] = l; gl_TessLevelInner[1] = 1.0;
+        return;
+    }
+    gl_TessLevelOuter[0] = edge_level(q0.xy, q3.xy);
+    gl_TessLevelOuter[1] = edge_level(q0.xy, q1.xy);
+    gl_TessLevelOuter[2] = edge_level(q1.xy, q2.xy);
+    gl_TessLevelOuter[3] = edge_level(q3.xy, q2.xy);
+    int P = int(u_patches);
+    int row = int(round(q0.y * u_patches)) * P + int(round(q0.x * u_patches));
+    vec3 p0 = corner(q0.xy), p1 = corner(q1.xy), p2 = corner(q2.xy), p3 = corner(q3.xy);
+    vec3 c = 0.25 * (p0 + p1 + p2 + p3);
+    float r = max(max(distance(c, p0), distance(c, p1)), max(distance(c, p2), distance(c, p3)));
+    float lo = texelFetch(u_errors, ivec2(5, row), 0).r;
+    float hi = texelFetch(u_errors, ivec2(6, row), 0).r;
+    float dist = max(distance(u_eye, c) - r - (hi - lo), u_near);
+    float side = max(distance(p0, p2), distance(p1, p3)) * 0.70710678;
+    float inner = quantise(max(side * u_scale / dist / u_px, error_level(row, dist)));
+    gl_TessLevelInner[0] = inner;
+    gl_TessLevelInner[1] = inner;
+}
+"""
+
+_EVALUATION = """
+#version 410
+layout(quads, equal_spacing, ccw) in;
+in vec3 e_patch[];
+uniform sampler2D u_frame;
+uniform sampler2D u_height;
+uniform mat4 u_mvp;        // projection · view for positions in the tile frame
+uniform mat3 u_rot;        // tile frame → view rotation
+uniform vec3 u_offset;     // view-space position of the tile frame's origin
+uniform vec3 u_up;         // where skirts hang (the tile frame's up at its centre)
+uniform float u_skirt;
+uniform float u_cells;
+uniform vec3 u_uv;         // texture window: offset (u, v) and scale (an ancestor's texture)
+out vec2 v_uv;
+out float v_dist;
+void main() {
+    float a = gl_TessCoord.x, b = gl_TessCoord.y;
+    vec3 q = mix(mix(e_patch[0], e_patch[1], a), mix(e_patch[3], e_patch[2], a), b);
+    float n = u_cells + 1.0;
+    vec2 t = (q.xy * u_cells + 0.5) / vec2(n, 2.0 * n);
+    vec3 base = textureLod(u_frame, t, 0.0).xyz;
+    vec3 up = textureLod(u_frame, t + vec2(0.0, 0.5), 0.0).xyz;
+    float h = textureLod(u_height, (q.xy * u_cells + 0.5) / n, 0.0).r;
+    vec3 p = base + h * up - q.z * u_skirt * u_up;
+    gl_Position = u_mvp * vec4(p, 1.0);
+    v_uv = u_uv.xy + u_uv.z * q.xy;
+    v_dist = -(u_offset + u_rot * p).z;
+}
+"""
+
+
+class TessellationUnavailable(LodscapeError):
+    """The OpenGL driver has no tessellation shaders (OpenGL 4.0)."""
+
+
+def patch_grid(segments: int) -> NDArray[np.float32]:
+    """Control points (4 per patch: u, v, skirt) of a tile of ``segments`` cells: P×P surface
+    patches row by row from the north-west, then the skirt patches of the north, east, south
+    and west edges (each: two points on the edge, then the same two hanging)."""
+    p, _ = patch_layout(segments)
+    g = np.arange(p + 1, dtype=np.float64) / p
+    out = []
+    for j in range(p):
+        for i in range(p):
+            u0, u1, v0, v1 = g[i], g[i + 1], g[j], g[j + 1]
+            out += [[u0, v0, 0], [u1, v0, 0], [u1, v1, 0], [u0, v1, 0]]
+    for k in range(p):
+        a, b = g[k], g[k + 1]
+        for e0, e1 in (
+            ((a, 0.0), (b, 0.0)),  # north
+            ((1.0, a), (1.0, b)),  # east
+            ((a, 1.0), (b, 1.0)),  # south
+            ((0.0, a), (0.0, b)),  # west
+        ):
+            out += [[*e0, 0], [*e1, 0], [*e1, 1], [*e0, 1]]
+    return np.asarray(out, np.float32)
+
+
+@dataclass(eq=False)
+class _Tile:
+    height: moderngl.Texture
+    errors: moderngl.Texture
+    segments: int
+    z: int
+    y: int
+    origin: F64
+    basis: F64
+    up: bytes
+    nbytes: int
+
+
+class TessTerrain:
+    """GL objects of the GPU terrain mode in one context: per tile a height texture and an
+    error table, per tile row a frame texture, per grid size the patches."""
+
+    #: Frame textures kept (one per tile row and grid size in use).
+    FRAMES = 256
+
+    def __init__(self, ctx: moderngl.Context, fragment_shader: str) -> None:
+        if ctx.version_code < 400:
+            raise TessellationUnavailable(
+                f"the GPU terrain mode needs OpenGL 4.0 tessellation; this driver "
+                f"({ctx.info.get('GL_RENDERER', '?')}) offers {ctx.version_code / 100:.1f}"
+            )
+        self.ctx = ctx
+        frag = fragment_shader.replace("#version 330", "#version 410")
+        self.program = ctx.program(
+            vertex_shader=_VERTEX,
+            tess_control_shader=_CONTROL,
+            tess_evaluation_shader=_EVALUATION,
+            fragment_shader=frag,
+        )
+        self._p: dict[str, moderngl.Uniform] = {}
+        for name in self.program:
+            member = self.program[name]
+            if isinstance(member, moderngl.Uniform):
+                self._p[name] = member
+        for unit, name in ((0, "u_tex"), (1, "u_frame"), (2, "u_height"), (3, "u_errors")):
+            if name in self._p:
+                self._p[name].value = unit
+        self._tiles: dict[int, _Tile] = {}
+        self._frames: OrderedDict[tuple[int, int, int], moderngl.Texture] = OrderedDict()
+        self._patches: dict[int, tuple[moderngl.Buffer, moderngl.VertexArray, int]] = {}
+        self._query = ctx.query(primitives=True)
+        self.px_per_segment = 4.0
+
+    # --- resources --------------------------------------------------------------------------
+
+    def upload(self, ht: HeightTile) -> int:
+        """Make ``ht`` drawable under its key; returns the GPU bytes it holds."""
+        s = ht.segments
+        n = s + 1
+        height = self.ctx.texture((n, n), 1, np.ascontiguousarray(ht.heights), dtype="f4")
+        height.build_mipmaps()
+        height.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        height.repeat_x = height.repeat_y = False
+        errors = self.ctx.texture(
+            (LEVELS + 2, ht.errors.shape[0]), 1, np.ascontiguousarray(ht.errors), dtype="f4"
+        )
+        errors.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self._tiles[ht.key] = _Tile(
+            height,
+            errors,
+            s,
+            ht.z,
+            ht.y,
+            ht.origin,
+            ht.basis,
+            np.asarray(ht.up, np.float32).tobytes(),
+            ht.nbytes,
+        )
+        return ht.nbytes
+
+    def release(self, key: int) -> bool:
+        tile = self._tiles.pop(key, None)
+        if tile is None:
+            return False
+        tile.height.release()
+        tile.errors.release()
+        return True
+
+    def has(self, key: int) -> bool:
+        return key in self._tiles
+
+    def close(self) -> None:
+        for key in list(self._tiles):
+            self.release(key)
+        for tex in self._frames.values():
+            tex.release()
+        self._frames.clear()
+        for buf, vao, _ in self._patches.values():
+            vao.release()
+            buf.release()
+        self._patches.clear()
+        self.program.release()
+
+    def _frame(self, z: int, y: int, s: int) -> moderngl.Texture:
+        key = (z, y, s)
+        tex = self._frames.get(key)
+        if tex is not None:
+            self._frames.move_to_end(key)
+            return tex
+        grid, _, _ = tile_frame(z, y, s)
+        n = s + 1
+        # base positions in the first n rows, normals in the next n
+        data = np.concatenate([grid[..., :4], grid[..., 4:]], axis=0)
+        tex = self.ctx.texture((n, 2 * n), 4, np.ascontiguousarray(data), dtype="f4")
+        tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        tex.repeat_x = tex.repeat_y = False
+        self._frames[key] = tex
+        while len(self._frames) > self.FRAMES:
+            _, old = self._frames.popitem(last=False)
+            old.release()
+        return tex
+
+    def _patch_vao(self, s: int) -> tuple[moderngl.VertexArray, int]:
+        entry = self._patches.get(s)
+        if entry is None:
+            pts = patch_grid(s)
+            buf = self.ctx.buffer(pts.tobytes())
+            vao = self.ctx.vertex_array(self.program, [(buf, "3f", "in_patch")])
+            entry = (buf, vao, len(pts))
+            self._patches[s] = entry
+        return entry[1], entry[2]
+
+    # --- drawing ----------------------------------------------------------------------------
+
+    def draw(
+        self,
+        camera: Camera,
+        items: list[tuple[int, moderngl.Texture, float, tuple[float, float, float], float]],
+    ) -> tuple[int, int, float]:
+        """Draw (key, texture, skirt, uv window, error budget px) items into the bound
+        framebuffer; returns (draw calls, triangles the tessellator made, seconds spent issuing
+        them)."""
+        t0 = time.perf_counter()
+        ctx = self.ctx
+        p = self._p
+        ctx.patch_vertices = 4
+        rot = camera.rotation
+        p["u_scale"].value = float(camera.scale)
+        p["u_px"].value = float(self.px_per_segment)
+        p["u_near"].value = float(camera.near or 0.1)
+        calls = 0
+        with self._query:
+            for key, tex, skirt, uv, budget in items:
+                tile = self._tiles[key]
+                s = tile.segments
+                pp, c = patch_layout(s)
+                to_world = np.eye(4)
+                to_world[:3, :3] = tile.basis.T
+                mvp = camera.view_projection(tile.origin) @ to_world
+                p["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))
+                p["u_rot"].write(np.ascontiguousarray((rot @ tile.basis.T).T, np.float32))
+                p["u_offset"].write(np.asarray(rot @ (tile.origin - camera.position), np.float32))
+                p["u_eye"].write(
+                    np.asarray(tile.basis @ (camera.position - tile.origin), np.float32)
+                )
+                # skirts hang along the frame's up, which is the centre's ellipsoid normal
+                p["u_up"].value = (0.0, 0.0, 1.0)
+                p["u_skirt"].value = float(skirt)
+                p["u_uv"].value = uv
+                p["u_budget"].value = float(max(budget, 1e-3))
+                p["u_cells"].value = float(s)
+                p["u_patches"].value = float(pp)
+                p["u_max"].value = float(c)
+                tex.use(0)
+                self._frame(tile.z, tile.y, s).use(1)
+                tile.height.use(2)
+                tile.errors.use(3)
+                vao, vertices = self._patch_vao(s)
+                vao.render(moderngl.PATCHES, vertices=vertices)
+                calls += 1
+        submit = time.perf_counter() - t0
+        return calls, int(self._query.primitives), submit
+
+    def triangles_hint(self, key: int) -> int:
+        """Triangles of a tile at full tessellation (two per cell, skirts included)."""
+        tile = self._tiles.get(key)
+        if tile is None:
+            return 0
+        s = tile.segments
+        return 2 * s * s + 8 * s
+
+    def resident(self) -> dict[int, int]:
+        return {key: t.nbytes for key, t in self._tiles.items()}
+
+    def frame_count(self) -> int:
+        return len(self._frames)
