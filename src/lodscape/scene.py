@@ -76,6 +76,9 @@ class SceneOptions:
     #: hardware and displaced by its height texture (paper 001). Without tessellation (OpenGL
     #: < 4.0) "gpu" falls back to "cpu", and ``Scene.terrain_mode_note`` says why.
     terrain_mode: str = "cpu"
+    #: The GPU terrain mode's pixel rule: a patch edge gets a segment per this many pixels of
+    #: its length on screen (more where its error table asks for them).
+    tess_px: float = 4.0
 
     def __post_init__(self) -> None:
         if not self.gpu_budget_mb > 0.0:
@@ -84,6 +87,8 @@ class SceneOptions:
             raise ValueError(f"Expected at least one worker, got {self.workers}")
         if not self.anisotropy >= 1.0:
             raise ValueError(f"Expected anisotropy >= 1, got {self.anisotropy}")
+        if not self.tess_px > 0.0:
+            raise ValueError(f"Expected a positive tess_px, got {self.tess_px}")
         if self.terrain_mode not in ("cpu", "gpu"):
             raise ValueError(f"Expected terrain_mode cpu or gpu, got {self.terrain_mode!r}")
 
@@ -510,6 +515,7 @@ class Scene:
                     background=self.options.background,
                     anisotropy=self.options.anisotropy,
                     terrain_mode=mode,
+                    tess_px=self.options.tess_px,
                 )
             except TessellationUnavailable as exc:
                 self.terrain_mode_note = f"{exc}; drawing in the CPU terrain mode"

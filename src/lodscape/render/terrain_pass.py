@@ -168,6 +168,7 @@ class Renderer:
         background: Rgb = (0.53, 0.70, 0.90),
         anisotropy: float = _MAX_ANISOTROPY,
         terrain_mode: str = "cpu",
+        tess_px: float = 4.0,
     ) -> None:
         if terrain_mode not in ("cpu", "gpu"):
             raise ValueError(f"terrain mode is cpu or gpu, got {terrain_mode!r}")
@@ -205,6 +206,7 @@ class Renderer:
         self._gpu_tiles: dict[int, _GpuTile] = {}
         if terrain_mode == "gpu":
             self._tess = TessTerrain(self.ctx, _FRAGMENT_SHADER)
+            self._tess.px_per_segment = float(tess_px)
 
     @property
     def anisotropy(self) -> float:
