@@ -1,0 +1,93 @@
+"""The two terrain modes along one flight (paper 001's GPU terrain against the spine's meshes).
+
+    python bench/bench_terrain_modes.py [--frames 60] [--size 1280x720] [--n 2049]
+
+Terrain: a spectral fBm DEM (n² samples at 5 m, UTM 17N, as bench_spine writes it), opened
+directly (meshed on the fly). The flight: a west-to-east line across its middle, 250 m above
+its highest point, looking 20° down, then the same line at 1,500 m. Each mode flies it twice in
+one process with the same renderer settings: the first pass loads every tile, the second is
+timed (frames of it that still load a tile are left out, and counted). Per frame, medians: CPU
+time (selection, plus issuing the terrain's draws: uniforms and draw calls, no GPU wait), the
+whole frame (read-back of colour and distance included), triangles drawn (the GPU mode's
+counted by a primitives query) and GPU bytes of the tiles resident (meshes against height
+textures with their error tables). On llvmpipe the "CPU time" of a draw includes its vertex and
+tessellation shading, which Mesa runs on the calling thread: there only the frame time and the
+memory mean much; on a GPU the two modes' CPU times compare what the CPU does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import lodscape
+from bench_spine import write
+from lodscape import Camera, SceneOptions
+from lodscape.geo.tiles import merc_to_lonlat
+
+
+def flight(scene: lodscape.Scene, frames: int, alt: float, w: int, h: int) -> list[Camera]:
+    b = scene.provider.bounds_merc
+    y = (b.top + b.bottom) / 2
+    xs = np.linspace(b.left + 0.1 * (b.right - b.left), b.right - 0.1 * (b.right - b.left), frames)
+    lon, lat = merc_to_lonlat(xs, np.full(frames, y))
+    return [
+        Camera(float(a), float(c), alt, heading=90.0, pitch=-20.0, width=w, height=h)
+        for a, c in zip(lon, lat, strict=True)
+    ]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--size", default="1280x720")
+    ap.add_argument("--n", type=int, default=2049)
+    args = ap.parse_args()
+    w, h = (int(v) for v in args.size.split("x"))
+    with tempfile.TemporaryDirectory() as tmp:
+        dem = Path(tmp) / "fbm.tif"
+        write(dem, args.n)
+        for label, agl in (("low (250 m over the top)", 250.0), ("high (1,500 m)", 1500.0)):
+            print(f"\n{label}, {w}×{h}, {args.frames} frames, {args.n}² DEM at 5 m:")
+            for mode in ("cpu", "gpu"):
+                opts = SceneOptions(terrain_mode=mode, gpu_budget_mb=2048.0)
+                with lodscape.open(str(dem), opts) as scene:
+                    top = scene.tree.height_range[1]
+                    cams = flight(scene, args.frames, top + agl, w, h)
+                    for cam in cams:  # load everything once
+                        scene.render(cam)
+                    cpu, frame, tris, res, calls = [], [], [], [], []
+                    loading = 0
+                    for cam in cams:
+                        t = time.perf_counter()
+                        scene.render(cam)
+                        ms = (time.perf_counter() - t) * 1e3
+                        last = scene.last
+                        assert last is not None
+                        if last.loaded:
+                            # the hysteresis of the pass before chose other tiles here
+                            loading += 1
+                            continue
+                        frame.append(ms)
+                        cpu.append(last.select_ms + last.submit_ms)
+                        tris.append(last.triangles)
+                        res.append(last.resident_mb)
+                        calls.append(last.draw_calls)
+                    assert scene.terrain_mode == mode, scene.terrain_mode_note
+                    print(
+                        f"  {mode}: CPU {statistics.median(cpu):6.2f} ms/frame  "
+                        f"frame {statistics.median(frame):7.1f} ms  "
+                        f"triangles {int(statistics.median(tris)):>9,}  "
+                        f"draws {int(statistics.median(calls)):>4}  "
+                        f"resident {max(res):7.1f} MiB"
+                        + (f"  ({loading} frames that loaded left out)" if loading else "")
+                    )
+
+
+if __name__ == "__main__":
+    main()
