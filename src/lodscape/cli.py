@@ -23,6 +23,7 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.select import SelectOptions
 from lodscape.scene import Scene, SceneOptions
 from lodscape.scene import open as open_scene
+from lodscape.store.tileset import is_tileset
 from lodscape.stream.streamer import Clock
 from lodscape.terrain.detail import Fractal, parse_procedural
 
@@ -54,6 +55,20 @@ def _finite(value: float | None) -> float | None:
 SizeOpt = Annotated[str, typer.Option("--size", help="Viewport WIDTHxHEIGHT in pixels.")]
 OutOpt = Annotated[Path, typer.Option("-o", "--output", help="Image to write (.png, .jpg, .tif).")]
 SseOpt = Annotated[float, typer.Option("--max-sse", help="Screen-space error bound, pixels.")]
+GroundOpt = Annotated[
+    str,
+    typer.Option(
+        "--ground",
+        help="tint: the terrain's own colours (or --imagery); landcover: ground materials "
+        "picked by OSM land use, natural areas and roads (from --landcover, or --city).",
+    ),
+]
+LandcoverOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="An OpenStreetMap file whose land use colours the ground (--ground landcover)."
+    ),
+]
 TerrainModeOpt = Annotated[
     str,
     typer.Option(
@@ -136,8 +151,24 @@ def _open(
     strict: bool = True,
     clock: Clock | None = None,
     detail: Fractal | None = None,
+    landcover: Any = None,
 ) -> Scene:
-    """A scene, with its textures from ``imagery`` when one is given."""
+    """A scene, with its textures from ``imagery`` when one is given, or its ground coloured
+    from a land-cover mask (``landcover``, an ``imagery.landcover.Landcover``)."""
+    if landcover is not None:
+        from lodscape.store.provider import LandcoverProvider
+
+        if imagery is not None:
+            raise LodscapeError("--imagery and --ground landcover both colour the ground: pick one")
+        if detail is None and not is_tileset(source) and not source.startswith("procedural"):
+            # a mask is worth metres, not the DEM's resolution: the tree goes on below the data
+            # with heights interpolated (fractal detail of no amplitude), and its masks with it
+            detail = Fractal(0.7, 0.0, 0)
+        terrain = open_scene(source, options, detail=detail)
+        provider: Any = LandcoverProvider(terrain.provider, landcover)
+        terrain.release_provider()
+        terrain.close()
+        return Scene(provider, options, owns=True, clock=clock)
     if imagery is None:
         return open_scene(source, options, clock=clock, detail=detail)
     from lodscape.imagery.sources import imagery_source
@@ -207,6 +238,22 @@ def _scene_options(*, max_sse: float, anisotropy: float, terrain_mode: str) -> S
         )
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None
+
+
+def _landcover(ground: str, landcover: Path | None, city: Path | None) -> Any:
+    """The land cover --ground asks for, read from --landcover or else --city; None for tint."""
+    if ground == "tint":
+        if landcover is not None:
+            raise LodscapeError("--landcover needs --ground landcover")
+        return None
+    if ground != "landcover":
+        raise LodscapeError(f"--ground is tint or landcover, got {ground!r}")
+    path = landcover or city
+    if path is None:
+        raise LodscapeError("--ground landcover needs an OSM file: --landcover FILE or --city FILE")
+    from lodscape.imagery.landcover import read_landcover
+
+    return read_landcover(path)
 
 
 def _mode_notice(scene: Scene) -> None:
@@ -308,6 +355,8 @@ def render(
     ] = None,
     max_sse: SseOpt = 2.0,
     terrain_mode: TerrainModeOpt = "cpu",
+    ground: GroundOpt = "tint",
+    landcover: LandcoverOpt = None,
     anisotropy: Annotated[
         float,
         typer.Option(
@@ -329,7 +378,10 @@ def render(
     options = _scene_options(max_sse=max_sse, anisotropy=anisotropy, terrain_mode=terrain_mode)
     fractal = _detail(source, detail, hurst, sigma, seed)
     source, town = _city_source(source, city)
-    with _open(source, options, imagery, imagery_cache, strict=False, detail=fractal) as scene:
+    cover = _landcover(ground, landcover, city)
+    with _open(
+        source, options, imagery, imagery_cache, strict=False, detail=fractal, landcover=cover
+    ) as scene:
         town = _drape(scene, town)
         if lon is None and lat is None and alt is None and town is not None:
             camera = scene.city_camera(w, h, fov)
@@ -377,6 +429,8 @@ def fly(
     ] = 256.0,
     max_sse: SseOpt = 2.0,
     terrain_mode: TerrainModeOpt = "cpu",
+    ground: GroundOpt = "tint",
+    landcover: LandcoverOpt = None,
     anisotropy: Annotated[
         float,
         typer.Option(
@@ -437,10 +491,19 @@ def fly(
         )
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None
+    cover = _landcover(ground, landcover, city)
     cams = list(flight.cameras(route, fps, w, h, pitch=pitch, fov=fov, duration=duration))
     columns = (TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with (
-        _open(source, options, imagery, imagery_cache, clock=SimClock(), detail=fractal) as scene,
+        _open(
+            source,
+            options,
+            imagery,
+            imagery_cache,
+            clock=SimClock(),
+            detail=fractal,
+            landcover=cover,
+        ) as scene,
         Progress(*columns, disable=quiet) as bar,
     ):
         _drape(scene, town)

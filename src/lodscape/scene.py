@@ -459,7 +459,11 @@ class Scene:
         """Ground heights at many points (NaN outside the data)."""
         lon = np.asarray(lon, np.float64)
         lat = np.asarray(lat, np.float64)
-        source = getattr(self.provider, "source", None)
+        provider: Any = self.provider
+        # through the wrappers that change only the textures (imagery, land cover)
+        while getattr(provider, "source", None) is None and getattr(provider, "base", None):
+            provider = provider.base
+        source = getattr(provider, "source", None)
         if source is not None and hasattr(source, "sample"):
             xm, ym = lonlat_to_merc(lon, lat)
             h, ok = source.sample(xm, ym, source.resolution_merc)
@@ -516,6 +520,7 @@ class Scene:
                     anisotropy=self.options.anisotropy,
                     terrain_mode=mode,
                     tess_px=self.options.tess_px,
+                    ground=self.ground,
                 )
             except TessellationUnavailable as exc:
                 self.terrain_mode_note = f"{exc}; drawing in the CPU terrain mode"
@@ -524,8 +529,14 @@ class Scene:
                     camera.height,
                     background=self.options.background,
                     anisotropy=self.options.anisotropy,
+                    ground=self.ground,
                 )
         return self._renderer
+
+    @property
+    def ground(self) -> str:
+        """ "landcover" where the provider's textures are land-cover masks, else "imagery"."""
+        return "landcover" if getattr(self.provider, "landcover", None) is not None else "imagery"
 
     @property
     def terrain_mode(self) -> str:
@@ -672,10 +683,9 @@ def open(
     if isinstance(source, str) and (source == "procedural" or source.startswith("procedural:")):
         return Scene(procedural_provider(source, detail), options, owns=True, clock=clock)
     if isinstance(source, str) and source.startswith("flat:"):
-        source_obj = flat_source(source)
-        return Scene(source_obj, options, owns=True, clock=clock)
-    if isinstance(source, np.ndarray):
-        src: HeightSource = ArraySource(source, **array_kwargs)
+        src: HeightSource = flat_source(source)
+    elif isinstance(source, np.ndarray):
+        src = ArraySource(source, **array_kwargs)
     elif isinstance(source, str | PathLike):
         if is_tileset(source):
             if detail is not None:

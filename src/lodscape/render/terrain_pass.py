@@ -10,6 +10,7 @@ than read back from the depth buffer, whose non-linear 24-bit values lose centim
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -21,7 +22,8 @@ import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.tiles import tile_from_id
+from lodscape.geo.frames import enu_basis
+from lodscape.geo.tiles import bounds_array, tile_from_id, tile_from_id_array
 from lodscape.lod.camera import Camera
 from lodscape.lod.cull import CONE_SIZE
 from lodscape.render._context import create_context, is_software, make_current
@@ -48,17 +50,22 @@ uniform vec3 u_offset;   // view-space position of the tile centre
 uniform vec3 u_up;       // direction skirts hang from (ellipsoid normal at the centre)
 uniform float u_skirt;   // metres to lower skirt vertices in this draw
 uniform vec3 u_uv;       // texture window: offset (u, v) and scale (an ancestor's texture)
+uniform vec3 u_ground;   // the tile's west and north edges (metres, modulo) and its size
 in vec3 in_pos;
 in vec2 in_uv;
 in float in_skirt;
 out vec2 v_uv;
 out float v_dist;
+out vec2 v_ground;
+out vec3 v_view;
 void main() {
     vec3 p = in_pos - in_skirt * u_skirt * u_up;
     gl_Position = u_mvp * vec4(p, 1.0);
     v_uv = u_uv.xy + u_uv.z * in_uv;
+    v_ground = vec2(u_ground.x + in_uv.x * u_ground.z, u_ground.y - in_uv.y * u_ground.z);
+    v_view = u_offset + u_rot * p;
     // linear in view space, so perspective-correct interpolation keeps it exact per fragment
-    v_dist = -(u_offset + u_rot * p).z;
+    v_dist = -v_view.z;
 }
 """
 
@@ -82,6 +89,59 @@ void main() {
     f_dist = v_dist;
 }
 """
+
+_LANDCOVER_FRAGMENT_SHADER = """
+#version 330
+uniform sampler2D u_tex;          // the tile's class mask, one byte a texel (255: no data)
+uniform sampler2DArray u_ground_materials;
+uniform vec3 u_sun;               // towards the sun, view space
+in vec2 v_uv;
+in float v_dist;
+in vec2 v_ground;                 // metres east and north (modulo a whole number of repeats)
+in vec3 v_view;
+#ifdef HEIGHT_NORMALS
+in vec3 v_normal;                 // view space, from the height texture
+#endif
+layout(location = 0) out vec4 f_color;
+layout(location = 1) out float f_dist;
+int cls(ivec2 t, ivec2 size) {
+    return int(texelFetch(u_tex, clamp(t, ivec2(0), size - 1), 0).r * 255.0 + 0.5);
+}
+void main() {
+    ivec2 size = textureSize(u_tex, 0);
+    if (cls(ivec2(floor(v_uv * vec2(size))), size) == 255) discard;
+    // near ground repeats every 8 m, far ground every 64 m: sharp close up, no shimmer afar
+    float far = smoothstep(200.0, 1500.0, v_dist);
+    vec2 st = v_uv * vec2(size) - 0.5;
+    ivec2 i0 = ivec2(floor(st));
+    vec2 f = st - vec2(i0);
+    vec3 acc = vec3(0.0);
+    float total = 0.0;
+    for (int k = 0; k < 4; ++k) {
+        ivec2 o = ivec2(k & 1, k >> 1);
+        int c = cls(i0 + o, size);
+        if (c == 255) continue;
+        float w = (o.x == 1 ? f.x : 1.0 - f.x) * (o.y == 1 ? f.y : 1.0 - f.y);
+        vec3 near = texture(u_ground_materials, vec3(v_ground / 8.0, float(c))).rgb;
+        vec3 wide = texture(u_ground_materials, vec3(v_ground / 64.0, float(c))).rgb;
+        acc += w * mix(near, wide, far);
+        total += w;
+    }
+    vec3 albedo = acc / max(total, 1e-6);
+#ifdef HEIGHT_NORMALS
+    vec3 n = normalize(v_normal);
+#else
+    vec3 n = normalize(cross(dFdx(v_view), dFdy(v_view)));
+#endif
+    if (dot(n, v_view) > 0.0) n = -n;
+    float light = 0.35 + 0.65 * max(dot(n, u_sun), 0.0);
+    f_color = vec4(albedo * light, 1.0);
+    f_dist = v_dist;
+}
+"""
+
+#: Ground texture coordinates wrap every this many metres (a whole number of every repeat).
+GROUND_WRAP = 4096.0
 
 _VERTEX_FORMAT = ("3f 2f 1f", "in_pos", "in_uv", "in_skirt")
 _MAX_ANISOTROPY = 16.0
@@ -169,9 +229,14 @@ class Renderer:
         anisotropy: float = _MAX_ANISOTROPY,
         terrain_mode: str = "cpu",
         tess_px: float = 4.0,
+        ground: str = "imagery",
     ) -> None:
         if terrain_mode not in ("cpu", "gpu"):
             raise ValueError(f"terrain mode is cpu or gpu, got {terrain_mode!r}")
+        if ground not in ("imagery", "landcover"):
+            raise ValueError(f"ground is imagery or landcover, got {ground!r}")
+        #: "landcover": textures are class masks, coloured from the ground materials.
+        self.ground = ground
         self._owns_ctx = ctx is None
         self.ctx: moderngl.Context = create_context() if ctx is None else ctx
         self._thread = threading.get_ident()
@@ -184,8 +249,9 @@ class Renderer:
         # one index buffer per segment count, shared by its tiles and freed with the last of them
         self._indices: dict[int, tuple[moderngl.Buffer, int]] = {}
         make_current(self.ctx)
+        fragment = _FRAGMENT_SHADER if ground == "imagery" else _LANDCOVER_FRAGMENT_SHADER
         self._program = self._track(
-            self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+            self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=fragment)
         )
         self._u_mvp = self._uniform("u_mvp")
         self._u_rot = self._uniform("u_rot")
@@ -194,6 +260,21 @@ class Renderer:
         self._u_skirt = self._uniform("u_skirt")
         self._u_uv = self._uniform("u_uv")
         self._uniform("u_tex").value = 0
+        self._materials: moderngl.TextureArray | None = None
+        if ground == "landcover":
+            from lodscape.imagery.landcover import ground_layers
+
+            layers = ground_layers()
+            mats = self._track(
+                self.ctx.texture_array(
+                    (layers.shape[2], layers.shape[1], layers.shape[0]), 4, layers.tobytes()
+                )
+            )
+            mats.build_mipmaps()
+            mats.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+            mats.repeat_x = mats.repeat_y = True
+            self._materials = mats
+            self._uniform("u_ground_materials").value = 4
         # 1 turns it off. On a software rasteriser (llvmpipe) anisotropic filtering triples the
         # cost of a frame and takes minutes at a grazing view over a magnified texture: off there
         cap = 1.0 if is_software(self.ctx) else float(self.ctx.max_anisotropy)
@@ -205,7 +286,7 @@ class Renderer:
         self._tess: TessTerrain | None = None
         self._gpu_tiles: dict[int, _GpuTile] = {}
         if terrain_mode == "gpu":
-            self._tess = TessTerrain(self.ctx, _FRAGMENT_SHADER)
+            self._tess = TessTerrain(self.ctx, fragment)
             self._tess.px_per_segment = float(tess_px)
 
     @property
@@ -276,6 +357,18 @@ class Renderer:
         if key in self._textures:
             return
         image = np.ascontiguousarray(image, dtype=np.uint8)
+        if self.ground == "landcover":
+            if image.ndim != 3 or image.shape[2] != 1:
+                raise ValueError(f"texture {key}: expected an (H, W, 1) mask, got {image.shape}")
+            # classes are not blended by the sampler (the shader blends their materials): no
+            # mipmaps, nearest texels, one byte each
+            tex = self._track(
+                self.ctx.texture((image.shape[1], image.shape[0]), 1, image, alignment=1)
+            )
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            tex.repeat_x = tex.repeat_y = False
+            self._textures[key] = (tex, image.nbytes)
+            return
         if image.ndim != 3 or image.shape[2] not in (3, 4):
             raise ValueError(
                 f"texture {key}: expected an (H, W, 3) or (H, W, 4) image, got {image.shape}"
@@ -404,12 +497,18 @@ class Renderer:
         ctx.depth_func = "<"
 
         t_submit = time.perf_counter()
+        ground = _ground_windows([it.key for it in items], camera)
+        if self._materials is not None:
+            self._materials.use(4)
+            self._uniform("u_sun").write(_sun_view(camera))
         if self._tess is not None:
+            if self._materials is not None:
+                self._tess.set_sun(_sun_view(camera))
             calls, triangles, submit_s = self._tess.draw(
                 camera,
                 [
-                    (it.key, tex, it.skirt, it.uv, it.sse_budget)
-                    for it, tex in zip(items, textures, strict=True)
+                    (it.key, tex, it.skirt, it.uv, it.sse_budget, g)
+                    for it, tex, g in zip(items, textures, ground, strict=True)
                 ],
             )
             self.last_stats = DrawStats(calls, triangles, submit_s * 1e3)
@@ -418,7 +517,12 @@ class Renderer:
         triangles = calls = 0
         cpu_tiles = [t for t in tiles if isinstance(t, _Tile)]
         view_projections = [camera.view_projection(tile.center) for tile in cpu_tiles]
-        for item, tile, tex, mvp in zip(items, cpu_tiles, textures, view_projections, strict=True):
+        u_ground = self._program.get("u_ground", None)
+        for item, tile, tex, mvp, g in zip(
+            items, cpu_tiles, textures, view_projections, ground, strict=True
+        ):
+            if isinstance(u_ground, moderngl.Uniform):
+                u_ground.value = g
             # GLSL matrices are column-major: upload the transpose of the row-major numpy one
             self._u_mvp.write(np.ascontiguousarray(mvp.T, dtype=np.float32))
             self._u_offset.write(np.asarray(_view_offset(rot, tile.center, camera), np.float32))
@@ -541,6 +645,28 @@ class Renderer:
         self.ctx.detect_framebuffer(0).use()
         for obj in (target.fbo, target.color, target.dist, target.depth):
             self._free(obj)
+
+
+def _ground_windows(keys: Sequence[int], camera: Camera) -> list[tuple[float, float, float]]:
+    """Per tile: its west and north edges in ground metres (Web Mercator scaled to the ground at
+    the camera's latitude), modulo ``GROUND_WRAP``, and its size: what ground textures repeat
+    over, continuous from tile to tile."""
+    if not keys:
+        return []
+    z, x, y = tile_from_id_array(np.array([k >> 3 for k in keys], dtype=np.uint64))
+    left, _, right, top = bounds_array(z, x, y)
+    size = right - left
+    k = math.cos(math.radians(camera.lat))
+    out = np.column_stack([np.mod(left * k, GROUND_WRAP), np.mod(top * k, GROUND_WRAP), size * k])
+    return [(float(a), float(b), float(c)) for a, b, c in out]
+
+
+def _sun_view(camera: Camera) -> NDArray[np.float32]:
+    """Towards the sun (azimuth 315°, 45° up, as the tint's hillshade), in view space."""
+    az, alt = math.radians(315.0), math.radians(45.0)
+    enu = np.array([math.sin(az) * math.cos(alt), math.cos(az) * math.cos(alt), math.sin(alt)])
+    world = enu_basis(camera.lon, camera.lat).T @ enu
+    return np.asarray(camera.rotation @ world, np.float32)
 
 
 def _view_offset(

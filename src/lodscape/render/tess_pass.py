@@ -140,20 +140,33 @@ uniform vec3 u_up;         // where skirts hang (the tile frame's up at its cent
 uniform float u_skirt;
 uniform float u_cells;
 uniform vec3 u_uv;         // texture window: offset (u, v) and scale (an ancestor's texture)
+uniform vec3 u_ground;     // the tile's west and north edges (metres, modulo) and its size
 out vec2 v_uv;
 out float v_dist;
+out vec2 v_ground;
+out vec3 v_view;
+out vec3 v_normal;         // view space, from the height texture
+vec3 surface(vec2 uv) {
+    float n = u_cells + 1.0;
+    vec2 t = (clamp(uv, 0.0, 1.0) * u_cells + 0.5) / vec2(n, 2.0 * n);
+    vec3 base = textureLod(u_frame, t, 0.0).xyz;
+    vec3 up = textureLod(u_frame, t + vec2(0.0, 0.5), 0.0).xyz;
+    return base + textureLod(u_height, (clamp(uv, 0.0, 1.0) * u_cells + 0.5) / n, 0.0).r * up;
+}
 void main() {
     float a = gl_TessCoord.x, b = gl_TessCoord.y;
     vec3 q = mix(mix(e_patch[0], e_patch[1], a), mix(e_patch[3], e_patch[2], a), b);
-    float n = u_cells + 1.0;
-    vec2 t = (q.xy * u_cells + 0.5) / vec2(n, 2.0 * n);
-    vec3 base = textureLod(u_frame, t, 0.0).xyz;
-    vec3 up = textureLod(u_frame, t + vec2(0.0, 0.5), 0.0).xyz;
-    float h = textureLod(u_height, (q.xy * u_cells + 0.5) / n, 0.0).r;
-    vec3 p = base + h * up - q.z * u_skirt * u_up;
+    vec3 p = surface(q.xy) - q.z * u_skirt * u_up;
     gl_Position = u_mvp * vec4(p, 1.0);
     v_uv = u_uv.xy + u_uv.z * q.xy;
-    v_dist = -(u_offset + u_rot * p).z;
+    v_ground = vec2(u_ground.x + q.x * u_ground.z, u_ground.y - q.y * u_ground.z);
+    v_view = u_offset + u_rot * p;
+    v_dist = -v_view.z;
+    // the normal from the heights a texel either side (east, and north: v grows southwards)
+    float d = 1.0 / u_cells;
+    vec3 east = surface(q.xy + vec2(d, 0.0)) - surface(q.xy - vec2(d, 0.0));
+    vec3 north = surface(q.xy - vec2(0.0, d)) - surface(q.xy + vec2(0.0, d));
+    v_normal = u_rot * normalize(cross(east, north));
 }
 """
 
@@ -212,7 +225,7 @@ class TessTerrain:
                 f"({ctx.info.get('GL_RENDERER', '?')}) offers {ctx.version_code / 100:.1f}"
             )
         self.ctx = ctx
-        frag = fragment_shader.replace("#version 330", "#version 410")
+        frag = fragment_shader.replace("#version 330", "#version 410\n#define HEIGHT_NORMALS")
         self.program = ctx.program(
             vertex_shader=_VERTEX,
             tess_control_shader=_CONTROL,
@@ -224,7 +237,13 @@ class TessTerrain:
             member = self.program[name]
             if isinstance(member, moderngl.Uniform):
                 self._p[name] = member
-        for unit, name in ((0, "u_tex"), (1, "u_frame"), (2, "u_height"), (3, "u_errors")):
+        for unit, name in (
+            (0, "u_tex"),
+            (1, "u_frame"),
+            (2, "u_height"),
+            (3, "u_errors"),
+            (4, "u_ground_materials"),
+        ):
             if name in self._p:
                 self._p[name].value = unit
         self._tiles: dict[int, _Tile] = {}
@@ -317,11 +336,20 @@ class TessTerrain:
     def draw(
         self,
         camera: Camera,
-        items: list[tuple[int, moderngl.Texture, float, tuple[float, float, float], float]],
+        items: list[
+            tuple[
+                int,
+                moderngl.Texture,
+                float,
+                tuple[float, float, float],
+                float,
+                tuple[float, float, float],
+            ]
+        ],
     ) -> tuple[int, int, float]:
-        """Draw (key, texture, skirt, uv window, error budget px) items into the bound
-        framebuffer; returns (draw calls, triangles the tessellator made, seconds spent issuing
-        them)."""
+        """Draw (key, texture, skirt, uv window, error budget px, ground window) items into
+        the bound framebuffer; returns (draw calls, triangles the tessellator made, seconds
+        spent issuing them)."""
         t0 = time.perf_counter()
         ctx = self.ctx
         p = self._p
@@ -332,7 +360,10 @@ class TessTerrain:
         p["u_near"].value = float(camera.near or 0.1)
         calls = 0
         with self._query:
-            for key, tex, skirt, uv, budget in items:
+            u_ground = p.get("u_ground")
+            for key, tex, skirt, uv, budget, ground in items:
+                if u_ground is not None:
+                    u_ground.value = ground
                 tile = self._tiles[key]
                 s = tile.segments
                 pp, c = patch_layout(s)
@@ -362,6 +393,11 @@ class TessTerrain:
                 calls += 1
         submit = time.perf_counter() - t0
         return calls, int(self._query.primitives), submit
+
+    def set_sun(self, sun: NDArray[np.float32]) -> None:
+        """Towards the sun, view space (the land-cover ground's lighting)."""
+        if "u_sun" in self._p:
+            self._p["u_sun"].write(np.asarray(sun, np.float32))
 
     def triangles_hint(self, key: int) -> int:
         """Triangles of a tile at full tessellation (two per cell, skirts included)."""

@@ -7,6 +7,7 @@ Every method but ``close`` is safe to call from worker threads; none touches the
 from __future__ import annotations
 
 import io
+import math
 import threading
 from typing import Any, Protocol
 
@@ -22,7 +23,7 @@ from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import TileTree, build_tree
 from lodscape.terrain.source import HeightSource
 
-__all__ = ["FractalProvider", "ImageryProvider", "Provider", "RasterProvider"]
+__all__ = ["FractalProvider", "ImageryProvider", "LandcoverProvider", "Provider", "RasterProvider"]
 
 
 class Provider(Protocol):
@@ -220,4 +221,46 @@ class ImageryProvider:
 
     def close(self) -> None:
         self.imagery.close()
+        self.base.close()
+
+
+class LandcoverProvider:
+    """A provider whose textures are land-cover masks (``imagery.landcover``): per tile one byte
+    per texel, the class to paint, and ``NODATA`` where the terrain has no data. The renderer's
+    land-cover ground turns them into colour."""
+
+    def __init__(self, base: Provider, landcover: Any) -> None:
+        self.base = base
+        self.landcover = landcover
+        self.name = base.name
+        self.tree = base.tree
+        self.bounds_merc = base.bounds_merc
+
+    def ground_height(self, lon: float, lat: float) -> float | None:
+        return self.base.ground_height(lon, lat)
+
+    def fetch(self, key: int) -> bytes:
+        if key & 7 != TEXTURE:
+            return self.base.fetch(key)
+        from lodscape.imagery.landcover import NODATA
+
+        t = tile_from_id(key >> 3)
+        coverage = self.base.texture(key)[..., 3]
+        mask = self.landcover.mask(t.z, t.x, t.y, coverage.shape[0])
+        mask[coverage < 128] = NODATA
+        return bytes(mask.tobytes())
+
+    def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
+        if key & 7 != TEXTURE:
+            return self.base.decode(key, data)
+        n = math.isqrt(len(data))
+        return np.frombuffer(data, dtype=np.uint8).reshape(n, n, 1).copy()
+
+    def mesh(self, key: int) -> TileMesh:
+        return self.base.mesh(key)
+
+    def texture(self, key: int) -> NDArray[np.uint8]:
+        return texture_of(self, key)
+
+    def close(self) -> None:
         self.base.close()
