@@ -87,6 +87,51 @@ def main() -> None:
                         f"resident {max(res):7.1f} MiB"
                         + (f"  ({loading} frames that loaded left out)" if loading else "")
                     )
+    landcover_memory(max(args.frames // 3, 5), w, h)
+
+
+def landcover_memory(frames: int, w: int, h: int) -> None:
+    """The land-cover ground against the pre-baked tint it replaces, over the bundled Helsinki
+    extract on level ground: the same tiles at the same ground resolution (256² texels a
+    tile), texture bytes resident on the GPU, and frame times."""
+    from lodscape.data import sample_city_path
+    from lodscape.imagery.landcover import ground_layers, read_landcover
+    from lodscape.lod.select import TEXTURE
+    from lodscape.store.provider import LandcoverProvider
+    from lodscape.terrain.detail import Fractal
+
+    cover = read_landcover(sample_city_path())
+    spec = "flat:24.925,60.158,24.965,60.186"
+    print(f"\nland cover against the tint, {w}×{h}, {frames} frames over Helsinki at 150 m:")
+    lons = np.linspace(24.932, 24.955, frames)
+    cams = [
+        Camera(float(x), 60.1665, 150.0, heading=10.0, pitch=-25.0, width=w, height=h) for x in lons
+    ]
+    for ground in ("imagery", "landcover"):
+        opts = SceneOptions(gpu_budget_mb=4096.0)
+        scene = lodscape.open(spec, opts, detail=Fractal(0.7, 0.0, 0))
+        if ground == "landcover":
+            provider = LandcoverProvider(scene.provider, cover)
+            scene.release_provider()
+            scene.close()
+            scene = lodscape.Scene(provider, opts, owns=True)
+        with scene:
+            for cam in cams:
+                scene.render(cam)
+            times = []
+            for cam in cams:
+                t = time.perf_counter()
+                scene.render(cam)
+                times.append((time.perf_counter() - t) * 1e3)
+            assert scene._renderer is not None
+            tex = [v for k, v in scene._renderer.resident().items() if k & 7 == TEXTURE]
+            extra = ground_layers().nbytes * 4 // 3 if ground == "landcover" else 0
+            print(
+                f"  {ground:9s}: {len(tex)} tile textures, {sum(tex) / 2**20:6.2f} MiB "
+                f"({sum(tex) / len(tex) / 1024:5.1f} KiB a tile)"
+                + (f" + {extra / 2**20:.2f} MiB of ground materials, once" if extra else "")
+                + f"; frame {statistics.median(times):6.1f} ms"
+            )
 
 
 if __name__ == "__main__":
