@@ -134,29 +134,31 @@ class Landcover:
     skipped: int = 0
 
     def __post_init__(self) -> None:
-        self._tree = shapely.STRtree([g for g, _ in self.shapes])
+        geoms = [g for g, _ in self.shapes]
+        shapely.prepare(geoms)
+        self._tree = shapely.STRtree(geoms)
 
     def mask(self, z: int, x: int, y: int, size: int = 256) -> NDArray[np.uint8]:
-        """(size, size) class values of tile z/x/y (row 0 north), texel centres sampled."""
-        from affine import Affine
-        from rasterio.features import rasterize
-
+        """(size, size) class values of tile z/x/y (row 0 north): each texel the last shape in
+        painting order that holds its centre."""
         b = xy_bounds(Tile(x, y, z))
         hits = self._tree.query(shapely.box(b.left, b.bottom, b.right, b.top))
         out = np.zeros((size, size), np.uint8)
-        if not len(hits):
-            return out
-        hits = np.sort(hits)  # painting order
-        # built directly: rasterio's from_bounds multiplies affines with *, which affine 3 warns of
-        res_x, res_y = (b.right - b.left) / size, (b.top - b.bottom) / size
-        transform = Affine(res_x, 0.0, b.left, 0.0, -res_y, b.top)
-        rasterize(
-            [(self.shapes[i][0], self.shapes[i][1]) for i in hits],
-            out_shape=(size, size),
-            transform=transform,
-            out=out,
-            dtype=np.uint8,
-        )
+        res = (b.right - b.left) / size
+        for i in np.sort(hits):  # painting order
+            geom, value = self.shapes[i]
+            w, s_, e, n = geom.bounds
+            # the texels whose centres the shape's box can hold
+            c0 = max(int(np.floor((w - b.left) / res - 0.5)) + 1, 0)
+            c1 = min(int(np.floor((e - b.left) / res - 0.5)), size - 1)
+            r0 = max(int(np.floor((b.top - n) / res - 0.5)) + 1, 0)
+            r1 = min(int(np.floor((b.top - s_) / res - 0.5)), size - 1)
+            if c0 > c1 or r0 > r1:
+                continue
+            xs = b.left + (np.arange(c0, c1 + 1) + 0.5) * res
+            ys = b.top - (np.arange(r0, r1 + 1) + 0.5) * res
+            inside = shapely.contains_xy(geom, xs[None, :], ys[:, None])
+            out[r0 : r1 + 1, c0 : c1 + 1][inside] = value
         return out
 
 
