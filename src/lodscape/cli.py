@@ -55,6 +55,14 @@ def _finite(value: float | None) -> float | None:
 SizeOpt = Annotated[str, typer.Option("--size", help="Viewport WIDTHxHEIGHT in pixels.")]
 OutOpt = Annotated[Path, typer.Option("-o", "--output", help="Image to write (.png, .jpg, .tif).")]
 SseOpt = Annotated[float, typer.Option("--max-sse", help="Screen-space error bound, pixels.")]
+CameraFileOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--camera",
+        help="A camera file (JSON: lon, lat, alt, heading, pitch, roll, fov_y), as the viewer's "
+        "K key saves them.",
+    ),
+]
 GroundOpt = Annotated[
     str,
     typer.Option(
@@ -370,6 +378,7 @@ def render(
     sigma: SigmaOpt = None,
     seed: SeedOpt = None,
     city: CityOpt = None,
+    camera_file: CameraFileOpt = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
 ) -> None:
     """Render one view of SOURCE (a DEM, a .lods tileset, procedural:seed=N, or flat with
@@ -383,7 +392,13 @@ def render(
         source, options, imagery, imagery_cache, strict=False, detail=fractal, landcover=cover
     ) as scene:
         town = _drape(scene, town)
-        if lon is None and lat is None and alt is None and town is not None:
+        if camera_file is not None:
+            if lon is not None or lat is not None or alt is not None:
+                raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
+            from lodscape.view import load_camera
+
+            camera = load_camera(camera_file, w, h)
+        elif lon is None and lat is None and alt is None and town is not None:
             camera = scene.city_camera(w, h, fov)
         elif lon is None and lat is None and alt is None:
             camera = scene.overview_camera(w, h, fov)
@@ -711,6 +726,113 @@ def export(
 
     n = export_cesium(tileset, cesium)
     typer.echo(f"wrote {n} terrain tiles and layer.json to {cesium}")
+
+
+@app.command()
+def view(
+    source: Annotated[
+        str, typer.Argument(help="A DEM, a .lods tileset, procedural:seed=N, or flat with --city.")
+    ],
+    camera_file: CameraFileOpt = None,
+    save_camera: Annotated[
+        Path | None,
+        typer.Option("--camera-file", help="Where the K key saves the camera (JSON)."),
+    ] = None,
+    screenshots: Annotated[
+        Path, typer.Option(help="Folder the P key writes screenshots into.")
+    ] = Path("."),
+    size: SizeOpt = "1280x720",
+    fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 60.0,
+    max_sse: SseOpt = 2.0,
+    terrain_mode: TerrainModeOpt = "cpu",
+    ground: GroundOpt = "tint",
+    landcover: LandcoverOpt = None,
+    anisotropy: Annotated[
+        float,
+        typer.Option(
+            callback=_finite, help="Anisotropic filtering cap (software rasterisers: always 1)."
+        ),
+    ] = 16.0,
+    budget_mb: Annotated[
+        float, typer.Option(callback=_finite, help="MiB each of GPU, memory and cache.")
+    ] = 512.0,
+    imagery: ImageryOpt = None,
+    imagery_cache: CacheOpt = None,
+    detail: DetailOpt = "none",
+    city: CityOpt = None,
+    exit_after: Annotated[
+        float | None,
+        typer.Option(callback=_finite, help="Close the window after this many seconds."),
+    ] = None,
+) -> None:
+    """Fly over SOURCE in a window: W/S/A/D/Q/E move, arrows and mouse drag look, the wheel
+    sets the speed; T wireframe, L level colours, C back-face culling, G fractal detail, P
+    screenshot, K save the camera (--camera-file), Esc quits. Tiles stream as you fly."""
+    from lodscape.stream import StreamOptions
+    from lodscape.view import view as run_view
+
+    w, h = _size(size)
+    fractal = _detail(source, detail, None, None, None)
+    try:
+        options = SceneOptions(
+            select=SelectOptions(max_sse=max_sse),
+            anisotropy=anisotropy,
+            terrain_mode=terrain_mode,
+            gpu_budget_mb=budget_mb,
+            stream=StreamOptions(cache_mb=budget_mb, memory_mb=budget_mb),
+        )
+    except ValueError as exc:
+        raise LodscapeError(f"bad option: {exc}") from None
+    source, town = _city_source(source, city)
+    cover = _landcover(ground, landcover, city)
+    opened = _open(source, options, imagery, imagery_cache, detail=fractal, landcover=cover)
+    try:
+        town = _drape(opened, town)
+        if camera_file is not None:
+            from lodscape.view import load_camera
+
+            camera = load_camera(camera_file, w, h)
+        elif town is not None:
+            camera = opened.city_camera(w, h, fov)
+        else:
+            camera = opened.overview_camera(w, h, fov)
+        raster = not is_tileset(source) and not source.startswith("procedural")
+
+        def other(with_detail: bool) -> Scene:
+            made = _open(
+                source,
+                options,
+                imagery,
+                imagery_cache,
+                detail=(fractal or Fractal()) if with_detail else None,
+                landcover=cover,
+            )
+            _drape(made, town)
+            return made
+
+        # the G key's other scene, made when first asked for
+        scenes: dict[str, Any] = {"detail" if fractal is not None else "plain": opened}
+        if fractal is not None:
+            scenes["plain"] = lambda: other(False)
+        elif raster and cover is None:
+            scenes["detail"] = lambda: other(True)
+    except BaseException:
+        opened.close()
+        raise
+    done = run_view(
+        scenes,
+        camera,
+        start="detail" if fractal is not None else "plain",
+        screenshot_dir=screenshots,
+        camera_file=save_camera,
+        exit_after=exit_after,
+        title=f"lodscape: {source}",
+    )
+    c = done["camera"]
+    typer.echo(
+        f"{done['frames']} frames, {done['screenshots']} screenshots; camera "
+        f"{c.lon:.6f} {c.lat:.6f} {c.alt:.1f} heading {c.heading:.1f} pitch {c.pitch:.1f}"
+    )
 
 
 city_app = typer.Typer(

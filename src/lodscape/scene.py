@@ -157,6 +157,8 @@ class Scene:
         self.options = options or SceneOptions()
         self.tree = self.provider.tree
         self._renderer: Renderer | None = None
+        #: A context to draw in (a viewer's window) instead of a headless one of its own.
+        self._ctx: Any = None
         #: Why frames are drawn in the CPU terrain mode though the options asked for "gpu".
         self.terrain_mode_note: str | None = None
         self.city: Any = None
@@ -516,6 +518,7 @@ class Scene:
                 self._renderer = Renderer(
                     camera.width,
                     camera.height,
+                    ctx=self._ctx,
                     background=self.options.background,
                     anisotropy=self.options.anisotropy,
                     terrain_mode=mode,
@@ -527,6 +530,7 @@ class Scene:
                 self._renderer = Renderer(
                     camera.width,
                     camera.height,
+                    ctx=self._ctx,
                     background=self.options.background,
                     anisotropy=self.options.anisotropy,
                     ground=self.ground,
@@ -537,6 +541,18 @@ class Scene:
     def ground(self) -> str:
         """ "landcover" where the provider's textures are land-cover masks, else "imagery"."""
         return "landcover" if getattr(self.provider, "landcover", None) is not None else "imagery"
+
+    def use_context(self, ctx: Any) -> None:
+        """Draw in ``ctx`` (a window's OpenGL context) from the next frame on; frames then stay
+        in ``renderer.framebuffer`` instead of coming back as arrays."""
+        if self._renderer is not None:
+            raise RuntimeError("use_context before the first frame")
+        self._ctx = ctx
+
+    @property
+    def renderer(self) -> Renderer | None:
+        """The renderer of the frames so far (None before the first)."""
+        return self._renderer
 
     @property
     def terrain_mode(self) -> str:

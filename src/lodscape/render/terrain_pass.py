@@ -72,6 +72,7 @@ void main() {
 _FRAGMENT_SHADER = """
 #version 330
 uniform sampler2D u_tex;
+uniform vec4 u_tint;     // the viewer's LOD colouring: a colour and how much of it
 in vec2 v_uv;
 in float v_dist;
 layout(location = 0) out vec4 f_color;
@@ -85,7 +86,7 @@ void main() {
     ivec2 size = textureSize(u_tex, 0);
     ivec2 texel = clamp(ivec2(floor(v_uv * vec2(size))), ivec2(0), size - 1);
     if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
-    f_color = vec4(texture(u_tex, v_uv).rgb, 1.0);
+    f_color = vec4(mix(texture(u_tex, v_uv).rgb, u_tint.rgb, u_tint.a), 1.0);
     f_dist = v_dist;
 }
 """
@@ -95,6 +96,7 @@ _LANDCOVER_FRAGMENT_SHADER = """
 uniform sampler2D u_tex;          // the tile's class mask, one byte a texel (255: no data)
 uniform sampler2DArray u_ground_materials;
 uniform vec3 u_sun;               // towards the sun, view space
+uniform vec4 u_tint;              // the viewer's LOD colouring
 in vec2 v_uv;
 in float v_dist;
 in vec2 v_ground;                 // metres east and north (modulo a whole number of repeats)
@@ -135,7 +137,7 @@ void main() {
 #endif
     if (dot(n, v_view) > 0.0) n = -n;
     float light = 0.35 + 0.65 * max(dot(n, u_sun), 0.0);
-    f_color = vec4(albedo * light, 1.0);
+    f_color = vec4(mix(albedo * light, u_tint.rgb, u_tint.a), 1.0);
     f_dist = v_dist;
 }
 """
@@ -209,6 +211,8 @@ class _Target:
     dist: moderngl.Renderbuffer
     depth: moderngl.Renderbuffer
     fbo: moderngl.Framebuffer
+    #: The colour attachment alone (what a window's framebuffer can be copied from).
+    colour_fbo: moderngl.Framebuffer | None = None
 
 
 class Renderer:
@@ -283,11 +287,32 @@ class Renderer:
         self._target_for(width, height)
         #: "gpu": tiles are height textures tessellated in hardware (``render.tess_pass``).
         self.terrain_mode = terrain_mode
+        #: False: ``draw`` leaves the picture in ``framebuffer`` and returns empty arrays.
+        self.read_back = True
+        #: Draw the terrain's triangles as lines (the viewer's wireframe key).
+        self.wireframe = False
+        #: Tint each tile by its level (the viewer's LOD colouring key).
+        self.lod_colours = False
         self._tess: TessTerrain | None = None
         self._gpu_tiles: dict[int, _GpuTile] = {}
         if terrain_mode == "gpu":
             self._tess = TessTerrain(self.ctx, fragment)
             self._tess.px_per_segment = float(tess_px)
+
+    @property
+    def framebuffer(self) -> moderngl.Framebuffer | None:
+        """The last frame's colour + distance target."""
+        return None if self._target is None else self._target.fbo
+
+    @property
+    def colour_framebuffer(self) -> moderngl.Framebuffer | None:
+        """The last frame's colour alone, as a framebuffer a window's can be copied from."""
+        t = self._target
+        if t is None:
+            return None
+        if t.colour_fbo is None:
+            t.colour_fbo = self._track(self.ctx.framebuffer([t.color]))
+        return t.colour_fbo
 
     @property
     def anisotropy(self) -> float:
@@ -494,10 +519,12 @@ class Renderer:
         fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
         # no culling: skirts and steep faces are seen from both sides
         ctx.enable_only(moderngl.DEPTH_TEST)
+        ctx.wireframe = self.wireframe
         ctx.depth_func = "<"
 
         t_submit = time.perf_counter()
         ground = _ground_windows([it.key for it in items], camera)
+        tints = _tints([it.key for it in items], self.lod_colours)
         if self._materials is not None:
             self._materials.use(4)
             self._uniform("u_sun").write(_sun_view(camera))
@@ -507,8 +534,8 @@ class Renderer:
             calls, triangles, submit_s = self._tess.draw(
                 camera,
                 [
-                    (it.key, tex, it.skirt, it.uv, it.sse_budget, g)
-                    for it, tex, g in zip(items, textures, ground, strict=True)
+                    (it.key, tex, it.skirt, it.uv, it.sse_budget, g, tint)
+                    for it, tex, g, tint in zip(items, textures, ground, tints, strict=True)
                 ],
             )
             self.last_stats = DrawStats(calls, triangles, submit_s * 1e3)
@@ -518,25 +545,28 @@ class Renderer:
         cpu_tiles = [t for t in tiles if isinstance(t, _Tile)]
         view_projections = [camera.view_projection(tile.center) for tile in cpu_tiles]
         u_ground = self._program.get("u_ground", None)
-        for item, tile, tex, mvp, g in zip(
-            items, cpu_tiles, textures, view_projections, ground, strict=True
+        u_tint = self._program.get("u_tint", None)
+        for item, ct, tex, mvp, g, tint in zip(
+            items, cpu_tiles, textures, view_projections, ground, tints, strict=True
         ):
             if isinstance(u_ground, moderngl.Uniform):
                 u_ground.value = g
+            if isinstance(u_tint, moderngl.Uniform):
+                u_tint.value = tint
             # GLSL matrices are column-major: upload the transpose of the row-major numpy one
             self._u_mvp.write(np.ascontiguousarray(mvp.T, dtype=np.float32))
-            self._u_offset.write(np.asarray(_view_offset(rot, tile.center, camera), np.float32))
-            self._u_up.write(tile.up)
+            self._u_offset.write(np.asarray(_view_offset(rot, ct.center, camera), np.float32))
+            self._u_up.write(ct.up)
             self._u_skirt.value = float(item.skirt)
             self._u_uv.value = item.uv
             tex.use(0)
             if item.runs is None:
-                tile.vao.render(moderngl.TRIANGLES)
-                triangles += tile.triangles
+                ct.vao.render(moderngl.TRIANGLES)
+                triangles += ct.triangles
                 calls += 1
                 continue
             for first, count in item.runs:
-                tile.vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
+                ct.vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
                 triangles += count
                 calls += 1
         self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
@@ -552,6 +582,10 @@ class Renderer:
         for extra in after:
             extra(camera, fbo)
             fbo.use()
+        self.ctx.wireframe = False
+        if not self.read_back:
+            # a window shows the framebuffer itself (``framebuffer``): nothing comes back
+            return np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
 
         h, w = camera.height, camera.width
         # GL rows go bottom-up: flip so row 0 is the top of the picture
@@ -643,6 +677,8 @@ class Renderer:
         # moderngl re-binds its idea of the bound framebuffer after creating or reading objects;
         # left pointing at a deleted name that is GL_INVALID_OPERATION, so bind name 0 first
         self.ctx.detect_framebuffer(0).use()
+        if target.colour_fbo is not None:
+            self._free(target.colour_fbo)
         for obj in (target.fbo, target.color, target.dist, target.depth):
             self._free(obj)
 
@@ -659,6 +695,29 @@ def _ground_windows(keys: Sequence[int], camera: Camera) -> list[tuple[float, fl
     k = math.cos(math.radians(camera.lat))
     out = np.column_stack([np.mod(left * k, GROUND_WRAP), np.mod(top * k, GROUND_WRAP), size * k])
     return [(float(a), float(b), float(c)) for a, b, c in out]
+
+
+#: LOD colouring: a colour per level, repeating (the viewer's key L).
+_LEVEL_COLOURS = (
+    (0.90, 0.20, 0.20),
+    (0.95, 0.60, 0.10),
+    (0.90, 0.90, 0.20),
+    (0.30, 0.80, 0.30),
+    (0.20, 0.70, 0.90),
+    (0.30, 0.35, 0.90),
+    (0.70, 0.30, 0.85),
+)
+
+
+def _tints(keys: Sequence[int], on: bool) -> list[tuple[float, float, float, float]]:
+    """Per tile the tint of its level (half strength), or none."""
+    if not on:
+        return [(0.0, 0.0, 0.0, 0.0)] * len(keys)
+    out = []
+    for k in keys:
+        r, g, b = _LEVEL_COLOURS[tile_from_id(k >> 3).z % len(_LEVEL_COLOURS)]
+        out.append((r, g, b, 0.5))
+    return out
 
 
 def _sun_view(camera: Camera) -> NDArray[np.float32]:

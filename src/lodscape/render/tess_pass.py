@@ -344,10 +344,11 @@ class TessTerrain:
                 tuple[float, float, float],
                 float,
                 tuple[float, float, float],
+                tuple[float, float, float, float],
             ]
         ],
     ) -> tuple[int, int, float]:
-        """Draw (key, texture, skirt, uv window, error budget px, ground window) items into
+        """Draw (key, texture, skirt, uv window, error budget px, ground window, tint) items into
         the bound framebuffer; returns (draw calls, triangles the tessellator made, seconds
         spent issuing them)."""
         t0 = time.perf_counter()
@@ -361,9 +362,12 @@ class TessTerrain:
         calls = 0
         with self._query:
             u_ground = p.get("u_ground")
-            for key, tex, skirt, uv, budget, ground in items:
+            u_tint = p.get("u_tint")
+            for key, tex, skirt, uv, budget, ground, tint in items:
                 if u_ground is not None:
                     u_ground.value = ground
+                if u_tint is not None:
+                    u_tint.value = tint
                 tile = self._tiles[key]
                 s = tile.segments
                 pp, c = patch_layout(s)

@@ -1,0 +1,333 @@
+"""The interactive viewer (``lodscape view``): a window (moderngl-window on pyglet) in which the
+scene streams and draws as the camera flies.
+
+Keys: W/S forward and back, A/D sideways, Q/E down and up, arrows turn and pitch, mouse drag
+looks around, the wheel sets the speed; T wireframe, L level-of-detail colours, C back-face
+culling, G fractal detail (raster sources), P screenshot, K save the camera, Esc quits. A HUD
+shows frames per second, tiles, triangles, resident MiB, the largest screen-space error and how
+far tiles fall back.
+
+Camera files are JSON (lon, lat, alt, heading, pitch, roll, fov_y): ``lodscape render --camera``
+reads them too.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lodscape.errors import CameraError, LodscapeError
+from lodscape.lod.camera import Camera
+
+__all__ = ["load_camera", "save_camera", "view"]
+
+CAMERA_FIELDS = ("lon", "lat", "alt", "heading", "pitch", "roll", "fov_y")
+
+
+def save_camera(path: str | Path, camera: Camera) -> None:
+    """Write a camera file (JSON; atomic)."""
+    p = Path(path)
+    data = {k: float(getattr(camera, k)) for k in CAMERA_FIELDS}
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    tmp.replace(p)
+
+
+def load_camera(path: str | Path, width: int, height: int) -> Camera:
+    """A camera file's camera at the given viewport; a one-line error names a bad file."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise LodscapeError(f"{p}: no such camera file") from None
+    except (OSError, ValueError) as exc:
+        raise LodscapeError(f"{p}: not a camera file ({exc})") from None
+    if not isinstance(data, dict) or not all(k in data for k in ("lon", "lat", "alt")):
+        raise LodscapeError(f"{p}: a camera file needs lon, lat and alt")
+    try:
+        kw = {k: float(data[k]) for k in CAMERA_FIELDS if k in data}
+    except (TypeError, ValueError):
+        raise LodscapeError(f"{p}: camera values must be numbers") from None
+    return Camera(width=width, height=height, **kw)  # type: ignore[arg-type]
+
+
+_HUD_VERTEX = """
+#version 330
+in vec2 in_pos;
+out vec2 v_uv;
+uniform vec4 u_rect;   // x, y, w, h in clip space
+void main() {
+    v_uv = vec2(in_pos.x, 1.0 - in_pos.y);
+    gl_Position = vec4(u_rect.xy + in_pos * u_rect.zw, 0.0, 1.0);
+}
+"""
+_HUD_FRAGMENT = """
+#version 330
+uniform sampler2D u_text;
+in vec2 v_uv;
+out vec4 f_color;
+void main() { f_color = texture(u_text, v_uv); }
+"""
+
+
+@dataclass
+class _State:
+    camera: Camera
+    speed: float
+    keys: set[int] = field(default_factory=set)
+    fps: float = 0.0
+    frames: int = 0
+    screenshots: int = 0
+    message: str = ""
+    message_until: float = 0.0
+
+
+def view(
+    scenes: dict[str, Any],
+    camera: Camera,
+    *,
+    screenshot_dir: Path,
+    camera_file: Path | None = None,
+    exit_after: float | None = None,
+    title: str = "lodscape",
+    start: str = "plain",
+) -> dict[str, Any]:
+    """Open a window on ``scenes[start]`` (the other of "plain" and "detail", a scene or a
+    factory of one, is what the G key switches to) and fly until Esc, the window closing, or
+    ``exit_after`` seconds. Returns what happened (frames, screenshots, the last camera)."""
+    import moderngl
+    import moderngl_window
+    from moderngl_window.conf import settings
+
+    gpu = any(
+        getattr(s, "options", None) and s.options.terrain_mode == "gpu"
+        for s in scenes.values()
+        if not callable(s)
+    )
+    settings.WINDOW["class"] = "moderngl_window.context.pyglet.Window"
+    settings.WINDOW["size"] = (camera.width, camera.height)
+    settings.WINDOW["title"] = title
+    settings.WINDOW["vsync"] = False
+    settings.WINDOW["resizable"] = True
+    settings.WINDOW["gl_version"] = (4, 1) if gpu else (3, 3)
+    try:
+        window = moderngl_window.create_window_from_settings()
+    except Exception as exc:  # pyglet raises its own classes per platform
+        if gpu:
+            settings.WINDOW["gl_version"] = (3, 3)
+            try:
+                window = moderngl_window.create_window_from_settings()
+            except Exception as exc2:
+                raise LodscapeError(f"cannot open a window: {exc2}") from None
+        else:
+            raise LodscapeError(f"cannot open a window: {exc}") from None
+    ctx: moderngl.Context = window.ctx
+    active = start
+    scene = scenes[active]
+    scene.use_context(ctx)
+    keys = window.keys
+    ground = scene.ground_height(camera.lon, camera.lat)
+    start_agl = camera.alt - (ground if ground is not None else 0.0)
+    st = _State(camera, speed=max(start_agl, 20.0))
+
+    hud_prog = ctx.program(vertex_shader=_HUD_VERTEX, fragment_shader=_HUD_FRAGMENT)
+    quad = ctx.buffer(np.array([0, 0, 1, 0, 0, 1, 1, 1], np.float32).tobytes())
+    hud_vao = ctx.vertex_array(hud_prog, [(quad, "2f", "in_pos")])
+    hud_tex: list[Any] = [None]
+    hud_text = [""]
+
+    def say(msg: str) -> None:
+        st.message, st.message_until = msg, time.perf_counter() + 2.5
+
+    def screenshot() -> Path:
+        rend = scene.renderer
+        fbo = rend.framebuffer if rend is not None else None
+        if fbo is None:
+            raise LodscapeError("no frame yet")
+        w, h = fbo.size
+        rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
+        rgb = rgb.reshape(h, w, 3)[::-1]
+        from PIL import Image
+
+        screenshot_dir.mkdir(parents=True, exist_ok=True)
+        st.screenshots += 1
+        path = screenshot_dir / f"lodscape-{st.screenshots:04d}.png"
+        tmp = path.with_name(path.name + ".tmp.png")
+        Image.fromarray(np.ascontiguousarray(rgb)).save(tmp)
+        tmp.replace(path)
+        return path
+
+    def on_key(key: int, action: Any, modifiers: Any) -> None:
+        nonlocal scene, active
+        if action == keys.ACTION_PRESS:
+            st.keys.add(key)
+            rend = scene.renderer
+            if key == keys.ESCAPE:
+                window.close()
+            elif key == keys.P:
+                say(f"saved {screenshot().name}")
+            elif key == keys.K:
+                if camera_file is None:
+                    say("no --camera-file to save to")
+                else:
+                    save_camera(camera_file, st.camera)
+                    say(f"saved the camera to {camera_file.name}")
+            elif key == keys.T and rend is not None:
+                rend.wireframe = not rend.wireframe
+                say(f"wireframe {'on' if rend.wireframe else 'off'}")
+            elif key == keys.L and rend is not None:
+                rend.lod_colours = not rend.lod_colours
+                say(f"level colours {'on' if rend.lod_colours else 'off'}")
+            elif key == keys.C:
+                opts = scene.options
+                scene.options = replace(opts, cull_backfacing=not opts.cull_backfacing)
+                say(f"back-face culling {'on' if scene.options.cull_backfacing else 'off'}")
+            elif key == keys.G:
+                other = "detail" if active == "plain" else "plain"
+                made = scenes.get(other)
+                if made is None:
+                    say("fractal detail needs a raster source")
+                    return
+                if callable(made):
+                    try:
+                        made = made()
+                    except LodscapeError as exc:
+                        scenes.pop(other)
+                        say(str(exc))
+                        return
+                    made.use_context(ctx)
+                    scenes[other] = made
+                scene, active = made, other
+                say(f"fractal detail {'on' if active == 'detail' else 'off'}")
+        elif action == keys.ACTION_RELEASE:
+            st.keys.discard(key)
+
+    def on_drag(x: int, y: int, dx: int, dy: int) -> None:
+        c = st.camera
+        st.camera = c.moved(
+            heading=(c.heading + 0.25 * dx) % 360.0,
+            pitch=float(np.clip(c.pitch - 0.25 * dy, -89.0, 89.0)),
+        )
+
+    def on_scroll(x: float, y: float) -> None:
+        st.speed = float(np.clip(st.speed * 1.25**y, 0.5, 2e6))
+        say(f"speed {st.speed:,.0f} m/s")
+
+    window.key_event_func = on_key
+    window.mouse_drag_event_func = on_drag
+    window.mouse_scroll_event_func = on_scroll
+
+    def move(dt: float) -> None:
+        c = st.camera
+        k = st.keys
+        h, p = math.radians(c.heading), math.radians(c.pitch)
+        fwd = np.array([math.sin(h) * math.cos(p), math.cos(h) * math.cos(p), math.sin(p)])
+        right = np.array([math.cos(h), -math.sin(h), 0.0])
+        d = np.zeros(3)
+        d += fwd * ((keys.W in k) - (keys.S in k))
+        d += right * ((keys.D in k) - (keys.A in k))
+        d[2] += (keys.E in k) - (keys.Q in k)
+        turn = ((keys.RIGHT in k) - (keys.LEFT in k)) * 60.0 * dt
+        tilt = ((keys.UP in k) - (keys.DOWN in k)) * 40.0 * dt
+        step = d * st.speed * dt
+        # east/north metres to degrees at the camera
+        lat = c.lat + math.degrees(step[1] / 6_371_000.0)
+        lon = c.lon + math.degrees(
+            step[0] / (6_371_000.0 * max(math.cos(math.radians(c.lat)), 1e-6))
+        )
+        lat = float(np.clip(lat, -85.0, 85.0))
+        alt = c.alt + step[2]
+        g = scene.ground_height(lon, lat)
+        if g is not None:
+            alt = max(alt, g + 2.0)
+        st.camera = c.moved(
+            lon=(lon + 180.0) % 360.0 - 180.0,
+            lat=lat,
+            alt=alt,
+            heading=(c.heading + turn) % 360.0,
+            pitch=float(np.clip(c.pitch + tilt, -89.0, 89.0)),
+        )
+
+    def draw_hud(w: int, h: int) -> None:
+        last = scene.last
+        stats = last.as_dict() if last is not None else {}
+        text = (
+            f"{st.fps:5.1f} fps  tiles {stats.get('tiles', 0)}  "
+            f"triangles {int(stats.get('triangles', 0)):,}  "
+            f"resident {float(stats.get('resident_mb', 0.0)):.1f} MiB  "
+            f"max SSE {float(stats.get('max_sse_px', 0.0)):.2f} px  "
+            f"fallback {stats.get('fallback_max', 0)}  [{scene.terrain_mode}]"
+        )
+        if time.perf_counter() < st.message_until:
+            text += "\n" + st.message
+        if text != hud_text[0]:
+            hud_text[0] = text
+            from PIL import Image, ImageDraw
+
+            lines = text.split("\n")
+            img = Image.new(
+                "RGBA", (8 * max(len(s) for s in lines) + 8, 14 * len(lines) + 6), (0, 0, 0, 140)
+            )
+            dr = ImageDraw.Draw(img)
+            for i, line in enumerate(lines):
+                dr.text((4, 3 + 14 * i), line, fill=(255, 255, 255, 255))
+            if hud_tex[0] is not None:
+                hud_tex[0].release()
+            tex = ctx.texture(img.size, 4, img.tobytes())
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            hud_tex[0] = tex
+        tex = hud_tex[0]
+        tw, th = tex.size
+        rect: Any = hud_prog["u_rect"]
+        rect.value = (-1.0, 1.0 - 2.0 * th / h, 2.0 * tw / w, 2.0 * th / h)
+        ctx.enable_only(moderngl.BLEND)
+        ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
+        tex.use(0)
+        hud_vao.render(moderngl.TRIANGLE_STRIP)
+
+    started = last_t = time.perf_counter()
+    fps_t, fps_n = started, 0
+    error: BaseException | None = None
+    try:
+        while not window.is_closing:
+            now = time.perf_counter()
+            dt, last_t = min(now - last_t, 0.25), now
+            if exit_after is not None and now - started > exit_after:
+                break
+            move(dt)
+            w, h = window.buffer_size
+            cam = replace(st.camera, width=max(w, 1), height=max(h, 1))
+            try:
+                scene.render(cam)
+            except CameraError:
+                st.camera = st.camera.moved(alt=st.camera.alt + 50.0)
+                continue
+            rend = scene.renderer
+            if rend is not None:
+                rend.read_back = False
+                colour = rend.colour_framebuffer
+                if colour is not None:
+                    ctx.copy_framebuffer(window.fbo, colour)
+            window.use()
+            draw_hud(w, h)
+            window.swap_buffers()
+            st.frames += 1
+            fps_n += 1
+            if now - fps_t > 0.5:
+                st.fps, fps_t, fps_n = fps_n / (now - fps_t), now, 0
+    except BaseException as exc:
+        error = exc
+    finally:
+        for s in scenes.values():
+            if not callable(s):
+                s.close()
+        window.destroy()
+    if error is not None:
+        raise error
+    return {"frames": st.frames, "screenshots": st.screenshots, "camera": st.camera}

@@ -1,0 +1,133 @@
+"""The viewer in a real window on a virtual screen (Xvfb): it opens, draws, follows synthetic
+keys and mouse drags (xdotool, through the X server as a user's would come), writes a
+screenshot and a camera file, and closes cleanly on Esc."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from _synthetic import fbm_heights, write_dem
+
+pytestmark = [
+    pytest.mark.gl,
+    pytest.mark.skipif(
+        shutil.which("Xvfb") is None or shutil.which("xdotool") is None,
+        reason="needs Xvfb and xdotool (Debian: xvfb, xdotool; .ci/run installs them)",
+    ),
+]
+
+
+@pytest.fixture
+def display():  # type: ignore[no-untyped-def]
+    for n in range(90, 120):
+        if not Path(f"/tmp/.X11-unix/X{n}").exists() and not Path(f"/tmp/.X{n}-lock").exists():
+            break
+    proc = subprocess.Popen(
+        ["Xvfb", f":{n}", "-screen", "0", "800x600x24", "-nolisten", "tcp"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + 20
+    while not Path(f"/tmp/.X11-unix/X{n}").exists():
+        if time.monotonic() > deadline or proc.poll() is not None:
+            proc.kill()
+            pytest.fail("Xvfb did not start")
+        time.sleep(0.1)
+    yield f":{n}"
+    proc.terminate()
+    proc.wait(timeout=10)
+
+
+def _xdo(env: dict[str, str], *args: str) -> str:
+    out = subprocess.run(
+        ["xdotool", *args], env=env, capture_output=True, text=True, timeout=60, check=False
+    )
+    return out.stdout.strip()
+
+
+def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path) -> None:
+    dem = write_dem(
+        str(tmp_path / "dem.tif"),
+        fbm_heights(257, seed=3),
+        crs="EPSG:4326",
+        west=7.0,
+        north=46.5,
+        res=0.0002,
+    )
+    start = {"lon": 7.0256, "lat": 46.4744, "alt": 2200.0, "heading": 0.0, "pitch": -30.0}
+    (tmp_path / "start.json").write_text(json.dumps(start))
+    env = {**os.environ, "DISPLAY": display}
+    shots = tmp_path / "shots"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "lodscape.cli",
+            "view",
+            dem,
+            "--camera",
+            str(tmp_path / "start.json"),
+            "--camera-file",
+            str(tmp_path / "end.json"),
+            "--screenshots",
+            str(shots),
+            "--size",
+            "320x200",
+            "--exit-after",
+            "90",
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        window = _xdo(env, "search", "--sync", "--name", "lodscape").splitlines()
+        assert window, "no window"
+        time.sleep(3.0)  # the first frames stream in
+        _xdo(env, "keydown", "w")
+        time.sleep(1.0)
+        _xdo(env, "keyup", "w")
+        w = window[-1]
+        _xdo(env, "mousemove", "--window", w, "100", "100")
+        _xdo(env, "mousedown", "1")
+        _xdo(env, "mousemove", "--window", w, "180", "100")
+        time.sleep(0.3)
+        _xdo(env, "mouseup", "1")
+        time.sleep(0.5)
+        for key in ("p", "k", "Escape"):
+            _xdo(env, "key", key)
+            time.sleep(0.5)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    frames = int(out.split(" frames")[0].split()[-1])
+    assert frames > 10, out
+    # the screenshot holds terrain: varied colours below a sky
+    from PIL import Image
+
+    shot = sorted(shots.glob("*.png"))
+    assert len(shot) == 1
+    rgb = np.asarray(Image.open(shot[0]).convert("RGB")).astype(np.int16)
+    assert rgb.shape == (200, 320, 3)
+    sky = np.array([135, 179, 230])
+    ground = np.abs(rgb - sky).sum(axis=2) > 40
+    assert ground.mean() > 0.3
+    assert rgb[ground].std() > 5.0
+    # W flew north, the drag turned right by a quarter of a degree per pixel
+    end = json.loads((tmp_path / "end.json").read_text())
+    assert end["lat"] > start["lat"] + 1e-5
+    assert 10.0 < end["heading"] < 30.0
+    assert abs(end["lon"] - start["lon"]) < 0.01
