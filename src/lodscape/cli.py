@@ -835,6 +835,25 @@ def view(
     )
 
 
+@app.command()
+def serve(
+    tileset: Annotated[Path, typer.Argument(help="A .lods tileset (built by lodscape build).")],
+    port: Annotated[int, typer.Option(help="TCP port.")] = 8000,
+    host: Annotated[
+        str, typer.Option(help="Address to listen on (0.0.0.0: every interface).")
+    ] = "127.0.0.1",
+) -> None:
+    """Serve a tileset over HTTP: /layer.json and /{z}/{x}/{y}.terrain (quantized-mesh, for
+    Cesium), /imagery/{z}/{x}/{y}.png, and the stored cities as 3D Tiles under
+    /3dtiles/tileset.json; CORS, ETag, gzip. Ctrl-C stops it."""
+    from lodscape.serve import run
+
+    if not 0 < port < 65536:
+        raise LodscapeError(f"--port must be within 1..65535, got {port}")
+    typer.echo(f"serving {tileset} on http://{host}:{port}/ (Ctrl-C stops)")
+    run(tileset, host, port)
+
+
 city_app = typer.Typer(
     help="Cities stored in a tileset: add an OpenStreetMap file, list, remove.",
     no_args_is_help=True,

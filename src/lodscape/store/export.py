@@ -15,6 +15,7 @@ import shutil
 import sqlite3
 from collections import defaultdict
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,7 @@ from lodscape.geo.tiles import Bbox, Tile, bounds
 from lodscape.store.quantized_mesh import encode, ungzip
 from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
 
-__all__ = ["export_cesium"]
+__all__ = ["cesium_layer", "export_cesium"]
 
 
 def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str]) -> int:
@@ -40,43 +41,20 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
     shutil.rmtree(tmp, ignore_errors=True)
     db = sqlite3.connect(f"file:{Path(tileset).resolve().as_posix()}?mode=ro", uri=True)
     try:
-        available: dict[int, set[tuple[int, int]]] = defaultdict(set)
         count = 0
         for z, x, y, data in db.execute("SELECT z, x, y, data FROM terrain"):
             tms = (1 << z) - 1 - y
             # plain bytes: a static server need not add Content-Encoding headers
             _write(tmp / str(z) / str(x) / f"{tms}.terrain", ungzip(bytes(data)))
-            available[z].add((x, tms))
             count += 1
-        zmin = int(manifest["levels"]["zmin"])
-        lo = float(manifest["height_range"][0])
-        roots = [(x, y) for x, tms in available[zmin] for y in [(1 << zmin) - 1 - tms]]
-        for z in range(zmin):
-            for x, y in {(rx >> (zmin - z), ry >> (zmin - z)) for rx, ry in roots}:
-                tms = (1 << z) - 1 - y
-                _write(tmp / str(z) / str(x) / f"{tms}.terrain", _flat(z, x, y, lo))
-                available[z].add((x, tms))
-                count += 1
+        layer, flat = cesium_layer(db, manifest, Path(tileset).stem)
+        for (z, x, tms), data in flat.items():
+            _write(tmp / str(z) / str(x) / f"{tms}.terrain", data)
+            count += 1
         for z, x, row, data in db.execute(
             "SELECT zoom_level, tile_column, tile_row, tile_data FROM tiles"
         ):
             _write(tmp / "imagery" / str(z) / str(x) / f"{(1 << z) - 1 - row}.png", bytes(data))
-        w, s, e, n = lonlat_bounds(Bbox(*manifest["bounds_merc"]))
-        layer = {
-            "tilejson": "2.1.0",
-            "name": Path(tileset).stem,
-            "description": "terrain built by lodscape",
-            "version": "1.0.0",
-            "format": "quantized-mesh-1.0",
-            "scheme": "tms",
-            "projection": "EPSG:3857",
-            "extensions": ["octvertexnormals"],
-            "tiles": ["{z}/{x}/{y}.terrain?v={version}"],
-            "minzoom": 0,
-            "maxzoom": max(available),
-            "bounds": [w, s, e, n],
-            "available": [_ranges(available[z]) for z in range(max(available) + 1)],
-        }
         (tmp / "layer.json").write_text(json.dumps(layer, indent=1))
         if target.exists():
             target.rmdir()
@@ -87,6 +65,45 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
         db.close()
         shutil.rmtree(tmp, ignore_errors=True)
     return count
+
+
+def cesium_layer(
+    db: sqlite3.Connection, manifest: dict[str, object], name: str
+) -> tuple[dict[str, object], dict[tuple[int, int, int], bytes]]:
+    """A tileset's Cesium ``layer.json`` and the flat tiles (keyed z, x, TMS row) that stand
+    above its roots, from the tiling scheme's level 0 down."""
+    available: dict[int, set[tuple[int, int]]] = defaultdict(set)
+    for z, x, y in db.execute("SELECT z, x, y FROM terrain"):
+        available[z].add((x, (1 << z) - 1 - y))
+    levels: Any = manifest["levels"]
+    heights: Any = manifest["height_range"]
+    zmin = int(levels["zmin"])
+    lo = float(heights[0])
+    roots = [(x, y) for x, tms in available[zmin] for y in [(1 << zmin) - 1 - tms]]
+    flat: dict[tuple[int, int, int], bytes] = {}
+    for z in range(zmin):
+        for x, y in {(rx >> (zmin - z), ry >> (zmin - z)) for rx, ry in roots}:
+            tms = (1 << z) - 1 - y
+            flat[(z, x, tms)] = _flat(z, x, y, lo)
+            available[z].add((x, tms))
+    bounds_merc: Any = manifest["bounds_merc"]
+    w, s, e, n = lonlat_bounds(Bbox(*bounds_merc))
+    layer: dict[str, object] = {
+        "tilejson": "2.1.0",
+        "name": name,
+        "description": "terrain built by lodscape",
+        "version": "1.0.0",
+        "format": "quantized-mesh-1.0",
+        "scheme": "tms",
+        "projection": "EPSG:3857",
+        "extensions": ["octvertexnormals"],
+        "tiles": ["{z}/{x}/{y}.terrain?v={version}"],
+        "minzoom": 0,
+        "maxzoom": max(available),
+        "bounds": [w, s, e, n],
+        "available": [_ranges(available[z]) for z in range(max(available) + 1)],
+    }
+    return layer, flat
 
 
 def _write(path: Path, data: bytes) -> None:
