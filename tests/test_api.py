@@ -25,6 +25,8 @@ def test_exported_members_resolve() -> None:
         "data",
         "cli",
         "city",
+        "view",
+        "serve",
         "annotations",
     }
 
