@@ -1,0 +1,138 @@
+"""The whole globe (paper 002) from Python: a QTM selection for a camera, its mesh without
+cracks, heights from a DEM where one covers, and a headless picture."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.geo.frames import WGS84_A
+from lodscape.lod.camera import Camera
+from lodscape.lod.globe import GlobeMesh, Selection, by_error, mesh, screen_error, thinning
+
+__all__ = ["Globe", "GlobeOptions"]
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class GlobeOptions:
+    #: "sse": refined by screen-space error; "thinning": the paper's base level and thinning area.
+    mode: str = "sse"
+    max_sse: float = 2.0
+    max_level: int = 22
+    base: int = 7
+    block_level: int = 4
+    extra: int = 2
+    blocks: int = 4
+    background: tuple[float, float, float] = (0.02, 0.02, 0.06)
+    #: Remove cracks between levels (vertex extension); off only to show what it removes.
+    extend: bool = True
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("sse", "thinning"):
+            raise ValueError(f"globe mode is sse or thinning, got {self.mode!r}")
+        if not self.max_sse > 0:
+            raise ValueError(f"Expected a positive max_sse, got {self.max_sse}")
+
+
+@dataclass
+class Globe:
+    """The globe, with heights from ``terrain`` (a Scene over a DEM) where it has data."""
+
+    terrain: Any = None
+    options: GlobeOptions = field(default_factory=GlobeOptions)
+    last: dict[str, Any] = field(default_factory=dict)
+    _renderer: Any = None
+
+    def heights(self, lat: F64, lon: F64) -> F64:
+        if self.terrain is None:
+            return np.zeros(np.shape(lat))
+        h = np.asarray(self.terrain.heights(np.asarray(lon), np.asarray(lat)), np.float64)
+        return np.where(np.isfinite(h), h, 0.0)
+
+    def _relief(self, level: int, ids: Any, v: F64) -> F64:
+        """Per facet: lowest and highest height at its corners and edge midpoints, and how far
+        the midpoints stray from the straight edges (the facet's terrain error, as midpoint
+        displacement measures it); zeros off the data."""
+        if self.terrain is None:
+            return np.zeros((len(v), 3))
+        from lodscape.geo.qtm import _mid
+
+        mids = np.stack([_mid(v[:, 0], v[:, 1]), _mid(v[:, 1], v[:, 2]), _mid(v[:, 2], v[:, 0])], 1)
+        pts = np.concatenate([v, mids], axis=1)  # (F, 6, 2)
+        h = self.heights(pts[..., 0], pts[..., 1])
+        straight = (h[:, [0, 1, 2]] + h[:, [1, 2, 0]]) / 2.0
+        dev = np.abs(h[:, 3:] - straight).max(axis=1)
+        out: F64 = np.stack([h.min(axis=1), h.max(axis=1), dev], axis=1)
+        return out
+
+    def camera(self, camera: Camera) -> Camera:
+        """The camera with clip distances for the globe."""
+        ground = float(self.heights(np.array([camera.lat]), np.array([camera.lon]))[0])
+        clearance = max(camera.alt - ground, 1.0)
+        near = camera.near or max(min(0.05 * clearance, 1e5), 0.5)
+        horizon = math.sqrt(clearance * (2 * WGS84_A + clearance)) + math.sqrt(9000.0 * 2 * WGS84_A)
+        return camera.with_clip(near, camera.far or horizon * 1.05 + 1e4)
+
+    def select(self, camera: Camera) -> Selection:
+        o = self.options
+        if o.mode == "thinning":
+            return thinning(
+                camera.lat,
+                camera.lon,
+                base=o.base,
+                block_level=o.block_level,
+                extra=o.extra,
+                blocks=o.blocks,
+            )
+        return by_error(camera, max_sse=o.max_sse, max_level=self._max_level(), relief=self._relief)
+
+    def _max_level(self) -> int:
+        """No facet finer than the terrain's cells (or ``max_level``)."""
+        source = getattr(getattr(self.terrain, "provider", None), "source", None)
+        res = getattr(source, "resolution_merc", None)
+        if not res:
+            return self.options.max_level
+        quarter = math.pi * WGS84_A / 2.0  # an octant's edge
+        return int(min(self.options.max_level, 1 + math.floor(math.log2(quarter / float(res)))))
+
+    def mesh(self, camera: Camera) -> tuple[Camera, Selection, GlobeMesh]:
+        cam = self.camera(camera)
+        sel = self.select(cam)
+        return cam, sel, mesh(sel, self.heights, extend=self.options.extend)
+
+    def render(self, camera: Camera) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        """RGB and view distance of the globe from ``camera``."""
+        import time
+
+        from lodscape.imagery.globe import global_image
+        from lodscape.render.globe_pass import GlobeRenderer
+
+        t = time.perf_counter()
+        cam, sel, m = self.mesh(camera)
+        t1 = time.perf_counter()
+        if self._renderer is None:
+            self._renderer = GlobeRenderer(global_image(), self.options.background)
+        rgb, depth = self._renderer.draw(cam, m)
+        self.last = {
+            "triangles": sel.count,
+            "levels": {k: len(v) for k, v in sorted(sel.levels.items())},
+            "max_level": max(sel.levels) if sel.levels else 0,
+            "extended": m.extended,
+            "screen_error_px": round(screen_error(sel, cam), 3),
+            "select_ms": round((t1 - t) * 1e3, 2),
+            "draw_ms": round((time.perf_counter() - t1) * 1e3, 2),
+        }
+        return rgb, depth
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        if self.terrain is not None:
+            self.terrain.close()

@@ -1,0 +1,286 @@
+"""The whole globe on the QTM grid (paper 002): which facets to draw from a viewpoint, and their
+mesh without cracks. Pure numpy.
+
+Two selections:
+- ``thinning``, the paper's: every facet at a base level, except the blocks (facets of a block
+  level) nearest the viewpoint, the "thinning area", drawn ``extra`` levels finer;
+- ``by_error``, beyond the paper: the spine's rule in QTM form, level by level from the
+  octahedron, a facet split while its geometric error (its flat triangle's sag under the
+  ellipsoid's curve, plus the terrain's relief within it) projects to more than ``max_sse``
+  pixels from the nearest it can be to the camera; facets beyond the horizon or outside the
+  frustum are dropped at the first level that proves it.
+
+``mesh`` turns a selection into triangles in Earth-centred coordinates and removes the cracks
+between levels by vertex extension: a finer facet's vertex that lies on a coarser neighbour's
+edge is moved onto that edge (the straight line between the edge's ends, heights included).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.geo.frames import WGS84_A, geodetic_to_ecef
+from lodscape.geo.qtm import facet_vertices, locate, split, vertex_keys
+from lodscape.lod.camera import Camera
+
+__all__ = ["GlobeMesh", "Selection", "block_count", "by_error", "mesh", "thinning"]
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+#: Heights (metres) at (lat, lon) arrays; 0 where there is no data.
+Heights = Callable[[F64, F64], F64]
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Facets to draw: per level, the ids at that level."""
+
+    levels: dict[int, I64]
+
+    @property
+    def count(self) -> int:
+        return int(sum(len(v) for v in self.levels.values()))
+
+
+def block_count(k: int) -> int:
+    """The paper's number of blocks, T = 2·4^(k-2) (its figure: 512 at k = 6). They are the QTM
+    facets of level k - 2 (8·4^(k-3) = 2·4^(k-2)): ``thinning`` takes its blocks from a level."""
+    return int(2 * 4 ** (k - 2))
+
+
+def thinning(
+    lat: float, lon: float, *, base: int = 7, block_level: int = 6, extra: int = 2, blocks: int = 1
+) -> Selection:
+    """The paper's refinement: every facet at ``base``; the ``blocks`` facets of
+    ``block_level`` nearest the viewpoint (the thinning area) at ``base + extra``."""
+    if not 1 <= block_level <= base:
+        raise ValueError(f"block level must be within 1..{base}, got {block_level}")
+    here = int(locate([lat], [lon], block_level)[0])
+    area = _nearest_blocks(here, block_level, blocks, lat, lon)
+    fine = base + extra
+    shift_base = 2 * (base - block_level)
+    shift_fine = 2 * (fine - block_level)
+    coarse_all = np.arange(8 * 4 ** (base - 1), dtype=np.int64)
+    keep = ~np.isin(coarse_all >> shift_base, area)
+    fine_ids = (area[:, None] << shift_fine) + np.arange(1 << shift_fine)
+    return Selection({base: coarse_all[keep], fine: np.sort(fine_ids.ravel())})
+
+
+def _nearest_blocks(here: int, level: int, n: int, lat: float, lon: float) -> I64:
+    """The ``n`` facets of ``level`` whose centres are nearest (lat, lon), ``here`` first."""
+    if n <= 1:
+        return np.array([here], np.int64)
+    ids = np.arange(8 * 4 ** (level - 1), dtype=np.int64)
+    c = _centres(facet_vertices(level, ids))
+    p = _unit(np.array([lat]), np.array([lon]))[0]
+    order = np.argsort(-(c @ p))
+    return np.sort(ids[order[:n]])
+
+
+def _unit(lat: F64, lon: F64) -> F64:
+    la, lo = np.radians(lat), np.radians(lon)
+    return np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)], axis=-1)
+
+
+def _centres(v: F64) -> F64:
+    """Unit vectors of facet centres (mean of the vertices' unit vectors)."""
+    u = _unit(v[..., 0], v[..., 1]).mean(axis=1)
+    out: F64 = u / np.linalg.norm(u, axis=1, keepdims=True)
+    return out
+
+
+def by_error(
+    camera: Camera,
+    *,
+    max_sse: float = 2.0,
+    max_level: int = 20,
+    relief: Callable[[int, I64, F64], F64] | None = None,
+) -> Selection:
+    """Facets whose error projects to at most ``max_sse`` pixels (or of ``max_level``), in view
+    and above the horizon. ``relief(level, ids, vertices)`` gives each facet's (F, 3) lowest and
+    highest terrain height and how far its terrain strays from the facet's plane, metres;
+    none: the ellipsoid."""
+    eye = camera.position
+    planes = camera.frustum_planes()
+    r_eye = float(np.linalg.norm(eye))
+    out: dict[int, I64] = {}
+    ids = np.arange(8, dtype=np.int64)
+    v = facet_vertices(1, ids)
+    level = 1
+    while len(ids):
+        u = _unit(v[..., 0], v[..., 1])  # (F, 3, 3)
+        c = u.mean(axis=1)
+        c /= np.linalg.norm(c, axis=1, keepdims=True)
+        # angular radius of each facet about its centre
+        rho = np.arccos(np.clip(np.einsum("fk,fvk->fv", c, u).min(axis=1), -1.0, 1.0))
+        t = relief(level, ids, v) if relief is not None else np.zeros((len(ids), 3))
+        lo, hi, dev = np.minimum(t[:, 0], 0.0), np.maximum(t[:, 1], 0.0), t[:, 2]
+        r_top = WGS84_A + hi + 100.0
+        # the flat triangle under the curve: its sag over the facet's radius, and the terrain's
+        # departure from its plane
+        err = WGS84_A * (1.0 - np.cos(np.minimum(rho, math.pi / 2))) + dev
+        centre = c * (WGS84_A + (lo + hi) / 2.0)[:, None]
+        radius = 2.0 * WGS84_A * np.sin(rho / 2.0) + (hi - lo) / 2.0 + err
+        # beyond the horizon: the nearest the facet's cap comes to the eye's direction
+        alpha = np.arccos(np.clip(c @ (eye / r_eye), -1.0, 1.0))
+        hidden = r_top * np.cos(np.maximum(alpha - rho, 0.0)) < WGS84_A**2 / r_eye - 1.0
+        hidden &= r_eye > WGS84_A
+        rel = centre - eye
+        outside = np.any(rel @ planes[:, :3].T + planes[:, 3] < -radius[:, None], axis=1)
+        keep = ~(hidden | outside)
+        dist = np.maximum(np.linalg.norm(rel, axis=1) - radius, camera.near or 1.0)
+        sse = err * camera.scale / dist
+        split_ = keep & (sse > max_sse) & (level < max_level)
+        done = keep & ~split_
+        if done.any():
+            out[level] = ids[done]
+        if not split_.any():
+            break
+        kids = split(v[split_])  # (S, 4, 3, 2)
+        ids = ((ids[split_][:, None] << 2) + np.arange(4)).ravel()
+        v = kids.reshape(-1, 3, 2)
+        level += 1
+    return Selection({k: np.sort(x) for k, x in out.items()})
+
+
+@dataclass(frozen=True, eq=False)
+class GlobeMesh:
+    """Triangles of a selection: three vertices each (not shared: texture coordinates follow
+    each facet's own longitudes), Earth-centred metres, and lat/lon."""
+
+    #: (T, 3, 3) ECEF metres.
+    positions: F64
+    #: (T, 3, 2) lat, lon degrees.
+    latlon: F64
+    #: (T,) each triangle's level.
+    level: I64
+    #: Vertices moved onto a coarser neighbour's edge.
+    extended: int
+
+
+def mesh(sel: Selection, heights: Heights | None = None, *, extend: bool = True) -> GlobeMesh:
+    """The selection's triangles; with ``extend``, cracks between levels removed."""
+    vs, lv = [], []
+    for lvl, ids in sorted(sel.levels.items()):
+        vs.append(facet_vertices(lvl, ids))
+        lv.append(np.full(len(ids), lvl, np.int64))
+    v = np.concatenate(vs) if vs else np.zeros((0, 3, 2))
+    level: I64 = np.concatenate(lv) if lv else np.zeros(0, np.int64)
+    flat = v.reshape(-1, 2)
+    keys = vertex_keys(flat)
+    uniq, inv = np.unique(keys, return_inverse=True)
+    first = np.zeros(len(uniq), np.int64)
+    first[inv[::-1]] = np.arange(len(inv))[::-1]
+    ulat, ulon = flat[first, 0], flat[first, 1]
+    h = heights(ulat, ulon) if heights is not None else np.zeros(len(uniq))
+    pos = geodetic_to_ecef(ulon, ulat, h)
+    moved = 0
+    if extend and len(sel.levels) > 1:
+        pos, moved = _extend(v, level, keys, uniq, pos)
+    positions = pos[inv].reshape(-1, 3, 3)
+    return GlobeMesh(positions, v, level, moved)
+
+
+def _extend(
+    v: F64, level: I64, keys: NDArray[np.int64], uniq: NDArray[np.int64], pos: F64
+) -> tuple[F64, int]:
+    """Vertex extension: every vertex that lies inside the edge of a coarser facet goes onto that
+    edge, linearly between its ends. Along an edge of level L the vertices of level L + d are
+    its dyadic points (the averages of its ends, halved again), so they are found by key."""
+    out = pos.copy()
+    top = int(level.max())
+    moved = 0
+    for lv in np.unique(level):  # coarsest first
+        depth = top - int(lv)
+        if depth <= 0:
+            continue
+        tri = v[level == lv]  # (F, 3, 2)
+        for a_i, b_i in ((0, 1), (1, 2), (2, 0)):
+            a, b = tri[:, a_i].copy(), tri[:, b_i].copy()
+            # a pole takes the other end's longitude, as the midpoints did
+            a[:, 1] = np.where(np.abs(a[:, 0]) == 90.0, b[:, 1], a[:, 1])
+            b[:, 1] = np.where(np.abs(b[:, 0]) == 90.0, a[:, 1], b[:, 1])
+            t = np.arange(1, 1 << depth) / float(1 << depth)
+            pts = a[:, None, :] + (b - a)[:, None, :] * t[None, :, None]  # (F, K, 2)
+            k = vertex_keys(pts)
+            ka = vertex_keys(tri[:, a_i])
+            kb = vertex_keys(tri[:, b_i])
+            found = np.isin(k, uniq)
+            if not found.any():
+                continue
+            fi, ti = np.nonzero(found)
+            # uniq is sorted (np.unique): keys to vertex numbers by binary search
+            ia = np.searchsorted(uniq, ka[fi])
+            ib = np.searchsorted(uniq, kb[fi])
+            iv = np.searchsorted(uniq, k[fi, ti])
+            tt = t[ti][:, None]
+            # the ends as they stand now: a coarser level may have moved them already
+            out[iv] = out[ia] * (1.0 - tt) + out[ib] * tt
+            moved += len(np.unique(iv))
+    return out, moved
+
+
+def screen_error(sel: Selection, camera: Camera) -> float:
+    """The largest projected error (pixels) of a selection's facets in view, by the same rule
+    ``by_error`` refines with (the ellipsoid's sag; no terrain)."""
+    eye = camera.position
+    planes = camera.frustum_planes()
+    worst = 0.0
+    for level, ids in sel.levels.items():
+        v = facet_vertices(level, ids)
+        u = _unit(v[..., 0], v[..., 1])
+        c = u.mean(axis=1)
+        c /= np.linalg.norm(c, axis=1, keepdims=True)
+        rho = np.arccos(np.clip(np.einsum("fk,fvk->fv", c, u).min(axis=1), -1.0, 1.0))
+        err = WGS84_A * (1.0 - np.cos(rho))
+        radius = 2.0 * WGS84_A * np.sin(rho / 2.0) + err
+        rel = c * WGS84_A - eye
+        r_eye = float(np.linalg.norm(eye))
+        alpha = np.arccos(np.clip(c @ (eye / r_eye), -1.0, 1.0))
+        hidden = (WGS84_A + 100.0) * np.cos(np.maximum(alpha - rho, 0.0)) < WGS84_A**2 / r_eye - 1.0
+        outside = np.any(rel @ planes[:, :3].T + planes[:, 3] < -radius[:, None], axis=1)
+        seen = ~(hidden | outside)
+        if seen.any():
+            dist = np.maximum(np.linalg.norm(rel, axis=1) - radius, camera.near or 1.0)
+            worst = max(worst, float((err * camera.scale / dist)[seen].max()))
+    return worst
+
+
+def naive_by_error(camera: Camera, *, max_sse: float = 2.0, max_level: int = 20) -> Selection:
+    """``by_error`` one facet at a time, recursively (the benchmark's baseline)."""
+    eye = camera.position
+    planes = camera.frustum_planes()
+    r_eye = float(np.linalg.norm(eye))
+    out: dict[int, list[int]] = {}
+
+    def visit(level: int, fid: int, v: F64) -> None:
+        u = _unit(v[:, 0], v[:, 1])
+        c = u.mean(axis=0)
+        c /= np.linalg.norm(c)
+        rho = math.acos(min(max(float((u @ c).min()), -1.0), 1.0))
+        err = WGS84_A * (1.0 - math.cos(min(rho, math.pi / 2)))
+        radius = 2.0 * WGS84_A * math.sin(rho / 2.0) + err
+        alpha = math.acos(min(max(float(c @ (eye / r_eye)), -1.0), 1.0))
+        if r_eye > WGS84_A and (WGS84_A + 100.0) * math.cos(max(alpha - rho, 0.0)) < (
+            WGS84_A**2 / r_eye - 1.0
+        ):
+            return
+        rel = c * WGS84_A - eye
+        if np.any(planes[:, :3] @ rel + planes[:, 3] < -radius):
+            return
+        dist = max(float(np.linalg.norm(rel)) - radius, camera.near or 1.0)
+        if err * camera.scale / dist > max_sse and level < max_level:
+            kids = split(v[None])[0]
+            for d in range(4):
+                visit(level + 1, fid * 4 + d, kids[d])
+        else:
+            out.setdefault(level, []).append(fid)
+
+    for o in range(8):
+        visit(1, o, facet_vertices(1, np.array([o]))[0])
+    return Selection({k: np.sort(np.array(x, np.int64)) for k, x in out.items()})

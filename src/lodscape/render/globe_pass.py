@@ -1,0 +1,110 @@
+"""The globe pass (paper 002): a QTM mesh in Earth-centred coordinates, drawn relative to the
+camera in float32 (the subtraction made in float64 on the CPU, so orbit and street level are
+equally steady), textured from an equirectangular image by each facet's own longitudes."""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.lod.camera import Camera
+from lodscape.lod.globe import GlobeMesh
+from lodscape.render._context import create_context, make_current
+
+__all__ = ["GlobeRenderer"]
+
+_VERTEX = """
+#version 330
+uniform mat4 u_mvp;     // projection · view for positions relative to the camera
+uniform mat3 u_rot;
+in vec3 in_pos;
+in vec2 in_uv;
+out vec2 v_uv;
+out float v_dist;
+void main() {
+    gl_Position = u_mvp * vec4(in_pos, 1.0);
+    v_uv = in_uv;
+    v_dist = -(u_rot * in_pos).z;
+}
+"""
+_FRAGMENT = """
+#version 330
+uniform sampler2D u_tex;
+in vec2 v_uv;
+in float v_dist;
+layout(location = 0) out vec4 f_color;
+layout(location = 1) out float f_dist;
+void main() {
+    f_color = vec4(texture(u_tex, v_uv).rgb, 1.0);
+    f_dist = v_dist;
+}
+"""
+
+
+class GlobeRenderer:
+    """Headless: draws a ``GlobeMesh`` and reads back RGB and view distance."""
+
+    def __init__(self, image: NDArray[np.uint8], background: tuple[float, float, float]) -> None:
+        self.ctx = create_context()
+        make_current(self.ctx)
+        self.background = background
+        self.prog = self.ctx.program(vertex_shader=_VERTEX, fragment_shader=_FRAGMENT)
+        img = np.ascontiguousarray(image[::-1])  # row 0 at the bottom: v = 0 at latitude -90
+        self.tex = self.ctx.texture((img.shape[1], img.shape[0]), 3, img.tobytes(), alignment=1)
+        self.tex.build_mipmaps()
+        self.tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        self.tex.repeat_x = True
+        self.tex.repeat_y = False
+        self._fbo: moderngl.Framebuffer | None = None
+        self._size = (0, 0)
+
+    def draw(
+        self, camera: Camera, mesh: GlobeMesh
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        make_current(self.ctx)
+        w, h = camera.width, camera.height
+        if self._size != (w, h):
+            color = self.ctx.renderbuffer((w, h), 4)
+            dist = self.ctx.renderbuffer((w, h), 1, dtype="f4")
+            depth = self.ctx.depth_renderbuffer((w, h))
+            self._fbo = self.ctx.framebuffer([color, dist], depth)
+            self._size = (w, h)
+        fbo = self._fbo
+        assert fbo is not None
+        fbo.use()
+        fbo.color_mask = ((True,) * 4, (False,) * 4)  # type: ignore[assignment]
+        fbo.clear(*self.background, 1.0, depth=1.0)
+        fbo.color_mask = ((False,) * 4, (True,) * 4)  # type: ignore[assignment]
+        fbo.clear(float("inf"), 0.0, 0.0, 0.0)
+        fbo.color_mask = ((True,) * 4, (True,) * 4)  # type: ignore[assignment]
+        self.ctx.enable_only(moderngl.DEPTH_TEST)
+        rel = (mesh.positions - camera.position).reshape(-1, 3).astype(np.float32)
+        lat = mesh.latlon[..., 0]
+        lon = mesh.latlon[..., 1].copy()
+        # a pole's longitude is that of the facet's other vertices (its texture row is one
+        # colour): the mean of theirs keeps the facet's texture from sweeping the whole row
+        pole = np.abs(lat) == 90.0
+        others = np.where(pole, np.nan, lon)
+        mean = np.nanmean(np.where(np.all(pole, axis=1)[:, None], 0.0, others), axis=1)
+        lon = np.where(pole, mean[:, None], lon)
+        uv = np.stack([(lon + 180.0) / 360.0, (lat + 90.0) / 180.0], axis=-1).reshape(-1, 2)
+        data = np.hstack([rel, uv.astype(np.float32)])
+        vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
+        vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 2f", "in_pos", "in_uv")])
+        mvp = camera.view_projection(camera.position)
+        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
+        self.prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]
+        self.tex.use(0)
+        vao.render(moderngl.TRIANGLES)
+        vao.release()
+        vbo.release()
+        rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
+        d = np.frombuffer(fbo.read(components=1, attachment=1, alignment=1, dtype="f4"), np.float32)
+        return (
+            np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1]),
+            np.ascontiguousarray(d.reshape(h, w)[::-1]),
+        )
+
+    def close(self) -> None:
+        self.ctx.release()
