@@ -854,6 +854,72 @@ def serve(
     run(tileset, host, port)
 
 
+@app.command()
+def globe(
+    source: Annotated[
+        str | None,
+        typer.Argument(help="A DEM whose heights the globe takes where it covers (optional)."),
+    ] = None,
+    lon: Annotated[float, typer.Option(callback=_finite, help="Camera longitude, °.")] = 0.0,
+    lat: Annotated[float, typer.Option(callback=_finite, help="Camera latitude, °.")] = 20.0,
+    alt: Annotated[
+        float, typer.Option(callback=_finite, help="Camera altitude, metres above the ellipsoid.")
+    ] = 2.0e7,
+    heading: Annotated[
+        float, typer.Option(callback=_finite, help="Degrees clockwise from north.")
+    ] = 0.0,
+    pitch: Annotated[
+        float, typer.Option(callback=_finite, help="Degrees; negative looks down.")
+    ] = -90.0,
+    fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 45.0,
+    size: SizeOpt = "1024x768",
+    output: OutOpt = Path("globe.png"),
+    mode: Annotated[
+        str,
+        typer.Option(
+            help="sse: refined by screen-space error; thinning: the paper's base level with a "
+            "thinning area around the viewpoint."
+        ),
+    ] = "sse",
+    max_sse: SseOpt = 2.0,
+    base: Annotated[int, typer.Option(help="thinning: the base level.")] = 7,
+    extra: Annotated[int, typer.Option(help="thinning: levels added in the thinning area.")] = 2,
+    blocks: Annotated[int, typer.Option(help="thinning: blocks in the thinning area.")] = 4,
+    block_level: Annotated[int, typer.Option(help="thinning: the blocks' QTM level.")] = 4,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
+) -> None:
+    """Render the whole Earth on the octahedral QTM grid (paper 002), from orbit down to a few
+    kilometres: heights from SOURCE where it covers, the ellipsoid elsewhere."""
+    from lodscape.globe import Globe, GlobeOptions
+
+    w, h = _size(size)
+    try:
+        options = GlobeOptions(
+            mode=mode,
+            max_sse=max_sse,
+            base=base,
+            extra=extra,
+            blocks=blocks,
+            block_level=block_level,
+        )
+        camera = Camera(lon, lat, alt, heading=heading, pitch=pitch, fov_y=fov, width=w, height=h)
+    except ValueError as exc:
+        raise LodscapeError(f"bad option: {exc}") from None
+    if not 1 <= block_level <= base <= 12 or not 0 <= extra <= 6:
+        raise LodscapeError("thinning needs 1 <= --block-level <= --base <= 12, 0 <= --extra <= 6")
+    terrain = open_scene(source) if source is not None else None
+    g = Globe(terrain, options)
+    try:
+        rgb, _ = g.render(camera)
+        _save_image(output, rgb)
+    finally:
+        g.close()
+    if not quiet:
+        for key, value in g.last.items():
+            typer.echo(f"{key:>18}: {value}")
+        typer.echo(f"{'wrote':>18}: {output}")
+
+
 city_app = typer.Typer(
     help="Cities stored in a tileset: add an OpenStreetMap file, list, remove.",
     no_args_is_help=True,

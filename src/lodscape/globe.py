@@ -52,8 +52,24 @@ class Globe:
     def heights(self, lat: F64, lon: F64) -> F64:
         if self.terrain is None:
             return np.zeros(np.shape(lat))
-        h = np.asarray(self.terrain.heights(np.asarray(lon), np.asarray(lat)), np.float64)
-        return np.where(np.isfinite(h), h, 0.0)
+        lat = np.asarray(lat, np.float64)
+        lon = np.asarray(lon, np.float64)
+        out = np.zeros(lat.shape)
+        # only inside the data's box (its projection may not reach the far side of the Earth)
+        w, south, e, n = self._box()
+        ok = (lat >= south) & (lat <= n) & (lon >= w) & (lon <= e)
+        if ok.any():
+            h = np.asarray(self.terrain.heights(lon[ok], lat[ok]), np.float64)
+            out[ok] = np.where(np.isfinite(h), h, 0.0)
+        return out
+
+    def _box(self) -> tuple[float, float, float, float]:
+        """(west, south, east, north) of the terrain's data, degrees."""
+        from lodscape.geo.tiles import merc_to_lonlat
+
+        b = self.terrain.provider.bounds_merc
+        (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+        return float(w), float(s), float(e), float(n)
 
     def _relief(self, level: int, ids: Any, v: F64) -> F64:
         """Per facet: lowest and highest height at its corners and edge midpoints, and how far

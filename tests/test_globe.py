@@ -1,0 +1,174 @@
+"""The whole globe on the octahedral QTM (paper 002): the grid exhaustively at low levels, the
+paper's experiment, the screen-space selection against a naive recursive one, and no cracks
+from orbit, at 100 km and at 5 km."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import lodscape
+from _synthetic import fbm_heights, run_cli, write_dem
+from lodscape import Camera
+from lodscape.geo import qtm
+from lodscape.lod.globe import block_count, by_error, naive_by_error, thinning
+
+ELLIPSOID_M2 = 510_065_621_724_088.4  # WGS84, m²
+
+
+@pytest.mark.parametrize("level", [1, 2, 3, 4, 5])
+def test_counts_neighbours_and_addresses(level: int) -> None:
+    v = qtm.facets(level)
+    assert len(v) == qtm.facet_count(level) == 8 * 4 ** (level - 1)
+    nb = qtm.neighbours(level)
+    assert (nb >= 0).all()
+    for f in range(len(nb)):
+        assert len(set(nb[f].tolist())) == 3
+        assert all(f in nb[g] for g in nb[f])
+    ids = np.arange(len(v))
+    assert np.array_equal(qtm.parent(qtm.children(ids)), np.repeat(ids, 4).reshape(-1, 4))
+    # addresses descend to the same vertices as the whole level
+    some = np.random.default_rng(level).choice(len(v), min(len(v), 50), replace=False)
+    assert np.array_equal(qtm.facet_vertices(level, some), v[some])
+
+
+def test_vertices_are_averages_of_edge_ends() -> None:
+    oct0 = qtm.facets(1)[0]  # north pole, (0, 0), (0, 90)
+    kids = qtm.facets(2)[:4]
+    # the central child's corners: the midpoints, the pole taking the other end's longitude
+    assert kids[0].tolist() == [[0.0, 45.0], [45.0, 90.0], [45.0, 0.0]]
+    assert kids[1].tolist() == [oct0[0].tolist(), [45.0, 0.0], [45.0, 90.0]]
+
+
+def test_areas_sum_to_the_ellipsoid() -> None:
+    from pyproj import Geod
+
+    geod = Geod(ellps="WGS84")
+    for level in (1, 3, 4):
+        total = 0.0
+        for tri in qtm.facets(level):
+            area, _ = geod.polygon_area_perimeter(tri[:, 1], tri[:, 0])
+            total += abs(area)
+        assert total == pytest.approx(ELLIPSOID_M2, rel=1e-9)
+
+
+def test_children_tile_their_parent_and_points_find_their_facet() -> None:
+    rng = np.random.default_rng(5)
+    lat = np.degrees(np.arcsin(rng.uniform(-1, 1, 40_000)))
+    lon = rng.uniform(-180, 180, 40_000)
+    # the poles, the antimeridian from both sides, the equator and the octants' edges
+    lat = np.concatenate([lat, [90.0, -90.0, 10.0, 10.0, 0.0, 0.0, -30.0, 45.0]])
+    lon = np.concatenate([lon, [0.0, 0.0, 180.0, -180.0, 45.0, 90.0, -90.0, 0.0]])
+    finer = qtm.locate(lat, lon, 6)
+    for level in (1, 2, 3, 4, 5):
+        here = qtm.locate(lat, lon, level)
+        # a point's facet one level down is a child of its facet (the children tile it)
+        assert np.array_equal(qtm.parent(qtm.locate(lat, lon, level + 1)), here)
+        assert np.array_equal(finer >> (2 * (6 - level)), here)
+    # every facet at level 3 holds some of the random points
+    assert len(np.unique(qtm.locate(lat[:-8], lon[:-8], 3))) == qtm.facet_count(3)
+    # and the point lies in its facet's lat/lon triangle (the pole standing for its segment)
+    v = qtm.facet_vertices(6, finer[:2000])
+    la, lo = lat[:2000], lon[:2000]
+    x = np.where(np.abs(v[..., 0]) == 90.0, lo[:, None], v[..., 1])
+    y = v[..., 0]
+    d = (y[:, 1] - y[:, 2]) * (x[:, 0] - x[:, 2]) + (x[:, 2] - x[:, 1]) * (y[:, 0] - y[:, 2])
+    wa = ((y[:, 1] - y[:, 2]) * (lo - x[:, 2]) + (x[:, 2] - x[:, 1]) * (la - y[:, 2])) / d
+    wb = ((y[:, 2] - y[:, 0]) * (lo - x[:, 2]) + (x[:, 0] - x[:, 2]) * (la - y[:, 2])) / d
+    assert np.all(np.minimum(np.minimum(wa, wb), 1 - wa - wb) > -1e-9)
+
+
+def test_the_papers_experiment() -> None:
+    assert block_count(6) == 512 == qtm.facet_count(4)
+    assert qtm.facet_count(9) == 524_288
+    one = thinning(45.0, 10.0, base=7, block_level=4, extra=2, blocks=1)
+    assert one.count == 32_768 - 64 + 1024
+    four = thinning(45.0, 10.0, base=7, block_level=4, extra=2, blocks=4)
+    assert four.count == 32_768 - 4 * 64 + 4 * 1024 == 36_608
+    # the viewpoint is inside the thinning area
+    assert int(qtm.locate([45.0], [10.0], 9)[0]) in set(four.levels[9].tolist())
+
+
+@pytest.mark.parametrize(
+    "cam",
+    [
+        Camera(10.0, 45.0, 2.0e7, pitch=-90.0, width=640, height=480),
+        Camera(-120.0, -30.0, 1.0e5, heading=80.0, pitch=-30.0, width=640, height=360),
+        Camera(179.9, 70.0, 5000.0, heading=250.0, pitch=-10.0, width=640, height=360),
+    ],
+)
+def test_vectorised_selection_equals_the_recursive_one(cam: Camera) -> None:
+    cam = cam.with_clip(max(cam.alt * 0.05, 1.0), 2.0e7)
+    for sse in (2.0, 0.3):
+        a = by_error(cam, max_sse=sse)
+        b = naive_by_error(cam, max_sse=sse)
+        assert a.levels.keys() == b.levels.keys()
+        for k in a.levels:
+            assert np.array_equal(a.levels[k], b.levels[k])
+    assert by_error(cam, max_sse=0.3).count > by_error(cam, max_sse=2.0).count
+
+
+def _cracks(rgb: np.ndarray) -> int:
+    """Magenta pixels with the globe on all four sides: holes through the surface."""
+    m = np.all(rgb == (255, 0, 255), axis=2)
+    g = ~m
+    up = np.maximum.accumulate(g, axis=0)
+    down = np.maximum.accumulate(g[::-1], axis=0)[::-1]
+    left = np.maximum.accumulate(g, axis=1)
+    right = np.maximum.accumulate(g[:, ::-1], axis=1)[:, ::-1]
+    return int((m & up & down & left & right).sum())
+
+
+@pytest.fixture(scope="module")
+def dem(tmp_path_factory: pytest.TempPathFactory) -> str:
+    path = tmp_path_factory.mktemp("globe") / "utm.tif"
+    return write_dem(
+        str(path), fbm_heights(1025), crs="EPSG:32617", west=700000.0, north=4060000.0, res=10.0
+    )
+
+
+@pytest.mark.gl
+def test_no_cracks_from_orbit_to_five_kilometres(dem: str) -> None:
+    from lodscape.globe import Globe, GlobeOptions
+
+    lon, lat = -78.7, 36.62
+    views = {
+        "orbit": Camera(lon, lat, 1.0e7, pitch=-90, width=320, height=320),
+        "100 km": Camera(lon, lat - 0.8, 1.0e5, pitch=-35, width=480, height=300),
+        "5 km": Camera(lon, lat - 0.05, 6200.0, heading=10, pitch=-15, width=480, height=300),
+    }
+    found = {}
+    for extend in (True, False):
+        opts = GlobeOptions(background=(1.0, 0.0, 1.0), extend=extend)
+        g = Globe(lodscape.open(dem), opts)
+        try:
+            for name, cam in views.items():
+                rgb, depth = g.render(cam)
+                assert np.isfinite(depth).mean() > 0.2, name
+                found[extend, name] = (_cracks(rgb), g.last)
+        finally:
+            g.close()
+    for name in views:
+        cracks, last = found[True, name]
+        assert cracks == 0, (name, last)
+        assert last["extended"] > 0
+    # without vertex extension the same views show holes
+    assert sum(found[False, name][0] for name in views) > 20
+
+
+@pytest.mark.gl
+def test_cli_globe(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "globe.png"
+    code, text, err = run_cli(["globe", "--size", "160x120", "-o", str(out)], capsys)
+    assert code == 0, err
+    assert out.exists()
+    assert "triangles" in text
+    code, text, err = run_cli(
+        ["globe", "--mode", "thinning", "--size", "160x120", "-o", str(out), "-q"], capsys
+    )
+    assert code == 0, err
+    code, _, err = run_cli(["globe", "--mode", "wrong", "-o", str(out)], capsys)
+    assert code == 2
+    assert "sse or thinning" in err
