@@ -131,3 +131,48 @@ def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path
     assert end["lat"] > start["lat"] + 1e-5
     assert 10.0 < end["heading"] < 30.0
     assert abs(end["lon"] - start["lon"]) < 0.01
+
+
+def test_viewer_shows_the_globe(display: str, tmp_path: Path) -> None:
+    env = {**os.environ, "DISPLAY": display}
+    shots = tmp_path / "shots"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "lodscape.cli",
+            "view",
+            "none",
+            "--globe",
+            "--size",
+            "240x180",
+            "--screenshots",
+            str(shots),
+            "--exit-after",
+            "60",
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert _xdo(env, "search", "--sync", "--name", "lodscape")
+        time.sleep(3.0)
+        _xdo(env, "key", "p")
+        time.sleep(0.5)
+        _xdo(env, "key", "Escape")
+        _out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    from PIL import Image
+
+    (shot,) = sorted(shots.glob("*.png"))
+    rgb = np.asarray(Image.open(shot).convert("RGB")).astype(np.int16)
+    # the Earth's disc on black space: a fair share of coloured pixels, black round it
+    lit = rgb.sum(axis=2) > 30
+    assert 0.1 < lit.mean() < 0.9
+    assert not lit[0, 0]

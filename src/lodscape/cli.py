@@ -764,6 +764,13 @@ def view(
         float | None,
         typer.Option(callback=_finite, help="Close the window after this many seconds."),
     ] = None,
+    globe: Annotated[
+        bool,
+        typer.Option(
+            "--globe",
+            help="The whole Earth on the QTM grid, with SOURCE's heights where it covers.",
+        ),
+    ] = False,
 ) -> None:
     """Fly over SOURCE in a window: W/S/A/D/Q/E move, arrows and mouse drag look, the wheel
     sets the speed; T wireframe, L level colours, C back-face culling, G fractal detail, P
@@ -772,6 +779,9 @@ def view(
     from lodscape.view import view as run_view
 
     w, h = _size(size)
+    if globe:
+        _view_globe(source, camera_file, save_camera, screenshots, w, h, fov, max_sse, exit_after)
+        return
     fractal = _detail(source, detail, None, None, None)
     try:
         options = SceneOptions(
@@ -918,6 +928,49 @@ def globe(
         for key, value in g.last.items():
             typer.echo(f"{key:>18}: {value}")
         typer.echo(f"{'wrote':>18}: {output}")
+
+
+def _view_globe(
+    source: str,
+    camera_file: Path | None,
+    save_camera: Path | None,
+    screenshots: Path,
+    w: int,
+    h: int,
+    fov: float,
+    max_sse: float,
+    exit_after: float | None,
+) -> None:
+    """``view --globe``: the QTM globe in the window (SOURCE "-" or "none": no heights)."""
+    from lodscape.globe import Globe, GlobeOptions
+    from lodscape.view import load_camera
+    from lodscape.view import view as run_view
+
+    terrain = None if source in ("-", "none") else open_scene(source)
+    try:
+        g = Globe(terrain, GlobeOptions(max_sse=max_sse, background=(0.0, 0.0, 0.0)))
+    except ValueError as exc:
+        raise LodscapeError(f"bad option: {exc}") from None
+    if camera_file is not None:
+        camera = load_camera(camera_file, w, h)
+    elif terrain is not None:
+        c = terrain.overview_camera(w, h, fov)
+        camera = c.moved(alt=max(c.alt, 5.0e4))
+    else:
+        camera = Camera(10.0, 30.0, 2.0e7, pitch=-90.0, fov_y=fov, width=w, height=h)
+    done = run_view(
+        {"plain": g},
+        camera,
+        screenshot_dir=screenshots,
+        camera_file=save_camera,
+        exit_after=exit_after,
+        title="lodscape: globe",
+    )
+    c = done["camera"]
+    typer.echo(
+        f"{done['frames']} frames, {done['screenshots']} screenshots; camera "
+        f"{c.lon:.6f} {c.lat:.6f} {c.alt:.1f} heading {c.heading:.1f} pitch {c.pitch:.1f}"
+    )
 
 
 city_app = typer.Typer(

@@ -48,6 +48,7 @@ class Globe:
     options: GlobeOptions = field(default_factory=GlobeOptions)
     last: dict[str, Any] = field(default_factory=dict)
     _renderer: Any = None
+    _ctx: Any = None
 
     def heights(self, lat: F64, lon: F64) -> F64:
         if self.terrain is None:
@@ -133,7 +134,7 @@ class Globe:
         cam, sel, m = self.mesh(camera)
         t1 = time.perf_counter()
         if self._renderer is None:
-            self._renderer = GlobeRenderer(global_image(), self.options.background)
+            self._renderer = GlobeRenderer(global_image(), self.options.background, self._ctx)
         rgb, depth = self._renderer.draw(cam, m)
         self.last = {
             "triangles": sel.count,
@@ -145,6 +146,33 @@ class Globe:
             "draw_ms": round((time.perf_counter() - t1) * 1e3, 2),
         }
         return rgb, depth
+
+    # --- what the viewer asks of a scene ------------------------------------------------
+
+    def use_context(self, ctx: Any) -> None:
+        """Draw in ``ctx`` (a window's); frames then stay in the renderer's framebuffer."""
+        self._ctx = ctx
+
+    @property
+    def renderer(self) -> Any:
+        return self._renderer
+
+    @property
+    def terrain_mode(self) -> str:
+        return f"QTM {self.options.mode}"
+
+    def ground_height(self, lon: float, lat: float) -> float | None:
+        return float(self.heights(np.array([lat]), np.array([lon]))[0])
+
+    @property
+    def stats(self) -> dict[str, Any]:
+        """The last frame's figures in the viewer's names."""
+        return {
+            "tiles": self.last.get("triangles", 0),
+            "triangles": self.last.get("triangles", 0),
+            "max_sse_px": self.last.get("screen_error_px", 0.0),
+            "max_depth": self.last.get("max_level", 0),
+        }
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -105,11 +105,7 @@ def view(
     import moderngl_window
     from moderngl_window.conf import settings
 
-    gpu = any(
-        getattr(s, "options", None) and s.options.terrain_mode == "gpu"
-        for s in scenes.values()
-        if not callable(s)
-    )
+    gpu = getattr(scenes[start].options, "terrain_mode", "cpu") == "gpu"
     settings.WINDOW["class"] = "moderngl_window.context.pyglet.Window"
     settings.WINDOW["size"] = (camera.width, camera.height)
     settings.WINDOW["title"] = title
@@ -147,7 +143,7 @@ def view(
 
     def screenshot() -> Path:
         rend = scene.renderer
-        fbo = rend.framebuffer if rend is not None else None
+        fbo = rend.colour_framebuffer if rend is not None else None
         if fbo is None:
             raise LodscapeError("no frame yet")
         w, h = fbo.size
@@ -184,7 +180,7 @@ def view(
             elif key == keys.L and rend is not None:
                 rend.lod_colours = not rend.lod_colours
                 say(f"level colours {'on' if rend.lod_colours else 'off'}")
-            elif key == keys.C:
+            elif key == keys.C and hasattr(scene.options, "cull_backfacing"):
                 opts = scene.options
                 scene.options = replace(opts, cull_backfacing=not opts.cull_backfacing)
                 say(f"back-face culling {'on' if scene.options.cull_backfacing else 'off'}")
@@ -255,8 +251,11 @@ def view(
         )
 
     def draw_hud(w: int, h: int) -> None:
-        last = scene.last
-        stats = last.as_dict() if last is not None else {}
+        if hasattr(scene, "stats"):
+            stats = scene.stats  # the globe
+        else:
+            last = scene.last
+            stats = last.as_dict() if last is not None else {}
         text = (
             f"{st.fps:5.1f} fps  tiles {stats.get('tiles', 0)}  "
             f"triangles {int(stats.get('triangles', 0)):,}  "

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.frames import WGS84_A, geodetic_to_ecef
+from lodscape.geo.frames import WGS84_A, WGS84_B, geodetic_to_ecef
 from lodscape.geo.qtm import facet_vertices, locate, split, vertex_keys
 from lodscape.lod.camera import Camera
 
@@ -87,6 +87,13 @@ def _unit(lat: F64, lon: F64) -> F64:
     return np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)], axis=-1)
 
 
+def _surface(u: F64) -> F64:
+    """The ellipsoid's points along unit vectors (F, 3) from the Earth's centre."""
+    t = 1.0 / np.sqrt((u[:, 0] ** 2 + u[:, 1] ** 2) / WGS84_A**2 + u[:, 2] ** 2 / WGS84_B**2)
+    out: F64 = u * t[:, None]
+    return out
+
+
 def _centres(v: F64) -> F64:
     """Unit vectors of facet centres (mean of the vertices' unit vectors)."""
     u = _unit(v[..., 0], v[..., 1]).mean(axis=1)
@@ -124,12 +131,13 @@ def by_error(
         # the flat triangle under the curve: its sag over the facet's radius, and the terrain's
         # departure from its plane
         err = WGS84_A * (1.0 - np.cos(np.minimum(rho, math.pi / 2))) + dev
-        centre = c * (WGS84_A + (lo + hi) / 2.0)[:, None]
+        centre = _surface(c) + c * ((lo + hi) / 2.0)[:, None]
         radius = 2.0 * WGS84_A * np.sin(rho / 2.0) + (hi - lo) / 2.0 + err
         # beyond the horizon: the nearest the facet's cap comes to the eye's direction
         alpha = np.arccos(np.clip(c @ (eye / r_eye), -1.0, 1.0))
-        hidden = r_top * np.cos(np.maximum(alpha - rho, 0.0)) < WGS84_A**2 / r_eye - 1.0
-        hidden &= r_eye > WGS84_A
+        # the occluder: the sphere inside the ellipsoid (its polar radius), so never too much
+        hidden = r_top * np.cos(np.maximum(alpha - rho, 0.0)) < WGS84_B**2 / r_eye - 1.0
+        hidden &= r_eye > WGS84_B
         rel = centre - eye
         outside = np.any(rel @ planes[:, :3].T + planes[:, 3] < -radius[:, None], axis=1)
         keep = ~(hidden | outside)
@@ -239,10 +247,11 @@ def screen_error(sel: Selection, camera: Camera) -> float:
         rho = np.arccos(np.clip(np.einsum("fk,fvk->fv", c, u).min(axis=1), -1.0, 1.0))
         err = WGS84_A * (1.0 - np.cos(rho))
         radius = 2.0 * WGS84_A * np.sin(rho / 2.0) + err
-        rel = c * WGS84_A - eye
+        rel = _surface(c) - eye
         r_eye = float(np.linalg.norm(eye))
         alpha = np.arccos(np.clip(c @ (eye / r_eye), -1.0, 1.0))
-        hidden = (WGS84_A + 100.0) * np.cos(np.maximum(alpha - rho, 0.0)) < WGS84_A**2 / r_eye - 1.0
+        hidden = (WGS84_A + 100.0) * np.cos(np.maximum(alpha - rho, 0.0)) < WGS84_B**2 / r_eye - 1.0
+        hidden &= r_eye > WGS84_B
         outside = np.any(rel @ planes[:, :3].T + planes[:, 3] < -radius[:, None], axis=1)
         seen = ~(hidden | outside)
         if seen.any():
@@ -266,11 +275,11 @@ def naive_by_error(camera: Camera, *, max_sse: float = 2.0, max_level: int = 20)
         err = WGS84_A * (1.0 - math.cos(min(rho, math.pi / 2)))
         radius = 2.0 * WGS84_A * math.sin(rho / 2.0) + err
         alpha = math.acos(min(max(float(c @ (eye / r_eye)), -1.0), 1.0))
-        if r_eye > WGS84_A and (WGS84_A + 100.0) * math.cos(max(alpha - rho, 0.0)) < (
-            WGS84_A**2 / r_eye - 1.0
+        if r_eye > WGS84_B and (WGS84_A + 100.0) * math.cos(max(alpha - rho, 0.0)) < (
+            WGS84_B**2 / r_eye - 1.0
         ):
             return
-        rel = c * WGS84_A - eye
+        rel = _surface(c[None])[0] - eye
         if np.any(planes[:, :3] @ rel + planes[:, 3] < -radius):
             return
         dist = max(float(np.linalg.norm(rel)) - radius, camera.near or 1.0)

@@ -45,9 +45,20 @@ void main() {
 class GlobeRenderer:
     """Headless: draws a ``GlobeMesh`` and reads back RGB and view distance."""
 
-    def __init__(self, image: NDArray[np.uint8], background: tuple[float, float, float]) -> None:
-        self.ctx = create_context()
+    def __init__(
+        self,
+        image: NDArray[np.uint8],
+        background: tuple[float, float, float],
+        ctx: moderngl.Context | None = None,
+    ) -> None:
+        self._owns_ctx = ctx is None
+        self.ctx = create_context() if ctx is None else ctx
         make_current(self.ctx)
+        #: False: ``draw`` leaves the picture in ``colour_framebuffer`` (a window copies it).
+        self.read_back = True
+        self.wireframe = False
+        self.lod_colours = False
+        self._colour_fbo: moderngl.Framebuffer | None = None
         self.background = background
         self.prog = self.ctx.program(vertex_shader=_VERTEX, fragment_shader=_FRAGMENT)
         img = np.ascontiguousarray(image[::-1])  # row 0 at the bottom: v = 0 at latitude -90
@@ -69,6 +80,7 @@ class GlobeRenderer:
             dist = self.ctx.renderbuffer((w, h), 1, dtype="f4")
             depth = self.ctx.depth_renderbuffer((w, h))
             self._fbo = self.ctx.framebuffer([color, dist], depth)
+            self._colour_fbo = self.ctx.framebuffer([color])
             self._size = (w, h)
         fbo = self._fbo
         assert fbo is not None
@@ -96,9 +108,13 @@ class GlobeRenderer:
         self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
         self.prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]
         self.tex.use(0)
+        self.ctx.wireframe = self.wireframe
         vao.render(moderngl.TRIANGLES)
+        self.ctx.wireframe = False
         vao.release()
         vbo.release()
+        if not self.read_back:
+            return np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
         rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
         d = np.frombuffer(fbo.read(components=1, attachment=1, alignment=1, dtype="f4"), np.float32)
         return (
@@ -106,5 +122,11 @@ class GlobeRenderer:
             np.ascontiguousarray(d.reshape(h, w)[::-1]),
         )
 
+    @property
+    def colour_framebuffer(self) -> moderngl.Framebuffer | None:
+        """The last frame's colour alone (what a window's framebuffer is copied from)."""
+        return self._colour_fbo
+
     def close(self) -> None:
-        self.ctx.release()
+        if self._owns_ctx:
+            self.ctx.release()
