@@ -54,6 +54,27 @@ def _xdo(env: dict[str, str], *args: str) -> str:
     return out.stdout.strip()
 
 
+def _viewer(env: dict[str, str], *args: str) -> subprocess.Popen[str]:
+    """``lodscape view`` in its own process on the virtual screen."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "lodscape.cli", "view", *args, "--exit-after", "90"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _finish(proc: subprocess.Popen[str]) -> tuple[str, str]:
+    """Wait for the viewer to close; killed if it does not."""
+    try:
+        return proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
 def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path) -> None:
     dem = write_dem(
         str(tmp_path / "dem.tif"),
@@ -67,28 +88,17 @@ def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path
     (tmp_path / "start.json").write_text(json.dumps(start))
     env = {**os.environ, "DISPLAY": display}
     shots = tmp_path / "shots"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "lodscape.cli",
-            "view",
-            dem,
-            "--camera",
-            str(tmp_path / "start.json"),
-            "--camera-file",
-            str(tmp_path / "end.json"),
-            "--screenshots",
-            str(shots),
-            "--size",
-            "320x200",
-            "--exit-after",
-            "90",
-        ],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc = _viewer(
+        env,
+        dem,
+        "--camera",
+        str(tmp_path / "start.json"),
+        "--camera-file",
+        str(tmp_path / "end.json"),
+        "--screenshots",
+        str(shots),
+        "--size",
+        "320x200",
     )
     try:
         window = _xdo(env, "search", "--sync", "--name", "lodscape").splitlines()
@@ -107,11 +117,8 @@ def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path
         for key in ("p", "k", "Escape"):
             _xdo(env, "key", key)
             time.sleep(0.5)
-        out, err = proc.communicate(timeout=60)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        out, err = _finish(proc)
     assert proc.returncode == 0, err
     frames = int(out.split(" frames")[0].split()[-1])
     assert frames > 10, out
@@ -136,37 +143,15 @@ def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path
 def test_viewer_shows_the_globe(display: str, tmp_path: Path) -> None:
     env = {**os.environ, "DISPLAY": display}
     shots = tmp_path / "shots"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "lodscape.cli",
-            "view",
-            "none",
-            "--globe",
-            "--size",
-            "240x180",
-            "--screenshots",
-            str(shots),
-            "--exit-after",
-            "60",
-        ],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = _viewer(env, "none", "--globe", "--size", "240x180", "--screenshots", str(shots))
     try:
         assert _xdo(env, "search", "--sync", "--name", "lodscape")
         time.sleep(3.0)
         _xdo(env, "key", "p")
         time.sleep(0.5)
         _xdo(env, "key", "Escape")
-        _out, err = proc.communicate(timeout=60)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        _, err = _finish(proc)
     assert proc.returncode == 0, err
     from PIL import Image
 

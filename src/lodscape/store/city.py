@@ -20,6 +20,8 @@ import json
 import os
 import sqlite3
 from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import shapely
@@ -71,6 +73,19 @@ def _open_rw(path: str | os.PathLike[str]) -> sqlite3.Connection:
     return db
 
 
+@contextmanager
+def _transaction(db: sqlite3.Connection) -> Iterator[None]:
+    """BEGIN IMMEDIATE … COMMIT, rolled back on any error."""
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        yield
+        db.execute("COMMIT")
+    except BaseException:
+        if db.in_transaction:
+            db.execute("ROLLBACK")
+        raise
+
+
 def _has_tables(db: sqlite3.Connection) -> bool:
     row = db.execute(
         "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'city_sets'"
@@ -106,8 +121,7 @@ def add_city(
                 )
         outside = len(city.buildings) - len(kept_b) + len(city.features) - len(kept_f)
         report = {**city.report(), "outside_tileset": outside}
-        db.execute("BEGIN IMMEDIATE")
-        try:
+        with _transaction(db):
             # one statement at a time: executescript would commit the transaction first
             for statement in _SCHEMA.split(";"):
                 if statement.strip():
@@ -158,11 +172,6 @@ def add_city(
                     "INSERT INTO city_feature_index VALUES (?, ?, ?, ?, ?)",
                     (cur.lastrowid, f.lon, f.lon, f.lat, f.lat),
                 )
-            db.execute("COMMIT")
-        except BaseException:
-            if db.in_transaction:
-                db.execute("ROLLBACK")
-            raise
     except sqlite3.Error as exc:
         raise TilesetError(f"{path}: cannot store the city ({exc})") from None
     finally:
@@ -198,14 +207,8 @@ def remove_city(path: str | os.PathLike[str], name: str) -> None:
             or not db.execute("SELECT 1 FROM city_sets WHERE name = ?", (name,)).fetchone()
         ):
             raise TilesetError(f"{path}: holds no city named {name!r}")
-        db.execute("BEGIN IMMEDIATE")
-        try:
+        with _transaction(db):
             _delete(db, name)
-            db.execute("COMMIT")
-        except BaseException:
-            if db.in_transaction:
-                db.execute("ROLLBACK")
-            raise
     except sqlite3.Error as exc:
         raise TilesetError(f"{path}: cannot remove the city ({exc})") from None
     finally:

@@ -164,8 +164,8 @@ def error_table(heights: NDArray[np.floating]) -> F32:
     out[:, :LEVELS] = np.maximum.accumulate(out[:, LEVELS - 1 :: -1], axis=1)[:, ::-1]
     # heights: patches, horizontal edges, vertical edges
     blocks = h[:s, :s].reshape(p, c, p, c)
-    lo_p = np.minimum(blocks.min(axis=(1, 3)), _corner_min(h, p, c))
-    hi_p = np.maximum(blocks.max(axis=(1, 3)), _corner_max(h, p, c))
+    lo_p = np.minimum(blocks.min(axis=(1, 3)), _corner_ext(h, p, c, np.min))
+    hi_p = np.maximum(blocks.max(axis=(1, 3)), _corner_ext(h, p, c, np.max))
     lo_h = _line_ext(h[::c, :], p, c, np.min)
     hi_h = _line_ext(h[::c, :], p, c, np.max)
     lo_v = _line_ext(h[:, ::c].T, p, c, np.min)
@@ -186,22 +186,17 @@ def _line_ext(lines: F64, p: int, c: int, fn: object) -> F64:
     return out
 
 
-def _corner_min(h: F64, p: int, c: int) -> F64:
-    """Min over each patch's last row and column (outside the [:s, :s] blocks)."""
+def _corner_ext(h: F64, p: int, c: int, fn: object) -> F64:
+    """``fn`` (np.min or np.max) over each patch's last row and column (outside the [:s, :s]
+    blocks)."""
     s = p * c
-    right = h[:s, c::c].reshape(p, c, p).min(axis=1)
-    bottom = h[c::c, :s].reshape(p, p, c).min(axis=2)
+    right = h[:s, c::c].reshape(p, c, p)
+    bottom = h[c::c, :s].reshape(p, p, c)
     corner = h[c::c, c::c]
-    out: F64 = np.minimum(np.minimum(right, bottom), corner)
-    return out
-
-
-def _corner_max(h: F64, p: int, c: int) -> F64:
-    s = p * c
-    right = h[:s, c::c].reshape(p, c, p).max(axis=1)
-    bottom = h[c::c, :s].reshape(p, p, c).max(axis=2)
-    corner = h[c::c, c::c]
-    out: F64 = np.maximum(np.maximum(right, bottom), corner)
+    if fn is np.min:
+        out: F64 = np.minimum(np.minimum(right.min(axis=1), bottom.min(axis=2)), corner)
+    else:
+        out = np.maximum(np.maximum(right.max(axis=1), bottom.max(axis=2)), corner)
     return out
 
 
