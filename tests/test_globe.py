@@ -172,3 +172,17 @@ def test_cli_globe(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = run_cli(["globe", "--mode", "wrong", "-o", str(out)], capsys)
     assert code == 2
     assert "sse or thinning" in err
+
+
+@pytest.mark.gl
+def test_fly_over_the_globe(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "globe.mp4"
+    argv = ["fly", "none", "--globe", "--line", "0,30,20,40,400000", "--speed", "400000"]
+    argv += ["--fps", "4", "--size", "160x120", "--pitch", "-40", "-o", str(out)]
+    code, text, err = run_cli(argv, capsys)
+    assert code == 0, err
+    assert "frames over the globe" in text
+    n = int(text.split(":")[1].split("frames")[0])
+    assert n >= 10
+    assert out.stat().st_size > 1000
+    assert not list(tmp_path.glob("*.tmp*"))

@@ -459,6 +459,14 @@ def fly(
     sigma: SigmaOpt = None,
     seed: SeedOpt = None,
     city: CityOpt = None,
+    globe: Annotated[
+        bool,
+        typer.Option(
+            "--globe",
+            help="Fly over the whole Earth on the QTM grid (SOURCE: a DEM for its heights, or "
+            "none).",
+        ),
+    ] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Fly a camera over SOURCE along a route, an orbit or a line into an MP4, streaming tiles
@@ -508,6 +516,34 @@ def fly(
         raise LodscapeError(f"bad option: {exc}") from None
     cover = _landcover(ground, landcover, city)
     cams = list(flight.cameras(route, fps, w, h, pitch=pitch, fov=fov, duration=duration))
+    if globe:
+        from lodscape.globe import Globe, GlobeOptions
+
+        earth = Globe(
+            None if source in ("-", "none") else open_scene(source),
+            GlobeOptions(max_sse=max_sse, background=(0.0, 0.0, 0.0)),
+        )
+        try:
+            with Progress(
+                TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), disable=quiet
+            ) as bar:
+                task = bar.add_task("frames", total=len(cams))
+                rows = flight.fly_globe(
+                    earth,
+                    iter(cams),
+                    fps,
+                    video=output,
+                    on_frame=lambda i: bar.update(task, completed=i + 1),
+                )
+        finally:
+            earth.close()
+        if not quiet:
+            typer.echo(
+                f"wrote {output}: {len(rows)} frames over the globe; facets per frame up to "
+                f"{max(r['triangles'] for r in rows):,}, levels to "
+                f"{max(r['max_level'] for r in rows)}"
+            )
+        return
     columns = (TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with (
         _open(

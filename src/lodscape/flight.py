@@ -287,6 +287,52 @@ def fly(
     return rows
 
 
+def fly_globe(
+    globe: Any,
+    frames: Iterator[Camera],
+    fps: float,
+    *,
+    video: Path,
+    on_frame: Callable[[int], None] | None = None,
+) -> list[dict[str, float]]:
+    """Render every camera of a flight over the QTM globe (``lodscape.globe.Globe``) into an MP4
+    (whole or not at all). Returns per-frame figures: facets, deepest level, selection and
+    draw times."""
+    rows: list[dict[str, float]] = []
+    writer: Any = None
+    tmp_video: Path | None = None
+    try:
+        for i, cam in enumerate(frames):
+            rgb, _ = globe.render(cam)
+            if writer is None:
+                writer, tmp_video = _video_writer(video, cam.width, cam.height, fps)
+            writer.send(np.ascontiguousarray(rgb).tobytes())
+            last = globe.last
+            rows.append(
+                {
+                    "frame": i,
+                    "time_s": round(i / fps, 4),
+                    "triangles": last["triangles"],
+                    "max_level": last["max_level"],
+                    "select_ms": last["select_ms"],
+                    "draw_ms": last["draw_ms"],
+                }
+            )
+            if on_frame is not None:
+                on_frame(i)
+        if writer is not None:
+            writer.close()
+            writer = None
+            assert tmp_video is not None
+            os.replace(tmp_video, video)
+    finally:
+        if writer is not None:
+            writer.close()
+        if tmp_video is not None and tmp_video.exists():
+            tmp_video.unlink()
+    return rows
+
+
 def _video_writer(path: Path, width: int, height: int, fps: float) -> tuple[Any, Path]:
     import imageio_ffmpeg
 
