@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -121,3 +123,29 @@ def run_cli(argv: list[str], capsys: object) -> tuple[int, str, str]:
         code = int(exc.code or 0)
     out, err = capsys.readouterr()  # type: ignore[attr-defined]
     return code, out, err
+
+
+def helsinki_tileset(folder: Path) -> Path:
+    """A tileset over the west part of the bundled Helsinki extract (a low fBm DEM, 10 m): what
+    the city store and the server are tested on."""
+    from lodscape.cli import main
+
+    heights = fbm_heights(257, seed=5, relief=40.0)[:, :160] - 290.0
+    dem = write_dem(
+        str(folder / "helsinki_dem.tif"),
+        np.ascontiguousarray(heights),
+        crs="EPSG:4326",
+        west=24.930,
+        north=60.182,
+        res=0.0001,
+    )
+    out = folder / "site.lods"
+    main(["build", dem, "-o", str(out), "-q"])
+    return out
+
+
+def magenta_cracks(rgb: NDArray[np.uint8]) -> int:
+    """Magenta pixels below the terrain's silhouette: holes through the surface."""
+    magenta = np.all(rgb == (255, 0, 255), axis=2)
+    seen_above = np.maximum.accumulate(~magenta, axis=0)
+    return int((magenta & seen_above).sum())

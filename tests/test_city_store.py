@@ -12,34 +12,18 @@ import numpy as np
 import pytest
 import shapely
 
-from _synthetic import fbm_heights, run_cli, write_dem
+from _synthetic import helsinki_tileset, run_cli
 from lodscape.city.osm import read_osm
-from lodscape.cli import main
 from lodscape.data import sample_city_path
 from lodscape.store.city import add_city, read_city
 from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
 
 pytestmark = pytest.mark.gl
 
-#: The DEM's west edge and spacing: it covers the sample city's west part only.
-WEST, NORTH, RES = 24.930, 60.182, 0.0001
-
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("city-store")
-    heights = fbm_heights(257, seed=5, relief=40.0)[:, :160] - 290.0
-    dem = write_dem(
-        str(folder / "helsinki_dem.tif"),
-        np.ascontiguousarray(heights),
-        crs="EPSG:4326",
-        west=WEST,
-        north=NORTH,
-        res=RES,
-    )
-    out = folder / "site.lods"
-    main(["build", dem, "-o", str(out), "-q"])
-    return out
+    return helsinki_tileset(tmp_path_factory.mktemp("city-store"))
 
 
 @pytest.fixture

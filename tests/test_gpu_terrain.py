@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import lodscape
-from _synthetic import fbm_heights, run_cli, write_dem
+from _synthetic import fbm_heights, magenta_cracks, run_cli, write_dem
 from lodscape import Camera, SceneOptions, SelectOptions
 from lodscape.geo.frames import geodetic_to_ecef
 from lodscape.geo.tiles import merc_to_lonlat
@@ -103,10 +103,7 @@ def _views(scene: lodscape.Scene) -> dict[str, Camera]:
     }
 
 
-def _cracks(rgb: np.ndarray) -> int:
-    magenta = np.all(rgb == (255, 0, 255), axis=2)
-    seen_above = np.maximum.accumulate(~magenta, axis=0)
-    return int((magenta & seen_above).sum())
+_cracks = magenta_cracks
 
 
 @pytest.mark.gl

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import lodscape
-from _synthetic import fbm_heights, write_dem
+from _synthetic import fbm_heights, magenta_cracks, write_dem
 from lodscape import Camera, SceneOptions
 from lodscape.errors import CameraError
 
@@ -58,12 +58,7 @@ def _views(scene: lodscape.Scene) -> dict[str, Camera]:
     }
 
 
-def _cracks(rgb: np.ndarray) -> int:
-    """Magenta pixels below the terrain's silhouette: a hole through the surface."""
-    magenta = np.all(rgb == (255, 0, 255), axis=2)
-    terrain = ~magenta
-    seen_above = np.maximum.accumulate(terrain, axis=0)
-    return int((magenta & seen_above).sum())
+_cracks = magenta_cracks
 
 
 def test_no_cracks_across_levels(scene: lodscape.Scene) -> None:

@@ -17,7 +17,7 @@ import httpx
 import numpy as np
 import pytest
 
-from _synthetic import fbm_heights, write_dem
+from _synthetic import helsinki_tileset
 from lodscape.cli import main
 from lodscape.data import sample_city_path
 from lodscape.serve import TileService, make_app
@@ -28,18 +28,7 @@ pytestmark = pytest.mark.gl
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("serve")
-    heights = fbm_heights(257, seed=5, relief=40.0)[:, :160] - 290.0
-    dem = write_dem(
-        str(folder / "helsinki.tif"),
-        np.ascontiguousarray(heights),
-        crs="EPSG:4326",
-        west=24.930,
-        north=60.182,
-        res=0.0001,
-    )
-    out = folder / "site.lods"
-    main(["build", dem, "-o", str(out), "-q"])
+    out = helsinki_tileset(tmp_path_factory.mktemp("serve"))
     main(["city", "add", str(out), str(sample_city_path())])
     return out
 

@@ -77,6 +77,12 @@ LandcoverOpt = Annotated[
         help="An OpenStreetMap file whose land use colours the ground (--ground landcover)."
     ),
 ]
+AnisotropyOpt = Annotated[
+    float,
+    typer.Option(
+        callback=_finite, help="Anisotropic filtering cap (software rasterisers: always 1)."
+    ),
+]
 TerrainModeOpt = Annotated[
     str,
     typer.Option(
@@ -365,12 +371,7 @@ def render(
     terrain_mode: TerrainModeOpt = "cpu",
     ground: GroundOpt = "tint",
     landcover: LandcoverOpt = None,
-    anisotropy: Annotated[
-        float,
-        typer.Option(
-            callback=_finite, help="Anisotropic filtering cap (software rasterisers: always 1)."
-        ),
-    ] = 16.0,
+    anisotropy: AnisotropyOpt = 16.0,
     imagery: ImageryOpt = None,
     imagery_cache: CacheOpt = None,
     detail: DetailOpt = "none",
@@ -446,12 +447,7 @@ def fly(
     terrain_mode: TerrainModeOpt = "cpu",
     ground: GroundOpt = "tint",
     landcover: LandcoverOpt = None,
-    anisotropy: Annotated[
-        float,
-        typer.Option(
-            callback=_finite, help="Anisotropic filtering cap (software rasterisers: always 1)."
-        ),
-    ] = 16.0,
+    anisotropy: AnisotropyOpt = 16.0,
     imagery: ImageryOpt = None,
     imagery_cache: CacheOpt = None,
     detail: DetailOpt = "none",
@@ -783,12 +779,7 @@ def view(
     terrain_mode: TerrainModeOpt = "cpu",
     ground: GroundOpt = "tint",
     landcover: LandcoverOpt = None,
-    anisotropy: Annotated[
-        float,
-        typer.Option(
-            callback=_finite, help="Anisotropic filtering cap (software rasterisers: always 1)."
-        ),
-    ] = 16.0,
+    anisotropy: AnisotropyOpt = 16.0,
     budget_mb: Annotated[
         float, typer.Option(callback=_finite, help="MiB each of GPU, memory and cache.")
     ] = 512.0,

@@ -249,15 +249,10 @@ def fly(
     clock = streamer.clock
     budget = 1000.0 / fps
     rows: list[dict[str, float]] = []
-    writer: Any = None
-    tmp_video: Path | None = None
-    try:
+    with _Video(video, fps) as out:
         for i, cam in enumerate(frames):
             rgb, _ = scene.render(cam)
-            if video is not None:
-                if writer is None:
-                    writer, tmp_video = _video_writer(video, cam.width, cam.height, fps)
-                writer.send(np.ascontiguousarray(rgb).tobytes())
+            out.send(rgb)
             assert scene.last is not None
             d = scene.last.as_dict()
             row = {c: d.get(c, 0) for c in STAT_COLUMNS}
@@ -271,19 +266,9 @@ def fly(
             clock.advance(1.0 / fps)
             if on_frame is not None:
                 on_frame(i)
-        if writer is not None:
-            writer.close()
-            writer = None
-            assert tmp_video is not None
-            assert video is not None
-            os.replace(tmp_video, video)
+        out.commit()
         if stats is not None:
             _write_stats(stats, rows)
-    finally:
-        if writer is not None:
-            writer.close()
-        if tmp_video is not None and tmp_video.exists():
-            tmp_video.unlink()
     return rows
 
 
@@ -299,14 +284,10 @@ def fly_globe(
     (whole or not at all). Returns per-frame figures: facets, deepest level, selection and
     draw times."""
     rows: list[dict[str, float]] = []
-    writer: Any = None
-    tmp_video: Path | None = None
-    try:
+    with _Video(video, fps) as out:
         for i, cam in enumerate(frames):
             rgb, _ = globe.render(cam)
-            if writer is None:
-                writer, tmp_video = _video_writer(video, cam.width, cam.height, fps)
-            writer.send(np.ascontiguousarray(rgb).tobytes())
+            out.send(rgb)
             last = globe.last
             rows.append(
                 {
@@ -320,17 +301,44 @@ def fly_globe(
             )
             if on_frame is not None:
                 on_frame(i)
-        if writer is not None:
-            writer.close()
-            writer = None
-            assert tmp_video is not None
-            os.replace(tmp_video, video)
-    finally:
-        if writer is not None:
-            writer.close()
-        if tmp_video is not None and tmp_video.exists():
-            tmp_video.unlink()
+        out.commit()
     return rows
+
+
+class _Video:
+    """An MP4 written under a temporary name (opened at the first frame, which sets its size)
+    and put in place by ``commit``; left unfinished, nothing of it stays. ``path`` None: no
+    video."""
+
+    def __init__(self, path: Path | None, fps: float) -> None:
+        self.path, self.fps = path, fps
+        self.writer: Any = None
+        self.tmp: Path | None = None
+
+    def send(self, rgb: NDArray[np.uint8]) -> None:
+        if self.path is None:
+            return
+        if self.writer is None:
+            self.writer, self.tmp = _video_writer(self.path, rgb.shape[1], rgb.shape[0], self.fps)
+        self.writer.send(np.ascontiguousarray(rgb).tobytes())
+
+    def commit(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+            self.writer = None
+            assert self.tmp is not None
+            assert self.path is not None
+            os.replace(self.tmp, self.path)
+            self.tmp = None
+
+    def __enter__(self) -> _Video:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        if self.tmp is not None and self.tmp.exists():
+            self.tmp.unlink()
 
 
 def _video_writer(path: Path, width: int, height: int, fps: float) -> tuple[Any, Path]:
