@@ -14,7 +14,7 @@ from _synthetic import run_cli
 from lodscape import Camera, SceneOptions
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import tile, xy_bounds
-from lodscape.imagery.landcover import CLASSES, classify, read_landcover
+from lodscape.imagery.landcover import CLASSES, Landcover, classify, read_landcover
 from lodscape.lod.select import TEXTURE
 from lodscape.store.provider import LandcoverProvider
 
@@ -95,6 +95,28 @@ def test_bad_files_are_one_line_errors(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def cover():  # type: ignore[no-untyped-def]
     return read_landcover(_sample())
+
+
+def test_masks_from_many_threads_equal_masks_from_one(cover) -> None:  # type: ignore[no-untyped-def]
+    # the scene's workers rasterise tiles at once; GEOS prepares shapes lazily, and shared
+    # prepared shapes once corrupted the heap (an abort in CI). Fresh shapes each round, every
+    # tile asked by four threads together.
+    from concurrent.futures import ThreadPoolExecutor
+
+    import mercantile
+
+    tiles = list(mercantile.tiles(24.93, 60.163, 24.95, 60.172, [16]))
+    assert len(tiles) >= 12
+    for _ in range(5):
+        lc = Landcover(cover.name, [(shapely.from_wkb(g.wkb), v) for g, v in cover.shapes])
+        asked = [t for t in tiles for _ in range(4)]
+        with ThreadPoolExecutor(4) as pool:
+            masks = list(pool.map(lc.mask, *zip(*[(t.z, t.x, t.y) for t in asked], strict=True)))
+        for k, t in enumerate(tiles):
+            want = cover.mask(t.z, t.x, t.y)
+            for m in masks[4 * k : 4 * k + 4]:
+                assert np.array_equal(m, want)
+        assert any(m.any() for m in masks)
 
 
 def _flat() -> str:

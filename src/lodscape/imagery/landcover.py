@@ -11,6 +11,7 @@ mapped); ``NODATA`` where the terrain has no data.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -134,9 +135,22 @@ class Landcover:
     skipped: int = 0
 
     def __post_init__(self) -> None:
-        geoms = [g for g, _ in self.shapes]
-        shapely.prepare(geoms)
-        self._tree = shapely.STRtree(geoms)
+        self._tree = shapely.STRtree([g for g, _ in self.shapes])
+        self._tree.query(shapely.box(0, 0, 0, 0))  # GEOS builds the tree on first query: here
+        self._local = threading.local()
+
+    def _prepared(self, i: int) -> shapely.Geometry:
+        """Shape ``i`` prepared for this thread. GEOS builds a prepared shape's point index
+        lazily on first use, and two threads doing that at once corrupt the heap (shapely
+        releases the GIL), so each thread tests points against its own prepared copy."""
+        mine: dict[int, shapely.Geometry] | None = getattr(self._local, "shapes", None)
+        if mine is None:
+            mine = self._local.shapes = {}
+        geom = mine.get(i)
+        if geom is None:
+            geom = mine[i] = shapely.from_wkb(shapely.to_wkb(self.shapes[i][0]))
+            shapely.prepare(geom)
+        return geom
 
     def mask(self, z: int, x: int, y: int, size: int = 256) -> NDArray[np.uint8]:
         """(size, size) class values of tile z/x/y (row 0 north): each texel the last shape in
@@ -157,7 +171,7 @@ class Landcover:
                 continue
             xs = b.left + (np.arange(c0, c1 + 1) + 0.5) * res
             ys = b.top - (np.arange(r0, r1 + 1) + 0.5) * res
-            inside = shapely.contains_xy(geom, xs[None, :], ys[:, None])
+            inside = shapely.contains_xy(self._prepared(int(i)), xs[None, :], ys[:, None])
             out[r0 : r1 + 1, c0 : c1 + 1][inside] = value
         return out
 
