@@ -4,14 +4,17 @@ from orbit, at 100 km and at 5 km."""
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 import lodscape
 from _synthetic import fbm_heights, run_cli, write_dem
 from lodscape import Camera
+from lodscape.flight import GLOBE_COLUMNS
 from lodscape.geo import qtm
 from lodscape.lod.globe import block_count, by_error, naive_by_error, thinning
 
@@ -158,6 +161,62 @@ def test_no_cracks_from_orbit_to_five_kilometres(dem: str) -> None:
     assert sum(found[False, name][0] for name in views) > 20
 
 
+def test_facet_spheres_hold_their_facets() -> None:
+    # culling and refinement stand on each facet's bounding sphere: every point of the facet on
+    # the ellipsoid (and up to its terrain) must be inside, at every level and latitude
+    from lodscape.geo.frames import geodetic_to_ecef
+    from lodscape.lod.globe import _caps
+
+    rng = np.random.default_rng(3)
+    for level in (1, 3, 6, 10, 14, 18):
+        n = qtm.facet_count(level)
+        ids = np.unique(rng.integers(0, n, 400))
+        v = qtm.facet_vertices(level, ids)
+        relief = np.stack(
+            [np.full(len(ids), -50.0), np.full(len(ids), 3000.0), np.zeros(len(ids))], 1
+        )
+        caps = _caps(v, relief)
+        w = rng.dirichlet(np.ones(3), size=(len(ids), 16))  # (F, 16, 3) barycentric
+        lat = np.einsum("fsk,fk->fs", w, v[..., 0])
+        lon = np.einsum("fsk,fk->fs", w, v[..., 1])
+        for h in (-50.0, 0.0, 3000.0):
+            x = geodetic_to_ecef(lon, lat, h)  # (F, 16, 3)
+            gap = np.linalg.norm(x - caps.centre[:, None], axis=2) - caps.radius[:, None]
+            assert gap.max() <= 1e-6 * caps.radius.max(), (level, h, gap.max())
+
+
+@pytest.mark.gl
+def test_no_cracks_at_random_views(dem: str) -> None:
+    # anywhere, any way: over the DEM (its edges are cliffs) and over the bare ellipsoid, the
+    # poles and the antimeridian included
+    from lodscape.globe import Globe, GlobeOptions
+
+    rng = np.random.default_rng(11)
+    opts = GlobeOptions(background=(1.0, 0.0, 1.0))
+    for terrain in (lodscape.open(dem), None):
+        g = Globe(terrain, opts)
+        try:
+            for _ in range(12 if terrain is not None else 8):
+                if terrain is not None:
+                    lon, lat = -78.7 + rng.uniform(-0.5, 0.5), 36.62 + rng.uniform(-0.5, 0.5)
+                else:
+                    lon = float(rng.choice([rng.uniform(-180, 180), 179.5, -179.5]))
+                    lat = float(rng.choice([rng.uniform(-89, 89), 88.5, -88.5]))
+                cam = Camera(
+                    lon,
+                    lat,
+                    float(10 ** rng.uniform(3.3, 7.0)),
+                    heading=rng.uniform(0, 360),
+                    pitch=rng.uniform(-90, -5),
+                    width=240,
+                    height=160,
+                )
+                rgb, _ = g.render(cam)
+                assert _cracks(rgb) == 0, (cam, g.last)
+        finally:
+            g.close()
+
+
 @pytest.mark.gl
 def test_cli_globe(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "globe.png"
@@ -186,3 +245,47 @@ def test_fly_over_the_globe(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert n >= 10
     assert out.stat().st_size > 1000
     assert not list(tmp_path.glob("*.tmp*"))
+    # the statistics CSV: a row a frame, facets within the full level's count
+    stats = tmp_path / "globe.csv"
+    code, _, err = run_cli([*argv, "--stats", str(stats), "-q"], capsys)
+    assert code == 0, err
+    with stats.open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == n
+    assert set(rows[0]) == set(GLOBE_COLUMNS)
+    assert all(0 < int(r["triangles"]) < 8 * 4 ** (int(r["max_level"]) - 1) for r in rows)
+
+
+@pytest.mark.gl
+def test_render_on_the_globe(dem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out, depth = tmp_path / "g.png", tmp_path / "g.npy"
+    # over the DEM, 20 km up, looking down to the north-east: its heights on the globe
+    view = ["--lon", "-78.7", "--lat", "36.58", "--alt", "20000", "--pitch", "-70"]
+    view += ["--heading", "30", "--size", "200x150", "-o", str(out), "--depth", str(depth)]
+    code, text, err = run_cli(["render", dem, "--globe", *view], capsys)
+    assert code == 0, err
+    assert "triangles" in text
+    rgb = np.asarray(Image.open(out))
+    assert rgb.shape == (150, 200, 3)
+    d = np.load(depth)
+    assert np.isfinite(d).mean() > 0.5
+    # the same view without heights differs where the DEM lies
+    flat = tmp_path / "flat.npy"
+    code, _, err = run_cli(["render", "none", "--globe", *view[:-1], str(flat), "-q"], capsys)
+    assert code == 0, err
+    both = np.isfinite(d) & np.isfinite(np.load(flat))
+    assert np.abs(d[both] - np.load(flat)[both]).max() > 10.0
+    # no camera: the Earth from orbit
+    code, _, err = run_cli(
+        ["render", "none", "--globe", "--size", "120x90", "-o", str(out), "-q"], capsys
+    )
+    assert code == 0, err
+    assert np.asarray(Image.open(out)).std() > 5
+    for argv, says in (
+        ([*view, "--imagery", "x"], "no --city, --imagery"),
+        (["--lon", "1", "--lat", "2", "-o", str(out)], "all of --lon, --lat and --alt"),
+        (["--lon", "1", "--lat", "95", "--alt", "10", "-o", str(out)], "bad camera"),
+    ):
+        code, _, err = run_cli(["render", "none", "--globe", *argv], capsys)
+        assert code == 2, argv
+        assert says in err, err

@@ -380,11 +380,44 @@ def render(
     seed: SeedOpt = None,
     city: CityOpt = None,
     camera_file: CameraFileOpt = None,
+    globe: Annotated[
+        bool,
+        typer.Option(
+            "--globe",
+            help="Render the whole Earth on the QTM grid (SOURCE: a DEM for its heights, or "
+            "none); as `lodscape globe`.",
+        ),
+    ] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
 ) -> None:
     """Render one view of SOURCE (a DEM, a .lods tileset, procedural:seed=N, or flat with
     --city). Without --lon/--lat/--alt, a view of the whole data (or of the city)."""
     w, h = _size(size)
+    if globe:
+        if city is not None or imagery is not None or ground != "tint" or detail != "none":
+            raise LodscapeError(
+                "--globe draws the QTM globe with its own image: no --city, --imagery, "
+                "--ground or --detail"
+            )
+        if camera_file is not None and (lon is not None or lat is not None or alt is not None):
+            raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
+        if (lon is None) != (lat is None) or (lon is None) != (alt is None):
+            raise LodscapeError("give all of --lon, --lat and --alt, or none of them")
+        _render_globe(
+            source,
+            output,
+            depth,
+            quiet,
+            w,
+            h,
+            fov,
+            max_sse,
+            camera_file,
+            None
+            if lon is None or lat is None or alt is None
+            else (lon, lat, alt, heading, pitch, roll),
+        )
+        return
     options = _scene_options(max_sse=max_sse, anisotropy=anisotropy, terrain_mode=terrain_mode)
     fractal = _detail(source, detail, hurst, sigma, seed)
     source, town = _city_source(source, city)
@@ -529,6 +562,7 @@ def fly(
                     iter(cams),
                     fps,
                     video=output,
+                    stats=stats,
                     on_frame=lambda i: bar.update(task, completed=i + 1),
                 )
         finally:
@@ -957,6 +991,70 @@ def globe(
         typer.echo(f"{'wrote':>18}: {output}")
 
 
+def _globe_camera(
+    terrain: Scene | None,
+    camera_file: Path | None,
+    pose: tuple[float, ...] | None,
+    w: int,
+    h: int,
+    fov: float,
+) -> Camera:
+    """The camera of ``render --globe`` and ``view --globe``: from the camera file, from
+    --lon/--lat/--alt (POSE: lon, lat, alt, heading, pitch, roll), over the DEM, or the Earth
+    from orbit."""
+    if camera_file is not None:
+        from lodscape.view import load_camera
+
+        return load_camera(camera_file, w, h)
+    if pose is not None:
+        lon, lat, alt, heading, pitch, roll = pose
+        try:
+            return Camera(
+                lon, lat, alt, heading=heading, pitch=pitch, roll=roll, fov_y=fov, width=w, height=h
+            )
+        except ValueError as exc:
+            raise LodscapeError(f"bad camera: {exc}") from None
+    if terrain is not None:
+        c = terrain.overview_camera(w, h, fov)
+        return c.moved(alt=max(c.alt, 5.0e4))
+    return Camera(10.0, 30.0, 2.0e7, pitch=-90.0, fov_y=fov, width=w, height=h)
+
+
+def _render_globe(
+    source: str,
+    output: Path,
+    depth_path: Path | None,
+    quiet: bool,
+    w: int,
+    h: int,
+    fov: float,
+    max_sse: float,
+    camera_file: Path | None,
+    pose: tuple[float, ...] | None,
+) -> None:
+    """``render --globe``: one view of the QTM globe (SOURCE "-" or "none": no heights)."""
+    from lodscape.globe import Globe, GlobeOptions
+
+    try:
+        options = GlobeOptions(max_sse=max_sse)
+    except ValueError as exc:
+        raise LodscapeError(f"bad option: {exc}") from None
+    terrain = None if source in ("-", "none") else open_scene(source)
+    g = Globe(terrain, options)
+    try:
+        camera = _globe_camera(terrain, camera_file, pose, w, h, fov)
+        rgb, dist = g.render(camera)
+        _save_image(output, rgb)
+        if depth_path is not None:
+            _save_depth(depth_path, dist)
+    finally:
+        g.close()
+    if not quiet:
+        for key, value in g.last.items():
+            typer.echo(f"{key:>18}: {value}")
+        typer.echo(f"{'wrote':>18}: {output}")
+
+
 def _view_globe(
     source: str,
     camera_file: Path | None,
@@ -970,7 +1068,6 @@ def _view_globe(
 ) -> None:
     """``view --globe``: the QTM globe in the window (SOURCE "-" or "none": no heights)."""
     from lodscape.globe import Globe, GlobeOptions
-    from lodscape.view import load_camera
     from lodscape.view import view as run_view
 
     terrain = None if source in ("-", "none") else open_scene(source)
@@ -978,13 +1075,7 @@ def _view_globe(
         g = Globe(terrain, GlobeOptions(max_sse=max_sse, background=(0.0, 0.0, 0.0)))
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None
-    if camera_file is not None:
-        camera = load_camera(camera_file, w, h)
-    elif terrain is not None:
-        c = terrain.overview_camera(w, h, fov)
-        camera = c.moved(alt=max(c.alt, 5.0e4))
-    else:
-        camera = Camera(10.0, 30.0, 2.0e7, pitch=-90.0, fov_y=fov, width=w, height=h)
+    camera = _globe_camera(terrain, camera_file, None, w, h, fov)
     done = run_view(
         {"plain": g},
         camera,

@@ -25,7 +25,7 @@ from lodscape.geo.frames import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 from lodscape.lod.camera import Camera
 from lodscape.scene import Scene
 
-__all__ = ["Route", "fly", "line_route", "orbit_route", "read_route"]
+__all__ = ["GLOBE_COLUMNS", "Route", "fly", "fly_globe", "line_route", "orbit_route", "read_route"]
 
 F64 = NDArray[np.float64]
 
@@ -229,6 +229,18 @@ STAT_COLUMNS = (
     "in_flight",
 )
 
+#: The columns of ``fly --globe --stats``.
+GLOBE_COLUMNS = (
+    "frame",
+    "time_s",
+    "triangles",
+    "max_level",
+    "extended",
+    "screen_error_px",
+    "select_ms",
+    "draw_ms",
+)
+
 
 def fly(
     scene: Scene,
@@ -278,11 +290,13 @@ def fly_globe(
     fps: float,
     *,
     video: Path,
+    stats: Path | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> list[dict[str, float]]:
     """Render every camera of a flight over the QTM globe (``lodscape.globe.Globe``) into an MP4
-    (whole or not at all). Returns per-frame figures: facets, deepest level, selection and
-    draw times."""
+    and the statistics CSV (each whole or not at all). Returns per-frame figures
+    (``GLOBE_COLUMNS``): facets, deepest level, vertices moved onto coarser edges, on-screen
+    error, selection and draw times."""
     rows: list[dict[str, float]] = []
     with _Video(video, fps) as out:
         for i, cam in enumerate(frames):
@@ -295,6 +309,8 @@ def fly_globe(
                     "time_s": round(i / fps, 4),
                     "triangles": last["triangles"],
                     "max_level": last["max_level"],
+                    "extended": last["extended"],
+                    "screen_error_px": last["screen_error_px"],
                     "select_ms": last["select_ms"],
                     "draw_ms": last["draw_ms"],
                 }
@@ -302,6 +318,8 @@ def fly_globe(
             if on_frame is not None:
                 on_frame(i)
         out.commit()
+        if stats is not None:
+            _write_stats(stats, rows, GLOBE_COLUMNS)
     return rows
 
 
@@ -363,11 +381,13 @@ def _video_writer(path: Path, width: int, height: int, fps: float) -> tuple[Any,
     return writer, tmp
 
 
-def _write_stats(path: Path, rows: list[dict[str, float]]) -> None:
+def _write_stats(
+    path: Path, rows: list[dict[str, float]], columns: tuple[str, ...] = STAT_COLUMNS
+) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with tmp.open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(STAT_COLUMNS))
+            w = csv.DictWriter(f, fieldnames=list(columns))
             w.writeheader()
             w.writerows(rows)
         os.replace(tmp, path)

@@ -49,6 +49,7 @@ class Globe:
     last: dict[str, Any] = field(default_factory=dict)
     _renderer: Any = None
     _ctx: Any = None
+    _blocks: Any = None
 
     def heights(self, lat: F64, lon: F64) -> F64:
         if self.terrain is None:
@@ -84,9 +85,59 @@ class Globe:
         pts = np.concatenate([v, mids], axis=1)  # (F, 6, 2)
         h = self.heights(pts[..., 0], pts[..., 1])
         straight = (h[:, [0, 1, 2]] + h[:, [1, 2, 0]]) / 2.0
+        lo, hi = h.min(axis=1), h.max(axis=1)
         dev = np.abs(h[:, 3:] - straight).max(axis=1)
-        out: F64 = np.stack([h.min(axis=1), h.max(axis=1), dev], axis=1)
+        # six samples see nothing of a DEM smaller than the facet: facets coarse beside the data
+        # take the height range of the data blocks they overlap, so they split where it shows
+        blo, bhi = self._block_range(v)
+        lo, hi = np.minimum(lo, blo), np.maximum(hi, bhi)
+        dev = np.maximum(dev, bhi - blo)
+        out: F64 = np.stack([lo, hi, dev], axis=1)
         return out
+
+    #: The data's box is cut into BLOCKS × BLOCKS blocks of (SAMPLES + 1)² heights each.
+    BLOCKS, SAMPLES = 16, 8
+
+    def _block_range(self, v: F64) -> tuple[F64, F64]:
+        """Lowest and highest height of the data blocks that each facet's lat/lon box overlaps,
+        for facets wider than an eighth of the data's box; zeros for the others (their own
+        samples see the data well enough)."""
+        w, s, e, n = self._box()
+        nb, k = self.BLOCKS, self.SAMPLES
+        if self._blocks is None:
+            lats = np.linspace(s, n, nb * k + 1)
+            lons = np.linspace(w, e, nb * k + 1)
+            la, lo = np.meshgrid(lats, lons, indexing="ij")
+            h = self.heights(la.ravel(), lo.ravel()).reshape(la.shape)
+            win = np.lib.stride_tricks.sliding_window_view(h, (k + 1, k + 1))[::k, ::k]
+            self._blocks = (lats[::k], lons[::k], win.min(axis=(2, 3)), win.max(axis=(2, 3)))
+        lat_edges, lon_edges, bmin, bmax = self._blocks
+        lat, lon = v[..., 0], v[..., 1]
+        pole = np.abs(lat) >= 90.0 - 1e-9
+        lon = np.where(pole, np.nan, lon)  # a pole's longitude says nothing
+        lon0, lon1 = np.nanmin(lon, axis=1), np.nanmax(lon, axis=1)
+        wrap = lon1 - lon0 > 180.0  # across the antimeridian: count in 0..360
+        lon360 = np.where(lon < 0.0, lon + 360.0, lon)
+        lon0 = np.where(wrap, np.nanmin(lon360, axis=1), lon0)
+        lon1 = np.where(wrap, np.nanmax(lon360, axis=1), lon1)
+        lat0, lat1 = lat.min(axis=1), lat.max(axis=1)
+        coarse = (lat1 - lat0 > (n - s) / 8.0) | (lon1 - lon0 > (e - w) / 8.0)
+        lo_out, hi_out = np.zeros(len(v)), np.zeros(len(v))
+        if not coarse.any():
+            return lo_out, hi_out
+        la0, la1 = lat0[coarse, None], lat1[coarse, None]
+        rows = (lat_edges[None, :-1] <= la1) & (lat_edges[None, 1:] >= la0)  # (C, nb)
+        cols = np.zeros((int(coarse.sum()), nb), bool)
+        for shift in (0.0, 360.0):  # a box in 0..360 meets the data at lon or lon + 360
+            lo0, lo1 = lon0[coarse, None], lon1[coarse, None]
+            cols |= (lon_edges[None, :-1] + shift <= lo1) & (lon_edges[None, 1:] + shift >= lo0)
+        over = rows[:, :, None] & cols[:, None, :]  # (C, nb, nb)
+        any_ = over.any(axis=(1, 2))
+        lo_c = np.where(over, bmin[None], np.inf).min(axis=(1, 2))
+        hi_c = np.where(over, bmax[None], -np.inf).max(axis=(1, 2))
+        lo_out[coarse] = np.where(any_, lo_c, 0.0)
+        hi_out[coarse] = np.where(any_, hi_c, 0.0)
+        return lo_out, hi_out
 
     def camera(self, camera: Camera) -> Camera:
         """The camera with clip distances for the globe."""

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.lod.camera import Camera
-from lodscape.lod.globe import GlobeMesh
+from lodscape.lod.globe import GlobeMesh, pole_longitudes
 from lodscape.render._context import create_context, make_current
 
 __all__ = ["GlobeRenderer"]
@@ -91,28 +91,23 @@ class GlobeRenderer:
         fbo.clear(float("inf"), 0.0, 0.0, 0.0)
         fbo.color_mask = ((True,) * 4, (True,) * 4)  # type: ignore[assignment]
         self.ctx.enable_only(moderngl.DEPTH_TEST)
-        rel = (mesh.positions - camera.position).reshape(-1, 3).astype(np.float32)
-        lat = mesh.latlon[..., 0]
-        lon = mesh.latlon[..., 1].copy()
-        # a pole's longitude is that of the facet's other vertices (its texture row is one
-        # colour): the mean of theirs keeps the facet's texture from sweeping the whole row
-        pole = np.abs(lat) == 90.0
-        others = np.where(pole, np.nan, lon)
-        mean = np.nanmean(np.where(np.all(pole, axis=1)[:, None], 0.0, others), axis=1)
-        lon = np.where(pole, mean[:, None], lon)
-        uv = np.stack([(lon + 180.0) / 360.0, (lat + 90.0) / 180.0], axis=-1).reshape(-1, 2)
-        data = np.hstack([rel, uv.astype(np.float32)])
-        vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
-        vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 2f", "in_pos", "in_uv")])
-        mvp = camera.view_projection(camera.position)
-        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
-        self.prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]
-        self.tex.use(0)
-        self.ctx.wireframe = self.wireframe
-        vao.render(moderngl.TRIANGLES)
-        self.ctx.wireframe = False
-        vao.release()
-        vbo.release()
+        if len(mesh.positions):  # nothing of the Earth in view: the background alone
+            rel = (mesh.positions - camera.position).reshape(-1, 3).astype(np.float32)
+            ll = pole_longitudes(mesh.latlon)
+            lat, lon = ll[..., 0], ll[..., 1]
+            uv = np.stack([(lon + 180.0) / 360.0, (lat + 90.0) / 180.0], axis=-1).reshape(-1, 2)
+            data = np.hstack([rel, uv.astype(np.float32)])
+            vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
+            vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 2f", "in_pos", "in_uv")])
+            mvp = camera.view_projection(camera.position)
+            self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
+            self.prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]
+            self.tex.use(0)
+            self.ctx.wireframe = self.wireframe
+            vao.render(moderngl.TRIANGLES)
+            self.ctx.wireframe = False
+            vao.release()
+            vbo.release()
         if not self.read_back:
             return np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
         rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
