@@ -108,6 +108,69 @@ def test_every_tiles_real_error_is_within_its_recorded_error(dem: str, tileset: 
     assert len(tiles) > 10
 
 
+def test_a_tilesets_heights_are_its_meshes(dem: str, tileset: Path) -> None:
+    # many points at once (a city's footprints, a globe's facets): each tile decoded once,
+    # the finest mesh's height, within its recorded error of the DEM
+    from lodscape.geo.tiles import merc_to_lonlat
+
+    provider = TilesetProvider(tileset)
+    try:
+        b = provider.bounds_merc
+        rng = np.random.default_rng(0)
+        lon, lat = merc_to_lonlat(
+            rng.uniform(b.left, b.right, 3000), rng.uniform(b.bottom, b.top, 3000)
+        )
+        got = provider.heights(lon, lat)
+        with lodscape.open(dem) as source:
+            want = source.heights(lon, lat)
+        both = np.isfinite(got) & np.isfinite(want)
+        assert both.mean() > 0.9
+        errors = {k: e for k, (_, e) in _tiles(tileset).items() if k[0] != "img"}
+        zmax = max(k[0] for k in errors)
+        error = max(e for k, e in errors.items() if k[0] == zmax)
+        assert np.abs(got - want)[both].max() <= error
+        one = [
+            provider.ground_height(float(a), float(c))
+            for a, c in zip(lon[:40], lat[:40], strict=True)
+        ]
+        assert np.allclose([np.nan if v is None else v for v in one], got[:40], equal_nan=True)
+        assert np.isnan(provider.heights(np.array([0.0, 120.0]), np.array([0.0, -40.0]))).all()
+        assert got.shape == lon.shape
+        assert provider.heights(lon.reshape(60, 50), lat.reshape(60, 50)).shape == (60, 50)
+        kept = sum(sum(a.nbytes for a in m) for m in provider._meshes.values() if m is not None)
+        assert kept == provider._mesh_bytes <= provider.DECODED_BYTES
+    finally:
+        provider.close()
+
+
+@pytest.mark.gl
+def test_the_globe_takes_a_tilesets_heights(tileset: Path) -> None:
+    from lodscape.geo.tiles import merc_to_lonlat
+    from lodscape.globe import Globe, GlobeOptions
+
+    with lodscape.open(tileset) as scene:
+        b = scene.provider.bounds_merc
+        lon, lat = (
+            float(v) for v in merc_to_lonlat((b.left + b.right) / 2, (b.top + b.bottom) / 2)
+        )
+        g = scene.ground_height(lon, lat)
+        assert g is not None
+    cam = Camera(lon, lat - 0.01, g + 1500.0, pitch=-50, width=240, height=160)
+    depths = []
+    for terrain in (lodscape.open(tileset), None):
+        earth = Globe(terrain, GlobeOptions())
+        try:
+            depths.append(earth.render(cam)[1])
+            # no facet finer than the data's cells (10 m: level 20 at most)
+            assert earth.last["max_level"] <= 20
+        finally:
+            earth.close()
+    both = np.isfinite(depths[0]) & np.isfinite(depths[1])
+    assert both.mean() > 0.5
+    # the ground the DEM lifts: hundreds of metres nearer than the ellipsoid
+    assert (np.abs(depths[0] - depths[1])[both] > 100.0).mean() > 0.3
+
+
 @pytest.mark.gl
 def test_a_tileset_renders_without_cracks_within_the_bounds(tmp_path: Path) -> None:
     dem = write_dem(

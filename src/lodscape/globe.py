@@ -52,18 +52,25 @@ class Globe:
     _blocks: Any = None
 
     def heights(self, lat: F64, lon: F64) -> F64:
-        if self.terrain is None:
-            return np.zeros(np.shape(lat))
+        """Heights at (lat, lon): the terrain's where it has data, the ellipsoid's (0) elsewhere."""
+        return self._heights(lat, lon)[0]
+
+    def _heights(self, lat: F64, lon: F64) -> tuple[F64, NDArray[np.bool_]]:
+        """Heights, and where the terrain has data."""
         lat = np.asarray(lat, np.float64)
         lon = np.asarray(lon, np.float64)
         out = np.zeros(lat.shape)
+        valid = np.zeros(lat.shape, bool)
+        if self.terrain is None:
+            return out, valid
         # only inside the data's box (its projection may not reach the far side of the Earth)
         w, south, e, n = self._box()
         ok = (lat >= south) & (lat <= n) & (lon >= w) & (lon <= e)
         if ok.any():
             h = np.asarray(self.terrain.heights(lon[ok], lat[ok]), np.float64)
             out[ok] = np.where(np.isfinite(h), h, 0.0)
-        return out
+            valid[ok] = np.isfinite(h)
+        return out, valid
 
     def _box(self) -> tuple[float, float, float, float]:
         """(west, south, east, north) of the terrain's data, degrees."""
@@ -83,10 +90,17 @@ class Globe:
 
         mids = np.stack([_mid(v[:, 0], v[:, 1]), _mid(v[:, 1], v[:, 2]), _mid(v[:, 2], v[:, 0])], 1)
         pts = np.concatenate([v, mids], axis=1)  # (F, 6, 2)
-        h = self.heights(pts[..., 0], pts[..., 1])
+        h, valid = self._heights(pts[..., 0], pts[..., 1])
         straight = (h[:, [0, 1, 2]] + h[:, [1, 2, 0]]) / 2.0
         lo, hi = h.min(axis=1), h.max(axis=1)
         dev = np.abs(h[:, 3:] - straight).max(axis=1)
+        # where the data ends, its heights fall to the ellipsoid's: a cliff no split would ever
+        # flatten (facets would refine along it to the data's cells). There the facet's error
+        # is the relief of the data it holds, which shrinks as the facets do.
+        mixed = valid.any(axis=1) & ~valid.all(axis=1)
+        if mixed.any():
+            hv = np.where(valid[mixed], h[mixed], np.nan)
+            dev[mixed] = np.nanmax(hv, axis=1) - np.nanmin(hv, axis=1)
         # six samples see nothing of a DEM smaller than the facet: facets coarse beside the data
         # take the height range of the data blocks they overlap, so they split where it shows
         blo, bhi = self._block_range(v)
@@ -162,8 +176,10 @@ class Globe:
 
     def _max_level(self) -> int:
         """No facet finer than the terrain's cells (or ``max_level``)."""
-        source = getattr(getattr(self.terrain, "provider", None), "source", None)
-        res = getattr(source, "resolution_merc", None)
+        provider = getattr(self.terrain, "provider", None)
+        while provider is not None and not hasattr(provider, "resolution_merc"):
+            provider = getattr(provider, "base", None) or getattr(provider, "source", None)
+        res = getattr(provider, "resolution_merc", None)
         if not res:
             return self.options.max_level
         quarter = math.pi * WGS84_A / 2.0  # an octant's edge

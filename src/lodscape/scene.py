@@ -470,6 +470,8 @@ class Scene:
             xm, ym = lonlat_to_merc(lon, lat)
             h, ok = source.sample(xm, ym, source.resolution_merc)
             return np.where(ok, np.asarray(h, np.float64), np.nan)
+        if hasattr(provider, "heights") and callable(provider.heights):  # a tileset
+            return np.asarray(provider.heights(lon, lat), np.float64)
         out = [
             self.ground_height(float(a), float(b))
             for a, b in zip(lon.ravel(), lat.ravel(), strict=False)

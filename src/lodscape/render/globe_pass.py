@@ -20,12 +20,15 @@ uniform mat4 u_mvp;     // projection · view for positions relative to the came
 uniform mat3 u_rot;
 in vec3 in_pos;
 in vec2 in_uv;
+in float in_shade;
 out vec2 v_uv;
 out float v_dist;
+out float v_shade;
 void main() {
     gl_Position = u_mvp * vec4(in_pos, 1.0);
     v_uv = in_uv;
     v_dist = -(u_rot * in_pos).z;
+    v_shade = in_shade;
 }
 """
 _FRAGMENT = """
@@ -33,13 +36,36 @@ _FRAGMENT = """
 uniform sampler2D u_tex;
 in vec2 v_uv;
 in float v_dist;
+in float v_shade;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
-    f_color = vec4(texture(u_tex, v_uv).rgb, 1.0);
+    f_color = vec4(min(texture(u_tex, v_uv).rgb * v_shade, vec3(1.0)), 1.0);
     f_dist = v_dist;
 }
 """
+
+
+def relief_shade(mesh: GlobeMesh) -> NDArray[np.float64]:
+    """Per triangle, a hillshade factor: light from the north-west, 45° up, in the triangle's
+    own east/north/up frame, relative to level ground (1 on the bare ellipsoid, brighter on
+    slopes facing the light, darker away from it), so a DEM's relief shows on any image."""
+    p = mesh.positions
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    lat = np.radians(pole_longitudes(mesh.latlon)[..., 0].mean(axis=1))
+    lon = np.radians(pole_longitudes(mesh.latlon)[..., 1].mean(axis=1))
+    up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], 1)
+    east = np.stack([-np.sin(lon), np.cos(lon), np.zeros_like(lon)], 1)
+    north = np.cross(up, east)
+    light = (-east + north) / np.sqrt(2.0) + up  # 45° up from the north-west
+    light /= np.linalg.norm(light, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = n / norm[:, None]
+    n *= np.sign(np.einsum("fk,fk->f", n, up))[:, None]  # whichever way the triangle winds
+    flat = np.einsum("fk,fk->f", up, light)
+    out: NDArray[np.float64] = np.clip(np.einsum("fk,fk->f", n, light) / flat, 0.3, 1.4)
+    return np.where(norm > 0, out, 1.0)
 
 
 class GlobeRenderer:
@@ -96,9 +122,12 @@ class GlobeRenderer:
             ll = pole_longitudes(mesh.latlon)
             lat, lon = ll[..., 0], ll[..., 1]
             uv = np.stack([(lon + 180.0) / 360.0, (lat + 90.0) / 180.0], axis=-1).reshape(-1, 2)
-            data = np.hstack([rel, uv.astype(np.float32)])
+            shade = np.repeat(relief_shade(mesh), 3).astype(np.float32)[:, None]
+            data = np.hstack([rel, uv.astype(np.float32), shade])
             vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
-            vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 2f", "in_pos", "in_uv")])
+            vao = self.ctx.vertex_array(
+                self.prog, [(vbo, "3f 2f 1f", "in_pos", "in_uv", "in_shade")]
+            )
             mvp = camera.view_projection(camera.position)
             self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
             self.prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]

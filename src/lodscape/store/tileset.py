@@ -29,16 +29,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from lodscape.errors import LodscapeError, SourceError
 from lodscape.geo.tiles import (
     Bbox,
+    Tile,
     bounds,
     lonlat_to_merc,
     merc_to_lonlat,
-    tile,
     tile_from_id,
+    tiles_array,
 )
 from lodscape.lod.select import TEXTURE
 from lodscape.store.quantized_mesh import QuantizedMeshError, decode
@@ -277,6 +278,10 @@ def read_tree(db: sqlite3.Connection, manifest: dict[str, Any]) -> TileTree:
     )
 
 
+#: A decoded terrain tile: vertex longitudes, latitudes and heights, and triangles.
+_Mesh = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]
+
+
 class TilesetProvider:
     """A tileset file as a Scene's provider: every tile is one indexed query away."""
 
@@ -288,6 +293,8 @@ class TilesetProvider:
         self._local = threading.local()
         self._lock = threading.Lock()
         self._connections: list[sqlite3.Connection] = []
+        self._meshes: dict[tuple[int, int, int], _Mesh | None] = {}
+        self._mesh_bytes = 0
         try:
             db = self._db()
             row = db.execute("SELECT value FROM metadata WHERE name = 'lodscape'").fetchone()
@@ -388,22 +395,75 @@ class TilesetProvider:
 
         return texture_of(self, key)
 
+    @property
+    def resolution_merc(self) -> float | None:
+        """The source's cell size the tileset was built from, Web Mercator metres."""
+        r = self.manifest.get("resolution_merc")
+        return float(r) if r else None
+
     def ground_height(self, lon: float, lat: float) -> float | None:
         """The height of the finest tile's mesh under the point."""
+        h = float(self.heights(np.array([lon]), np.array([lat]))[0])
+        return None if np.isnan(h) else h
+
+    def heights(self, lon: ArrayLike, lat: ArrayLike) -> NDArray[np.float64]:
+        """Heights of the finest stored meshes at many points (NaN outside the data): each
+        tile is read and decoded once per call (and kept for the next few calls)."""
+        lon = np.asarray(lon, np.float64)
+        lat = np.asarray(lat, np.float64)
+        shape = lon.shape
+        lon, lat = lon.ravel(), lat.ravel()
+        out = np.full(len(lon), np.nan)
         xm, ym = lonlat_to_merc(lon, lat)
         b = self.bounds_merc
-        if not (b.left <= float(xm) <= b.right and b.bottom <= float(ym) <= b.top):
-            return None
+        todo = (xm >= b.left) & (xm <= b.right) & (ym >= b.bottom) & (ym <= b.top)
         for lv in reversed(self.tree.levels):
-            t = tile(lon, lat, lv.z)
-            ok, _ = lv.index(np.array([t.x]), np.array([t.y]))
-            if not ok[0]:
+            if not todo.any():
+                break
+            idx = np.nonzero(todo)[0]
+            tx, ty = tiles_array(xm[idx], ym[idx], lv.z)
+            ok, _ = lv.index(tx, ty)
+            idx, tx, ty = idx[ok], tx[ok], ty[ok]
+            if not len(idx):
                 continue
-            data = self._terrain(t.z, t.x, t.y)
-            if data is None:
-                continue
-            return _height_in(decode(data), bounds(t), lon, lat)
-        return None
+            cells, which = np.unique(np.stack([tx, ty], 1), axis=0, return_inverse=True)
+            for k, (x, y) in enumerate(cells):  # a loop over tiles, each a vectorised lookup
+                mesh = self._decoded(lv.z, int(x), int(y))
+                if mesh is None:
+                    continue
+                at = idx[which.ravel() == k]
+                h = _heights_in(mesh, lon[at], lat[at])
+                out[at] = h
+                todo[at[~np.isnan(h)]] = False
+        return out.reshape(shape)
+
+    #: Bytes of decoded meshes kept for ``heights`` (a city's footprints, a globe's facets ask
+    #: the same tiles again and again; a tile is some 60 KiB).
+    DECODED_BYTES = 64 * 2**20
+
+    def _decoded(self, z: int, x: int, y: int) -> _Mesh | None:
+        key = (z, x, y)
+        cache = self._meshes
+        with self._lock:
+            if key in cache:
+                cache[key] = cache.pop(key)  # most recent last
+                return cache[key]
+        data = self._terrain(z, x, y)
+        made = None
+        if data is not None:
+            b = bounds(Tile(x, y, z))
+            qm = decode(data)
+            plon, plat, h = qm.positions(b.left, b.bottom, b.right, b.top)
+            made = (plon, plat, h, qm.triangles.astype(np.int64))
+        size = sum(a.nbytes for a in made) if made is not None else 0
+        with self._lock:
+            if key not in cache:
+                cache[key] = made
+                self._mesh_bytes += size
+            while self._mesh_bytes > self.DECODED_BYTES and len(cache) > 1:
+                old = cache.pop(next(iter(cache)))
+                self._mesh_bytes -= sum(a.nbytes for a in old) if old is not None else 0
+        return made
 
     def city(self, names: list[str] | None = None) -> Any:
         """The cities stored in this tileset (``lodscape city add``) as one ``City``, or None."""
@@ -424,23 +484,30 @@ class TilesetProvider:
             self._connections = []
 
 
-def _height_in(qm: Any, b: Bbox, lon: float, lat: float) -> float | None:
-    """Height of the mesh at a point inside its tile, by the triangle that holds it."""
-    plon, plat, h = qm.positions(b.left, b.bottom, b.right, b.top)
-    tri = qm.triangles.astype(np.int64)
+def _heights_in(
+    mesh: _Mesh, lon: NDArray[np.float64], lat: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Heights of a tile's mesh (lon, lat, height per vertex; triangles) at points inside the
+    tile, by the triangle that holds each (NaN where none does), in chunks of points."""
+    plon, plat, h, tri = mesh
     ax, ay = plon[tri[:, 0]], plat[tri[:, 0]]
     bx, by = plon[tri[:, 1]], plat[tri[:, 1]]
     cx, cy = plon[tri[:, 2]], plat[tri[:, 2]]
     det = (by - cy) * (ax - cx) + (cx - bx) * (ay - cy)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        wa = ((by - cy) * (lon - cx) + (cx - bx) * (lat - cy)) / det
-        wb = ((cy - ay) * (lon - cx) + (ax - cx) * (lat - cy)) / det
-    wc = 1.0 - wa - wb
-    inside = (wa >= -1e-9) & (wb >= -1e-9) & (wc >= -1e-9) & (det != 0)
-    if not inside.any():
-        return None
-    k = int(np.argmax(inside))
-    return float(wa[k] * h[tri[k, 0]] + wb[k] * h[tri[k, 1]] + wc[k] * h[tri[k, 2]])
+    out = np.full(len(lon), np.nan)
+    step = max(1, 2_000_000 // max(len(tri), 1))
+    for i in range(0, len(lon), step):
+        px, py = lon[i : i + step, None], lat[i : i + step, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            wa = ((by - cy) * (px - cx) + (cx - bx) * (py - cy)) / det
+            wb = ((cy - ay) * (px - cx) + (ax - cx) * (py - cy)) / det
+        wc = 1.0 - wa - wb
+        inside = (wa >= -1e-9) & (wb >= -1e-9) & (wc >= -1e-9) & (det != 0)
+        k = np.argmax(inside, axis=1)
+        r = np.arange(len(k))
+        v = wa[r, k] * h[tri[k, 0]] + wb[r, k] * h[tri[k, 1]] + wc[r, k] * h[tri[k, 2]]
+        out[i : i + step] = np.where(inside[r, k], v, np.nan)
+    return out
 
 
 def lonlat_bounds(b: Bbox) -> tuple[float, float, float, float]:
