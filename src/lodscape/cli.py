@@ -10,6 +10,7 @@ import contextlib
 import math
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -403,19 +404,24 @@ def render(
             raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
         if (lon is None) != (lat is None) or (lon is None) != (alt is None):
             raise LodscapeError("give all of --lon, --lat and --alt, or none of them")
+        from lodscape.globe import GlobeOptions
+
+        try:
+            globe_options = GlobeOptions(max_sse=max_sse)
+        except ValueError as exc:
+            raise LodscapeError(f"bad option: {exc}") from None
+        pose = (
+            None
+            if lon is None or lat is None or alt is None
+            else (lon, lat, alt, heading, pitch, roll)
+        )
         _render_globe(
             source,
+            globe_options,
             output,
             depth,
             quiet,
-            w,
-            h,
-            fov,
-            max_sse,
-            camera_file,
-            None
-            if lon is None or lat is None or alt is None
-            else (lon, lat, alt, heading, pitch, roll),
+            lambda terrain: _globe_camera(terrain, camera_file, pose, w, h, fov),
         )
         return
     options = _scene_options(max_sse=max_sse, anisotropy=anisotropy, terrain_mode=terrain_mode)
@@ -961,7 +967,7 @@ def globe(
 ) -> None:
     """Render the whole Earth on the octahedral QTM grid (paper 002), from orbit down to a few
     kilometres: heights from SOURCE where it covers, the ellipsoid elsewhere."""
-    from lodscape.globe import Globe, GlobeOptions
+    from lodscape.globe import GlobeOptions
 
     w, h = _size(size)
     try:
@@ -978,17 +984,7 @@ def globe(
         raise LodscapeError(f"bad option: {exc}") from None
     if not 1 <= block_level <= base <= 12 or not 0 <= extra <= 6:
         raise LodscapeError("thinning needs 1 <= --block-level <= --base <= 12, 0 <= --extra <= 6")
-    terrain = open_scene(source) if source is not None else None
-    g = Globe(terrain, options)
-    try:
-        rgb, _ = g.render(camera)
-        _save_image(output, rgb)
-    finally:
-        g.close()
-    if not quiet:
-        for key, value in g.last.items():
-            typer.echo(f"{key:>18}: {value}")
-        typer.echo(f"{'wrote':>18}: {output}")
+    _render_globe(source, options, output, None, quiet, lambda _: camera)
 
 
 def _globe_camera(
@@ -1021,29 +1017,21 @@ def _globe_camera(
 
 
 def _render_globe(
-    source: str,
+    source: str | None,
+    options: Any,
     output: Path,
     depth_path: Path | None,
     quiet: bool,
-    w: int,
-    h: int,
-    fov: float,
-    max_sse: float,
-    camera_file: Path | None,
-    pose: tuple[float, ...] | None,
+    camera: Callable[[Scene | None], Camera],
 ) -> None:
-    """``render --globe``: one view of the QTM globe (SOURCE "-" or "none": no heights)."""
-    from lodscape.globe import Globe, GlobeOptions
+    """One view of the QTM globe (``globe``, ``render --globe``): heights from SOURCE (None,
+    "-" or "none": the ellipsoid), the camera made from the terrain opened."""
+    from lodscape.globe import Globe
 
-    try:
-        options = GlobeOptions(max_sse=max_sse)
-    except ValueError as exc:
-        raise LodscapeError(f"bad option: {exc}") from None
-    terrain = None if source in ("-", "none") else open_scene(source)
+    terrain = None if source in (None, "-", "none") else open_scene(source)
     g = Globe(terrain, options)
     try:
-        camera = _globe_camera(terrain, camera_file, pose, w, h, fov)
-        rgb, dist = g.render(camera)
+        rgb, dist = g.render(camera(terrain))
         _save_image(output, rgb)
         if depth_path is not None:
             _save_depth(depth_path, dist)
