@@ -197,11 +197,11 @@ class Globe:
         from lodscape.imagery.globe import global_image
         from lodscape.render.globe_pass import GlobeRenderer
 
+        if self._renderer is None:  # once: the context and the global image (not a frame's)
+            self._renderer = GlobeRenderer(global_image(), self.options.background, self._ctx)
         t = time.perf_counter()
         cam, sel, m = self.mesh(camera)
         t1 = time.perf_counter()
-        if self._renderer is None:
-            self._renderer = GlobeRenderer(global_image(), self.options.background, self._ctx)
         rgb, depth = self._renderer.draw(cam, m)
         self.last = {
             "triangles": sel.count,
