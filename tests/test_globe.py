@@ -144,7 +144,7 @@ def test_no_cracks_from_orbit_to_five_kilometres(dem: str) -> None:
     }
     found = {}
     for extend in (True, False):
-        opts = GlobeOptions(background=(1.0, 0.0, 1.0), extend=extend)
+        opts = GlobeOptions(background=(1.0, 0.0, 1.0), extend=extend, imagery=False)
         g = Globe(lodscape.open(dem), opts)
         try:
             for name, cam in views.items():
@@ -192,7 +192,7 @@ def test_no_cracks_at_random_views(dem: str) -> None:
     from lodscape.globe import Globe, GlobeOptions
 
     rng = np.random.default_rng(11)
-    opts = GlobeOptions(background=(1.0, 0.0, 1.0))
+    opts = GlobeOptions(background=(1.0, 0.0, 1.0), imagery=False)  # geometry alone
     for terrain in (lodscape.open(dem), None):
         g = Globe(terrain, opts)
         try:
@@ -215,6 +215,25 @@ def test_no_cracks_at_random_views(dem: str) -> None:
                 assert _cracks(rgb) == 0, (cam, g.last)
         finally:
             g.close()
+
+
+@pytest.mark.gl
+def test_the_terrains_own_imagery_is_draped_where_it_has_data(dem: str) -> None:
+    from lodscape.globe import Globe, GlobeOptions
+
+    cam = Camera(-78.7, 36.53, 6000.0, pitch=-30, heading=10, width=240, height=150)
+    pictures = {}
+    for imagery in (True, False):
+        g = Globe(lodscape.open(dem), GlobeOptions(imagery=imagery))
+        try:
+            pictures[imagery] = g.render(cam)[0].astype(int)
+        finally:
+            g.close()
+    # the DEM fills the lower middle of the view: its tint there, the global image elsewhere
+    near = (slice(100, 140), slice(80, 160))
+    assert np.abs(pictures[True][near] - pictures[False][near]).mean() > 30
+    sky_side = (slice(0, 10), slice(0, 240))
+    assert np.abs(pictures[True][sky_side] - pictures[False][sky_side]).mean() < 1
 
 
 @pytest.mark.gl

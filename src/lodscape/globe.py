@@ -32,6 +32,8 @@ class GlobeOptions:
     background: tuple[float, float, float] = (0.02, 0.02, 0.06)
     #: Remove cracks between levels (vertex extension); off only to show what it removes.
     extend: bool = True
+    #: Drape the terrain's own imagery (its tint, or a tileset's imagery) over its data.
+    imagery: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in ("sse", "thinning"):
@@ -197,8 +199,14 @@ class Globe:
         from lodscape.imagery.globe import global_image
         from lodscape.render.globe_pass import GlobeRenderer
 
-        if self._renderer is None:  # once: the context and the global image (not a frame's)
+        if self._renderer is None:  # once: the context and the images (not a frame's)
             self._renderer = GlobeRenderer(global_image(), self.options.background, self._ctx)
+            if self.terrain is not None and self.options.imagery:
+                from lodscape.imagery.globe import regional_image
+
+                region = regional_image(self.terrain)
+                if region is not None:
+                    self._renderer.set_region(*region)
         t = time.perf_counter()
         cam, sel, m = self.mesh(camera)
         t1 = time.perf_counter()

@@ -5,10 +5,13 @@ imagery is at hand, the same on every run."""
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["global_image"]
+__all__ = ["global_image", "regional_image"]
 
 
 def global_image(width: int = 2048, seed: int = 3) -> NDArray[np.uint8]:
@@ -40,3 +43,62 @@ def global_image(width: int = 2048, seed: int = 3) -> NDArray[np.uint8]:
     rgb = np.where(land[..., None], ground, sea)
     rgb = rgb * (1 - ice) + 240.0 * ice
     return np.clip(rgb, 0, 255).astype(np.uint8)
+
+
+def regional_image(
+    scene: Any, max_px: int = 2048
+) -> tuple[NDArray[np.uint8], tuple[float, float, float, float]] | None:
+    """The terrain's own imagery (the tint, or the imagery a tileset or ``--imagery`` brings)
+    over its data's box, resampled to latitude/longitude: (H, W, 4) RGBA, row 0 north, alpha 0
+    where there is no data, and the box (west, south, east, north, degrees). At most
+    ``max_px`` across; None when the scene has no imagery tiles (a land-cover mask)."""
+    from lodscape.geo.tiles import (
+        Tile,
+        lonlat_to_merc,
+        merc_to_lonlat,
+        tile_id,
+        tile_size,
+        tiles_array,
+    )
+    from lodscape.lod.select import TEXTURE
+
+    b = scene.provider.bounds_merc
+    tree = scene.tree
+    ts = 256
+    # the level whose tiles put about max_px texels across the box, within the stored ones
+    want = math.log2(max_px * float(tile_size(0)) / (ts * max(b.right - b.left, 1e-6)))
+    z = int(min(max(math.floor(want), tree.zmin), tree.texture_zmax))
+    (x0, x1), (y0, y1) = tiles_array([b.left, b.right], [b.top, b.bottom], z)
+    nx, ny = int(x1 - x0 + 1), int(y1 - y0 + 1)
+    mosaic = np.zeros((ny * ts, nx * ts, 4), np.uint8)
+    have = tree.level(z)
+    xs, ys = np.meshgrid(np.arange(x0, x1 + 1), np.arange(y0, y1 + 1))
+    ok, _ = have.index(xs.ravel(), ys.ravel())
+    for x, y in zip(xs.ravel()[ok], ys.ravel()[ok], strict=True):  # tens of tiles, once
+        img = scene.provider.texture((tile_id(Tile(int(x), int(y), z)) << 3) | TEXTURE)
+        if img.ndim != 3 or img.shape[2] not in (3, 4):
+            return None
+        if img.shape[0] != ts:
+            from PIL import Image
+
+            img = np.asarray(Image.fromarray(img).resize((ts, ts), Image.Resampling.BILINEAR))
+        if img.shape[2] == 3:
+            img = np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
+        r, c = int(y - y0) * ts, int(x - x0) * ts
+        mosaic[r : r + ts, c : c + ts] = img
+    (west, east), (south, north) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+    west, east, south, north = float(west), float(east), float(south), float(north)
+    width = int(min(max_px, nx * ts))
+    height = max(round(width * (north - south) / max(east - west, 1e-9)), 1)
+    lon = west + (np.arange(width) + 0.5) * (east - west) / width
+    lat = north - (np.arange(height) + 0.5) * (north - south) / height
+    xm, ym = lonlat_to_merc(lon[None, :], lat[:, None])
+    size = float(tile_size(z)) / ts  # metres a texel
+    left, top = (
+        x0 * float(tile_size(z)) - float(tile_size(0)) / 2,
+        float(tile_size(0)) / 2 - y0 * float(tile_size(z)),
+    )
+    col = np.clip(((xm - left) / size).astype(np.int64), 0, nx * ts - 1)
+    row = np.clip(((top - ym) / size).astype(np.int64), 0, ny * ts - 1)
+    out = mosaic[np.broadcast_to(row, (height, width)), np.broadcast_to(col, (height, width))]
+    return np.ascontiguousarray(out), (west, south, east, north)

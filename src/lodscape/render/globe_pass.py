@@ -34,13 +34,27 @@ void main() {
 _FRAGMENT = """
 #version 330
 uniform sampler2D u_tex;
+uniform sampler2D u_region;  // the terrain's own imagery over its box (alpha 0: no data)
+uniform vec4 u_box;          // the box in u_tex's coordinates: u0, v0, u1, v1
+uniform bool u_has_region;
 in vec2 v_uv;
 in float v_dist;
 in float v_shade;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
-    f_color = vec4(min(texture(u_tex, v_uv).rgb * v_shade, vec3(1.0)), 1.0);
+    vec3 rgb = min(texture(u_tex, v_uv).rgb * v_shade, vec3(1.0));
+    if (u_has_region) {
+        // a facet's own longitudes may run past ±180: try the box a turn either way too
+        for (int k = -1; k <= 1; k++) {
+            vec2 uv = (v_uv + vec2(float(k), 0.0) - u_box.xy) / (u_box.zw - u_box.xy);
+            if (all(greaterThanEqual(uv, vec2(0.0))) && all(lessThanEqual(uv, vec2(1.0)))) {
+                vec4 r = texture(u_region, uv);
+                rgb = mix(rgb, r.rgb, r.a);  // its tint carries its own hillshade
+            }
+        }
+    }
+    f_color = vec4(rgb, 1.0);
     f_dist = v_dist;
 }
 """
@@ -95,6 +109,29 @@ class GlobeRenderer:
         self.tex.repeat_y = False
         self._fbo: moderngl.Framebuffer | None = None
         self._size = (0, 0)
+        self.region: moderngl.Texture | None = None
+        self.prog["u_tex"] = 0
+        self.prog["u_region"] = 1
+        self.prog["u_has_region"] = False
+
+    def set_region(self, image: NDArray[np.uint8], box: tuple[float, float, float, float]) -> None:
+        """Drape ``image`` ((H, W, 4) RGBA, row 0 north, alpha 0 where there is no data) over
+        ``box`` (west, south, east, north, degrees), over the global image."""
+        if self.region is not None:
+            self.region.release()
+        img = np.ascontiguousarray(image[::-1])
+        self.region = self.ctx.texture((img.shape[1], img.shape[0]), 4, img.tobytes(), alignment=1)
+        self.region.build_mipmaps()
+        self.region.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        self.region.repeat_x = self.region.repeat_y = False
+        w, s, e, n = box
+        self.prog["u_box"] = (
+            (w + 180.0) / 360.0,
+            (s + 90.0) / 180.0,
+            (e + 180.0) / 360.0,
+            (n + 90.0) / 180.0,
+        )
+        self.prog["u_has_region"] = True
 
     def draw(
         self, camera: Camera, mesh: GlobeMesh
@@ -132,6 +169,8 @@ class GlobeRenderer:
             self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
             self.prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]
             self.tex.use(0)
+            if self.region is not None:
+                self.region.use(1)
             self.ctx.wireframe = self.wireframe
             vao.render(moderngl.TRIANGLES)
             self.ctx.wireframe = False
@@ -152,5 +191,8 @@ class GlobeRenderer:
         return self._colour_fbo
 
     def close(self) -> None:
+        if self.region is not None:
+            self.region.release()
+            self.region = None
         if self._owns_ctx:
             self.ctx.release()
