@@ -395,6 +395,23 @@ def test_outside_web_mercator(tmp_path: Path) -> None:
     _one_line_error(path, "outside Web Mercator's latitude range")
 
 
+def test_across_the_antimeridian(tmp_path: Path) -> None:
+    # Fiji: 179.9°E to 180.1°E. Web Mercator tiles cannot span 180°: a clear refusal, not a
+    # box the whole world wide (a camera once came out at latitude -275°)
+    data = np.ones((64, 64), np.float32)
+    path = write_tif(tmp_path / "fiji.tif", data, from_origin(179.9, -16.5, 0.004, 0.004))
+    _one_line_error(path, "crosses the antimeridian")
+    # round a pole the longitudes wind all the way: that is not a crossing
+    pole = write_tif(
+        tmp_path / "arctic.tif",
+        data,
+        from_origin(-1_024_000.0, 1_024_000.0, 32_000.0, 32_000.0),
+        crs="EPSG:3413",
+    )
+    with RasterSource(str(pole)) as source:
+        assert source.bounds_merc.right - source.bounds_merc.left > 3.9e7
+
+
 def test_array_source_errors() -> None:
     with pytest.raises(SourceError, match=r"^array: .*not invertible"):
         ArraySource(np.ones((4, 4)), Affine(0.0, 0.0, 0.0, 0.0, 0.0, 0.0))

@@ -251,6 +251,16 @@ class _GridSource:
         if not finite.any():
             raise SourceError(f"{self.name}: footprint cannot be projected to longitude/latitude")
         lo, hi = float(lat[finite].min()), float(lat[finite].max())
+        # round the edges, longitudes unwrapped: back where they began, the data does not hold a
+        # pole, and if they left -180..180 on the way, it straddles the antimeridian
+        ring = np.degrees(np.unwrap(np.radians(lon[finite])))
+        if abs(ring[-1] - ring[0]) < 180.0 and (ring.min() < -180.0 or ring.max() > 180.0):
+            w, e = float(ring.min()), float(ring.max())
+            raise SourceError(
+                f"{self.name}: the data crosses the antimeridian (its longitudes run "
+                f"{w:.4f}° to {e:.4f}°), which Web Mercator tiles cannot span; split it at "
+                "180° (e.g. gdalwarp -te) and use the two halves"
+            )
         if lo >= MAX_LAT or hi <= -MAX_LAT:
             raise SourceError(
                 f"{self.name}: data lies entirely outside Web Mercator's latitude range "
