@@ -24,7 +24,13 @@ from numpy.typing import NDArray
 
 from lodscape.errors import CameraError, SourceError
 from lodscape.geo.frames import WGS84_A, ecef_to_geodetic
-from lodscape.geo.tiles import lonlat_to_merc, merc_to_lonlat, tile_from_id_array, tile_id_array
+from lodscape.geo.tiles import (
+    lonlat_to_merc,
+    merc_to_lonlat,
+    tile_from_id,
+    tile_from_id_array,
+    tile_id_array,
+)
 from lodscape.lod.camera import Camera
 from lodscape.lod.cull import backfacing
 from lodscape.lod.select import TEXTURE, Selection, SelectOptions, select, tile_boxes
@@ -170,7 +176,9 @@ class Scene:
         self.last: FrameStats | None = None
         self.streamer: Streamer | None = None
         if self.options.stream is not None:
-            self.streamer = Streamer(self.provider, self.options.stream, clock or RealClock())
+            self.streamer = Streamer(
+                self.provider, self.options.stream, clock or RealClock(), prepare=self._heights
+            )
         self._motion: tuple[float, NDArray[np.float64]] | None = None
         self._predicted_at = -math.inf
         self._predicted: Future[list[tuple[Literal["memory", "cache"], list[int]]]] | None = None
@@ -565,7 +573,19 @@ class Scene:
 
     def _prepare(self, key: int) -> TileMesh | NDArray[np.uint8]:
         p = self.provider
-        return p.texture(key) if key & 7 == TEXTURE else p.mesh(key)
+        return p.texture(key) if key & 7 == TEXTURE else self._heights(key, p.mesh(key))
+
+    def _heights(self, key: int, made: Any) -> Any:
+        """On a worker: in the GPU terrain mode, a mesh's height texture made beside it, so the
+        GL thread only uploads."""
+        if self.terrain_mode != "gpu" or not isinstance(made, TileMesh):
+            return made
+        if made.height_tile is not None:
+            return made
+        from lodscape.terrain.heightmap import height_tile
+
+        t = tile_from_id(key >> 3)
+        return replace(made, height_tile=height_tile(made, t.z, t.x, t.y))
 
     def _load(self, renderer: Renderer, keys: NDArray[np.uint64]) -> int:
         # workers read, mesh and shade; this thread, which owns the GL context, uploads

@@ -328,7 +328,12 @@ class Renderer:
             return
         if self._tess is not None:
             t = tile_from_id(mesh.key >> 3)
-            nbytes = self._tess.upload(height_tile(mesh, t.z, t.x, t.y))
+            ht = (
+                mesh.height_tile
+                if mesh.height_tile is not None
+                else height_tile(mesh, t.z, t.x, t.y)
+            )
+            nbytes = self._tess.upload(ht)
             self._gpu_tiles[mesh.key] = _GpuTile(
                 np.asarray(mesh.center, np.float64).copy(),
                 None if mesh.cone is None else np.asarray(mesh.cone, np.float64),

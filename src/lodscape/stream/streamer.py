@@ -139,6 +139,9 @@ class Streamer:
     source: Source
     options: StreamOptions = field(default_factory=StreamOptions)
     clock: Clock = field(default_factory=RealClock)
+    #: What a worker does to a decoded resource before it goes to the memory stage (the GPU
+    #: terrain mode makes height textures there, off the GL thread); None: nothing.
+    prepare: Callable[[int, Made], Made] | None = None
 
     def __post_init__(self) -> None:
         self.cache: OrderedDict[int, bytes] = OrderedDict()
@@ -191,8 +194,12 @@ class Streamer:
         how long that took."""
         t = time.perf_counter()
         data = cached if cached is not None else self.source.fetch(key)
-        made = self.source.decode(key, data) if decode else None
+        made = self._decode(key, data) if decode else None
         return (None if cached is not None else data), made, time.perf_counter() - t
+
+    def _decode(self, key: int, data: bytes) -> Made:
+        made = self.source.decode(key, data)
+        return made if self.prepare is None else self.prepare(key, made)
 
     # --- results -----------------------------------------------------------------------------
 
@@ -293,7 +300,7 @@ class Streamer:
         else:
             self.stats.cache_hits += 1
         self.stats.decoded += 1
-        return self.source.decode(key, data)
+        return self._decode(key, data)
 
     # --- budgets -----------------------------------------------------------------------------
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,6 +60,9 @@ class TileMesh:
     #: The (S+1)² heights a grid was built from (row 0 north), for the GPU terrain mode's
     #: height textures; None for an irregular mesh.
     heights: NDArray[np.float32] | None = None
+    #: The GPU terrain mode's height texture and error table (``terrain.heightmap.HeightTile``),
+    #: made by a worker; None: made at upload.
+    height_tile: Any = None
 
     @property
     def triangles(self) -> int:
@@ -69,6 +73,8 @@ class TileMesh:
     @property
     def nbytes(self) -> int:
         own = 0 if self.indices is None else self.indices.nbytes
+        if self.height_tile is not None:
+            own += self.height_tile.heights.nbytes + self.height_tile.errors.nbytes
         return int(self.vertices.nbytes + own)
 
 

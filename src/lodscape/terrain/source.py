@@ -255,10 +255,10 @@ class _GridSource:
         # pole, and if they left -180..180 on the way, it straddles the antimeridian
         ring = np.degrees(np.unwrap(np.radians(lon[finite])))
         if abs(ring[-1] - ring[0]) < 180.0 and (ring.min() < -180.0 or ring.max() > 180.0):
-            w, e = float(ring.min()), float(ring.max())
+            west, east = float(ring.min()), float(ring.max())
             raise SourceError(
                 f"{self.name}: the data crosses the antimeridian (its longitudes run "
-                f"{w:.4f}° to {e:.4f}°), which Web Mercator tiles cannot span; split it at "
+                f"{west:.4f}° to {east:.4f}°), which Web Mercator tiles cannot span; split it at "
                 "180° (e.g. gdalwarp -te) and use the two halves"
             )
         if lo >= MAX_LAT or hi <= -MAX_LAT:
