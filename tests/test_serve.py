@@ -148,12 +148,23 @@ def test_buildings_as_3d_tiles(server: str) -> None:
         # the transform puts the city near Helsinki on the ellipsoid
         origin = np.array(root["transform"][12:15])
         assert 6.3e6 < np.linalg.norm(origin) < 6.4e6
-        children = root["children"]
-        assert children
-        triangles = 0
-        for i, child in enumerate(children):
-            assert child["content"]["uri"] == f"{i}.glb"
-            g = c.get(f"/3dtiles/{i}.glb")
+        # every tile, depth first: groups of box models refined to the full buildings
+        tiles, stack = [], [(root, None)]
+        while stack:
+            tile, parent = stack.pop()
+            tiles.append((tile, parent))
+            stack += [(child, tile) for child in tile.get("children", [])]
+        uris = sorted(int(t["content"]["uri"][:-4]) for t, _ in tiles if "content" in t)
+        assert uris
+        assert uris == list(range(len(uris)))
+        triangles = {0.0: 0, 1.0: 0}  # full (leaves, geometric error 0), boxes
+        for tile, parent in tiles:
+            if parent is not None:
+                assert tile["geometricError"] <= parent["geometricError"]
+            if "content" not in tile:
+                continue
+            assert tile["geometricError"] == 0.0 or tile["refine"] == "REPLACE"
+            g = c.get(f"/3dtiles/{tile['content']['uri']}")
             assert g.status_code == 200
             assert g.headers["content-type"] == "model/gltf-binary"
             data = g.content
@@ -172,8 +183,11 @@ def test_buildings_as_3d_tiles(server: str) -> None:
                 start = 28 + jlen + view["byteOffset"]
                 ind = np.frombuffer(data[start : start + view["byteLength"]], np.uint32)
                 assert ind.max() < pos["count"]
-                triangles += len(ind) // 3
-        assert triangles > 1000
+                triangles[float(tile["geometricError"] > 0)] += len(ind) // 3
+        assert triangles[0.0] > 1000
+        # the boxes stand in for the buildings with far fewer triangles
+        assert 0 < triangles[1.0] < triangles[0.0] / 2
+        children = uris
         assert c.get(f"/3dtiles/{len(children)}.glb").status_code == 404
 
 

@@ -6,7 +6,8 @@ Routes:
   accepts it (as stored), plain otherwise; flat tiles above the tileset's roots;
 - ``/imagery/{z}/{x}/{y}.png``: the imagery (OSM rows);
 - ``/3dtiles/tileset.json`` and ``/3dtiles/{i}.glb``: the stored cities' buildings as 3D Tiles
-  1.1, when the tileset holds a city (made at the first request, then kept).
+  1.1, when the tileset holds a city (made at the first request, then kept): groups of box
+  models, each replaced by its full buildings up close.
 
 Every answer carries CORS headers and an ETag (a ``If-None-Match`` that matches gets 304);
 JSON and glTF are gzipped when the client accepts it. A path that is not one of these exactly,

@@ -127,57 +127,83 @@ def _box(lo: NDArray[np.float64], hi: NDArray[np.float64]) -> list[float]:
     return [*c.tolist(), h[0], 0.0, 0.0, 0.0, h[1], 0.0, 0.0, 0.0, h[2]]
 
 
+#: Cesium's default maximum screen-space error, pixels: the group tiles' geometric errors are
+#: set so that a client at this default swaps boxes for full buildings where lodscape's own
+#: renderer does (``CityOptions.full_px``: the largest object covers 40 px).
+CLIENT_SSE = 16.0
+
+
+def _parts(model: CityModel, leaves: NDArray[np.int64], lod: int) -> list[Any]:
+    """The glb parts (material, positions, normals, triangles) of some leaves at one level of
+    detail, in glTF's y-up frame."""
+    parts = []
+    for (lv, mat), geo in model.geometry.items():
+        if lv != lod or not len(geo.triangles) or not len(leaves):
+            continue
+        first, count = model.runs[(lv, mat)]
+        flat = np.concatenate(
+            [
+                geo.triangles.ravel()[f : f + c]
+                for f, c in zip(first[leaves], count[leaves], strict=True)
+            ]
+        )
+        if not len(flat):
+            continue
+        used, local = np.unique(flat, return_inverse=True)
+        p = geo.positions[used].astype(np.float32)
+        n = geo.normals[used].astype(np.float32)
+        # east-north-up to glTF's y-up: (e, n, u) -> (e, u, -n)
+        parts.append(
+            (
+                mat,
+                np.column_stack([p[:, 0], p[:, 2], -p[:, 1]]),
+                np.column_stack([n[:, 0], n[:, 2], -n[:, 1]]),
+                local.reshape(-1, 3).astype(np.uint32),
+            )
+        )
+    return parts
+
+
 def city_tileset(model: CityModel) -> tuple[dict[str, Any], list[bytes]]:
     """The city's buildings as a 3D Tiles tileset (``tileset.json`` content, referring to
-    ``{i}.glb``) and the glb of each tile."""
+    ``{i}.glb``) and the glb of each tile. Each group of R-tree leaves is a tile of box models
+    that a client replaces by the full buildings (``REPLACE``) when their largest building
+    would cover ``CityOptions().full_px`` pixels at its default screen-space error."""
+    from lodscape.city.model import CityOptions
+
     tree = model.tree
     fanout = tree.fanout
     groups = max(1, -(-tree.leaves // fanout))
     contents: list[bytes] = []
     children: list[dict[str, Any]] = []
+    per_px = CLIENT_SSE / CityOptions().full_px
     for g in range(groups):
         leaves = np.arange(g * fanout, min((g + 1) * fanout, tree.leaves))
-        parts = []
-        for (lod, mat), geo in model.geometry.items():
-            if lod != 0 or not len(geo.triangles):
-                continue
-            first, count = model.runs[(lod, mat)]
-            flat = (
-                np.concatenate(
-                    [
-                        geo.triangles.ravel()[f : f + c]
-                        for f, c in zip(first[leaves], count[leaves], strict=True)
-                    ]
-                )
-                if len(leaves)
-                else np.zeros(0, np.uint32)
-            )
-            if not len(flat):
-                continue
-            used, local = np.unique(flat, return_inverse=True)
-            p = geo.positions[used].astype(np.float32)
-            n = geo.normals[used].astype(np.float32)
-            # east-north-up to glTF's y-up: (e, n, u) -> (e, u, -n)
-            parts.append(
-                (
-                    mat,
-                    np.column_stack([p[:, 0], p[:, 2], -p[:, 1]]),
-                    np.column_stack([n[:, 0], n[:, 2], -n[:, 1]]),
-                    local.reshape(-1, 3).astype(np.uint32),
-                )
-            )
-        if not parts:
+        full = _parts(model, leaves, 0)
+        if not full:
             continue
         boxes = tree.levels[0][leaves]
         lo, hi = boxes[:, :3].min(axis=0), boxes[:, 3:].max(axis=0)
+        fine = {
+            "boundingVolume": {"box": _box(lo, hi)},
+            "geometricError": 0.0,
+            "content": {"uri": f"{len(contents)}.glb"},
+        }
+        contents.append(glb(full))
+        coarse = _parts(model, leaves, 1)
+        if not coarse:
+            children.append(fine)
+            continue
         children.append(
             {
                 "boundingVolume": {"box": _box(lo, hi)},
-                "geometricError": 0.0,
+                "geometricError": float(model.leaf_size[leaves].max() * per_px),
+                "refine": "REPLACE",
                 "content": {"uri": f"{len(contents)}.glb"},
+                "children": [fine],
             }
         )
-        contents.append(glb(parts))
+        contents.append(glb(coarse))
     all_boxes = tree.levels[0]
     lo, hi = all_boxes[:, :3].min(axis=0), all_boxes[:, 3:].max(axis=0)
     to_ecef = np.eye(4)
@@ -190,7 +216,9 @@ def city_tileset(model: CityModel) -> tuple[dict[str, Any], list[bytes]]:
             # column-major, as 3D Tiles stores matrices
             "transform": to_ecef.T.ravel().tolist(),
             "boundingVolume": {"box": _box(lo, hi)},
-            "geometricError": float(np.linalg.norm(hi - lo)) / 8.0,
+            "geometricError": max(
+                [float(np.linalg.norm(hi - lo)) / 8.0] + [c["geometricError"] for c in children]
+            ),
             "refine": "ADD",
             "children": children,
         },
