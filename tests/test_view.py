@@ -10,6 +10,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +76,36 @@ def _finish(proc: subprocess.Popen[str]) -> tuple[str, str]:
             proc.communicate()
 
 
+SKY = np.array([135, 179, 230])
+
+
+def _screenshot_until(env: dict[str, str], shots: Path, ok: Callable[[np.ndarray], bool]) -> None:
+    """Press P until a screenshot passes ``ok`` (within 45 s); the screenshots are removed."""
+    from PIL import Image
+
+    deadline = time.monotonic() + 45.0
+    while True:
+        before = set(shots.glob("*.png"))
+        _xdo(env, "key", "p")
+        end, new = time.monotonic() + 10.0, None
+        while new is None and time.monotonic() < end:
+            made = {p for p in shots.glob("*.png") if ".tmp" not in p.name} - before
+            new = made.pop() if made else None
+            time.sleep(0.1)
+        if new is not None:
+            time.sleep(0.2)  # written whole (it is renamed into place)
+            rgb = np.asarray(Image.open(new).convert("RGB")).astype(np.int16)
+            new.unlink()
+            if ok(rgb):
+                return
+        assert time.monotonic() < deadline, "the view never showed what was awaited"
+        time.sleep(0.5)
+
+
+def _ground_share(rgb: np.ndarray) -> float:
+    return float((np.abs(rgb - SKY).sum(axis=2) > 40).mean())
+
+
 def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path) -> None:
     dem = write_dem(
         str(tmp_path / "dem.tif"),
@@ -103,7 +134,9 @@ def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path
     try:
         window = _xdo(env, "search", "--sync", "--name", "lodscape").splitlines()
         assert window, "no window"
-        time.sleep(3.0)  # the first frames stream in
+        # the first frames stream in: screenshots until one shows the ground (a loaded
+        # machine may take a while), so the keys below act on a running view
+        _screenshot_until(env, shots, lambda rgb: _ground_share(rgb) > 0.3)
         _xdo(env, "keydown", "w")
         time.sleep(1.0)
         _xdo(env, "keyup", "w")
@@ -129,8 +162,7 @@ def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path
     assert len(shot) == 1
     rgb = np.asarray(Image.open(shot[0]).convert("RGB")).astype(np.int16)
     assert rgb.shape == (200, 320, 3)
-    sky = np.array([135, 179, 230])
-    ground = np.abs(rgb - sky).sum(axis=2) > 40
+    ground = np.abs(rgb - SKY).sum(axis=2) > 40
     assert ground.mean() > 0.3
     assert rgb[ground].std() > 5.0
     # W flew north, the drag turned right by a quarter of a degree per pixel
@@ -146,7 +178,7 @@ def test_viewer_shows_the_globe(display: str, tmp_path: Path) -> None:
     proc = _viewer(env, "none", "--globe", "--size", "240x180", "--screenshots", str(shots))
     try:
         assert _xdo(env, "search", "--sync", "--name", "lodscape")
-        time.sleep(3.0)
+        _screenshot_until(env, shots, lambda rgb: (rgb.sum(axis=2) > 30).mean() > 0.1)
         _xdo(env, "key", "p")
         time.sleep(0.5)
         _xdo(env, "key", "Escape")
