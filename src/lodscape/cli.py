@@ -243,13 +243,25 @@ def _drape(scene: Scene, town: Any) -> Any:
     return city
 
 
-def _scene_options(*, max_sse: float, anisotropy: float, terrain_mode: str) -> SceneOptions:
-    """Scene options from flags; a value the engine refuses is a one-line usage error."""
+def _scene_options(
+    *, max_sse: float, anisotropy: float, terrain_mode: str, budget_mb: float | None = None
+) -> SceneOptions:
+    """Scene options from flags; a value the engine refuses is a one-line usage error. With
+    ``budget_mb``, a streaming scene with that many MiB each of GPU, memory and cache."""
+    from lodscape.stream import StreamOptions
+
+    streaming: dict[str, Any] = {}
     try:
+        if budget_mb is not None:
+            streaming = {
+                "gpu_budget_mb": budget_mb,
+                "stream": StreamOptions(cache_mb=budget_mb, memory_mb=budget_mb),
+            }
         return SceneOptions(
             select=SelectOptions(max_sse=max_sse),
             anisotropy=anisotropy,
             terrain_mode=terrain_mode,
+            **streaming,
         )
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None
@@ -515,7 +527,7 @@ def fly(
     )
 
     from lodscape import flight
-    from lodscape.stream import SimClock, StreamOptions
+    from lodscape.stream import SimClock
 
     w, h = _size(size)
     if output.suffix.lower() != ".mp4":
@@ -539,16 +551,9 @@ def fly(
         assert line is not None
         lon1, lat1, lon2, lat2, alt = _numbers(line, 5, "--line LON1,LAT1,LON2,LAT2,ALT")
         route = flight.line_route(lon1, lat1, lon2, lat2, alt, speed)
-    try:
-        options = SceneOptions(
-            select=SelectOptions(max_sse=max_sse),
-            anisotropy=anisotropy,
-            terrain_mode=terrain_mode,
-            gpu_budget_mb=budget_mb,
-            stream=StreamOptions(cache_mb=budget_mb, memory_mb=budget_mb),
-        )
-    except ValueError as exc:
-        raise LodscapeError(f"bad option: {exc}") from None
+    options = _scene_options(
+        max_sse=max_sse, anisotropy=anisotropy, terrain_mode=terrain_mode, budget_mb=budget_mb
+    )
     cover = _landcover(ground, landcover, city)
     cams = list(flight.cameras(route, fps, w, h, pitch=pitch, fov=fov, duration=duration))
     if globe:
@@ -842,7 +847,6 @@ def view(
     """Fly over SOURCE in a window: W/S/A/D/Q/E move, arrows and mouse drag look, the wheel
     sets the speed; T wireframe, L level colours, C back-face culling, G fractal detail, P
     screenshot, K save the camera (--camera-file), Esc quits. Tiles stream as you fly."""
-    from lodscape.stream import StreamOptions
     from lodscape.view import view as run_view
 
     w, h = _size(size)
@@ -850,16 +854,9 @@ def view(
         _view_globe(source, camera_file, save_camera, screenshots, w, h, fov, max_sse, exit_after)
         return
     fractal = _detail(source, detail, None, None, None)
-    try:
-        options = SceneOptions(
-            select=SelectOptions(max_sse=max_sse),
-            anisotropy=anisotropy,
-            terrain_mode=terrain_mode,
-            gpu_budget_mb=budget_mb,
-            stream=StreamOptions(cache_mb=budget_mb, memory_mb=budget_mb),
-        )
-    except ValueError as exc:
-        raise LodscapeError(f"bad option: {exc}") from None
+    options = _scene_options(
+        max_sse=max_sse, anisotropy=anisotropy, terrain_mode=terrain_mode, budget_mb=budget_mb
+    )
     source, town = _city_source(source, city)
     cover = _landcover(ground, landcover, city)
     opened = _open(source, options, imagery, imagery_cache, detail=fractal, landcover=cover)
