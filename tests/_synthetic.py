@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -149,3 +150,22 @@ def magenta_cracks(rgb: NDArray[np.uint8]) -> int:
     magenta = np.all(rgb == (255, 0, 255), axis=2)
     seen_above = np.maximum.accumulate(~magenta, axis=0)
     return int((magenta & seen_above).sum())
+
+
+def spine_views(scene: Any, width: int, height: int) -> dict[str, Any]:
+    """The spine's four test views of a scene: straight down, oblique, low and grazing, and
+    steep and near, about the centre of its data."""
+    from lodscape import Camera
+    from lodscape.geo.tiles import merc_to_lonlat
+
+    b = scene.source.bounds_merc
+    lon, lat = (float(v) for v in merc_to_lonlat((b.left + b.right) / 2, (b.top + b.bottom) / 2))
+    g = scene.ground_height(lon, lat) or 0.0
+    hi = scene.tree.height_range[1]
+    size = {"width": width, "height": height}
+    return {
+        "down": Camera(lon, lat, g + 2500.0, pitch=-90, **size),
+        "oblique": Camera(lon, lat - 0.02, hi + 800.0, heading=10, pitch=-30, **size),
+        "low": Camera(lon - 0.01, lat - 0.015, hi + 150.0, heading=35, pitch=-12, **size),
+        "steep-near": Camera(lon, lat, g + 300.0, heading=200, pitch=-55, **size),
+    }

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import lodscape
-from _synthetic import fbm_heights, magenta_cracks, run_cli, write_dem
+from _synthetic import fbm_heights, magenta_cracks, run_cli, spine_views, write_dem
 from lodscape import Camera, SceneOptions, SelectOptions
 from lodscape.geo.frames import geodetic_to_ecef
 from lodscape.geo.tiles import merc_to_lonlat
@@ -87,20 +87,7 @@ def dem(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 
 def _views(scene: lodscape.Scene) -> dict[str, Camera]:
-    b = scene.source.bounds_merc
-    lon, lat = (float(v) for v in merc_to_lonlat((b.left + b.right) / 2, (b.top + b.bottom) / 2))
-    g = scene.ground_height(lon, lat) or 0.0
-    hi = scene.tree.height_range[1]
-    return {
-        "down": Camera(lon, lat, g + 2500.0, pitch=-90, width=480, height=270),
-        "oblique": Camera(
-            lon, lat - 0.02, hi + 800.0, heading=10, pitch=-30, width=480, height=270
-        ),
-        "low": Camera(
-            lon - 0.01, lat - 0.015, hi + 150.0, heading=35, pitch=-12, width=480, height=270
-        ),
-        "steep-near": Camera(lon, lat, g + 300.0, heading=200, pitch=-55, width=480, height=270),
-    }
+    return spine_views(scene, 480, 270)
 
 
 _cracks = magenta_cracks

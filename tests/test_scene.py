@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import lodscape
-from _synthetic import fbm_heights, magenta_cracks, write_dem
+from _synthetic import fbm_heights, magenta_cracks, spine_views, write_dem
 from lodscape import Camera, SceneOptions
 from lodscape.errors import CameraError
 
@@ -43,19 +43,7 @@ def _centre(scene: lodscape.Scene) -> tuple[float, float]:
 
 
 def _views(scene: lodscape.Scene) -> dict[str, Camera]:
-    lon, lat = _centre(scene)
-    g = scene.ground_height(lon, lat) or 0.0
-    hi = scene.tree.height_range[1]
-    return {
-        "down": Camera(lon, lat, g + 2500.0, pitch=-90, width=640, height=360),
-        "oblique": Camera(
-            lon, lat - 0.02, hi + 800.0, heading=10, pitch=-30, width=640, height=360
-        ),
-        "low": Camera(
-            lon - 0.01, lat - 0.015, hi + 150.0, heading=35, pitch=-12, width=640, height=360
-        ),
-        "steep-near": Camera(lon, lat, g + 300.0, heading=200, pitch=-55, width=640, height=360),
-    }
+    return spine_views(scene, 640, 360)
 
 
 _cracks = magenta_cracks
