@@ -97,7 +97,6 @@ def landcover_memory(frames: int, w: int, h: int) -> None:
     from lodscape.data import sample_city_path
     from lodscape.imagery.landcover import ground_layers, read_landcover
     from lodscape.lod.select import TEXTURE
-    from lodscape.store.provider import LandcoverProvider
     from lodscape.terrain.detail import Fractal
 
     cover = read_landcover(sample_city_path())
@@ -109,12 +108,13 @@ def landcover_memory(frames: int, w: int, h: int) -> None:
     ]
     for ground in ("imagery", "landcover"):
         opts = SceneOptions(gpu_budget_mb=4096.0)
-        scene = lodscape.open(spec, opts, detail=Fractal(0.7, 0.0, 0))
-        if ground == "landcover":
-            provider = LandcoverProvider(scene.provider, cover)
-            scene.release_provider()
-            scene.close()
-            scene = lodscape.Scene(provider, opts, owns=True)
+        # the land cover's detail tree (no amplitude) under both, so both hold the same tiles
+        scene = lodscape.open(
+            spec,
+            opts,
+            detail=Fractal(0.7, 0.0, 0),
+            landcover=cover if ground == "landcover" else None,
+        )
         with scene:
             for cam in cams:
                 scene.render(cam)

@@ -27,6 +27,7 @@ def test_exported_members_resolve() -> None:
         "city",
         "view",
         "serve",
+        "globe",
         "annotations",
     }
 

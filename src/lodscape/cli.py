@@ -171,19 +171,9 @@ def _open(
     """A scene, with its textures from ``imagery`` when one is given, or its ground coloured
     from a land-cover mask (``landcover``, an ``imagery.landcover.Landcover``)."""
     if landcover is not None:
-        from lodscape.store.provider import LandcoverProvider
-
         if imagery is not None:
             raise LodscapeError("--imagery and --ground landcover both colour the ground: pick one")
-        if detail is None and not is_tileset(source) and not source.startswith("procedural"):
-            # a mask is worth metres, not the DEM's resolution: the tree goes on below the data
-            # with heights interpolated (fractal detail of no amplitude), and its masks with it
-            detail = Fractal(0.7, 0.0, 0)
-        terrain = open_scene(source, options, detail=detail)
-        provider: Any = LandcoverProvider(terrain.provider, landcover)
-        terrain.release_provider()
-        terrain.close()
-        return Scene(provider, options, owns=True, clock=clock)
+        return open_scene(source, options, clock=clock, detail=detail, landcover=landcover)
     if imagery is None:
         return open_scene(source, options, clock=clock, detail=detail)
     from lodscape.imagery.sources import imagery_source

@@ -711,13 +711,44 @@ def open(
     *,
     clock: Clock | None = None,
     detail: Fractal | None = None,
+    landcover: Any = None,
     **array_kwargs: Any,
 ) -> Scene:
     """A scene over a tileset built by ``lodscape build`` (.lods), a GeoTIFF (any GDAL raster), a
     numpy array (with ``transform``, ``crs``), the procedural planet (``"procedural:seed=N"``),
     or a ready HeightSource or Provider. ``detail`` adds fractal detail below a raster's
-    resolution (paper 003). A scene opened from a path or an array closes what it opened when
-    it closes."""
+    resolution (paper 003). ``landcover`` (an ``imagery.landcover.Landcover``) colours the
+    ground from its class masks instead of the tint. A scene opened from a path or an array
+    closes what it opened when it closes."""
+    if landcover is None:
+        return _open_terrain(source, options, clock=clock, detail=detail, **array_kwargs)
+    from lodscape.store.provider import LandcoverProvider
+
+    raster = isinstance(source, np.ndarray) or (
+        isinstance(source, str | PathLike)
+        and not is_tileset(source)
+        and not str(source).startswith("procedural")
+    )
+    if detail is None and raster:
+        # a mask is worth metres, not the DEM's resolution: the tree goes on below the data
+        # with heights interpolated (fractal detail of no amplitude), and its masks with it
+        detail = Fractal(0.7, 0.0, 0)
+    terrain = _open_terrain(source, options, detail=detail, **array_kwargs)
+    provider = LandcoverProvider(terrain.provider, landcover)
+    terrain.release_provider()
+    terrain.close()
+    return Scene(provider, options, owns=True, clock=clock)
+
+
+def _open_terrain(
+    source: str | PathLike[str] | HeightSource | Provider | NDArray[np.floating],
+    options: SceneOptions | None = None,
+    *,
+    clock: Clock | None = None,
+    detail: Fractal | None = None,
+    **array_kwargs: Any,
+) -> Scene:
+    """``open`` without a land cover."""
     if isinstance(source, str) and (source == "procedural" or source.startswith("procedural:")):
         return Scene(procedural_provider(source, detail), options, owns=True, clock=clock)
     if isinstance(source, str) and source.startswith("flat:"):

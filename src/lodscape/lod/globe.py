@@ -262,7 +262,8 @@ def _fans(
         e_all = np.concatenate([np.tile(np.arange(3), len(fs)), e_i])
         t_all = np.concatenate([np.zeros(3 * len(fs)), t_i])
         vid = np.concatenate([corners[fs].ravel(), v_i])
-        ll = np.concatenate([pole_longitudes(v[fs]).reshape(-1, 2), ll_i])
+        own = pole_longitudes(v[fs])
+        ll = np.concatenate([own.reshape(-1, 2), ll_i])
         order = np.lexsort((t_all, e_all, f_all))
         f_all, vid, ll = f_all[order], vid[order], ll[order]
         start = np.r_[0, np.nonzero(np.diff(f_all))[0] + 1]
@@ -271,7 +272,7 @@ def _fans(
         nxt[last] = start  # each facet's boundary closes on itself
         slot = np.searchsorted(fs, f_all)  # the facet of each boundary vertex, among fs
         centre = pos[corners[fs]].mean(axis=1)
-        c_ll = pole_longitudes(v[fs]).mean(axis=1)
+        c_ll = own.mean(axis=1)
         out_pos.append(np.stack([centre[slot], pos[vid], pos[vid[nxt]]], axis=1))
         out_ll.append(np.stack([c_ll[slot], ll, ll[nxt]], axis=1))
         out_lv.append(level[f_all])

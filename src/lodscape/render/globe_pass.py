@@ -60,15 +60,16 @@ void main() {
 """
 
 
-def relief_shade(mesh: GlobeMesh) -> NDArray[np.float64]:
-    """Per triangle, a hillshade factor: light from the north-west, 45° up, in the triangle's
-    own east/north/up frame, relative to level ground (1 on the bare ellipsoid, brighter on
-    slopes facing the light, darker away from it), so a DEM's relief shows on any image."""
-    p = mesh.positions
+def relief_shade(p: NDArray[np.float64], latlon: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per triangle (positions ``p``, (T, 3, 3); lat/lon with the poles' longitudes set, as
+    ``pole_longitudes`` gives), a hillshade factor: light from the north-west, 45° up, in the
+    triangle's own east/north/up frame, relative to level ground (1 on the bare ellipsoid,
+    brighter on slopes facing the light, darker away from it), so a DEM's relief shows on any
+    image."""
     n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     norm = np.linalg.norm(n, axis=1)
-    lat = np.radians(pole_longitudes(mesh.latlon)[..., 0].mean(axis=1))
-    lon = np.radians(pole_longitudes(mesh.latlon)[..., 1].mean(axis=1))
+    lat = np.radians(latlon[..., 0].mean(axis=1))
+    lon = np.radians(latlon[..., 1].mean(axis=1))
     up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], 1)
     east = np.stack([-np.sin(lon), np.cos(lon), np.zeros_like(lon)], 1)
     north = np.cross(up, east)
@@ -159,7 +160,7 @@ class GlobeRenderer:
             ll = pole_longitudes(mesh.latlon)
             lat, lon = ll[..., 0], ll[..., 1]
             uv = np.stack([(lon + 180.0) / 360.0, (lat + 90.0) / 180.0], axis=-1).reshape(-1, 2)
-            shade = np.repeat(relief_shade(mesh), 3).astype(np.float32)[:, None]
+            shade = np.repeat(relief_shade(mesh.positions, ll), 3).astype(np.float32)[:, None]
             data = np.hstack([rel, uv.astype(np.float32), shade])
             vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
             vao = self.ctx.vertex_array(

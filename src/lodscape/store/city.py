@@ -28,7 +28,7 @@ import shapely
 from shapely.geometry import Polygon
 
 from lodscape.city.osm import Building, City, Feature
-from lodscape.store.tileset import TilesetError, is_tileset
+from lodscape.store.tileset import TilesetError, is_tileset, read_manifest
 
 __all__ = ["add_city", "list_cities", "read_city", "remove_city"]
 
@@ -60,14 +60,11 @@ def _open_rw(path: str | os.PathLike[str]) -> sqlite3.Connection:
         raise TilesetError(f"{p}: not a lodscape tileset (not an SQLite file)")
     db = sqlite3.connect(p, isolation_level=None)
     try:
-        row = db.execute("SELECT value FROM metadata WHERE name = 'lodscape'").fetchone()
-    except sqlite3.Error as exc:
+        manifest = read_manifest(db, str(p))
+    except TilesetError:
         db.close()
-        raise TilesetError(f"{p}: not a lodscape tileset ({exc})") from None
-    if row is None:
-        db.close()
-        raise TilesetError(f"{p}: an SQLite file, but not a lodscape tileset")
-    if not json.loads(row[0]).get("complete"):
+        raise
+    if not manifest.get("complete"):
         db.close()
         raise TilesetError(f"{p}: its build has not finished; finish it before adding a city")
     return db

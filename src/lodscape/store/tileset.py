@@ -53,6 +53,7 @@ __all__ = [
     "TilesetProvider",
     "TilesetWriter",
     "is_tileset",
+    "read_manifest",
     "read_tree",
 ]
 
@@ -78,6 +79,19 @@ CREATE TABLE IF NOT EXISTS plan (
 
 class TilesetError(LodscapeError):
     """A tileset file that cannot be used: not one, another version, incomplete, damaged."""
+
+
+def read_manifest(db: sqlite3.Connection, name: str) -> dict[str, Any]:
+    """The tileset's manifest (its ``lodscape`` metadata); ``TilesetError`` naming ``name`` if
+    the file is not a lodscape tileset."""
+    try:
+        row = db.execute("SELECT value FROM metadata WHERE name = 'lodscape'").fetchone()
+    except sqlite3.Error as exc:
+        raise TilesetError(f"{name}: not a lodscape tileset ({exc})") from None
+    if row is None:
+        raise TilesetError(f"{name}: an SQLite file, but not a lodscape tileset")
+    manifest: dict[str, Any] = json.loads(row[0])
+    return manifest
 
 
 def is_tileset(path: str | os.PathLike[str]) -> bool:
@@ -297,14 +311,12 @@ class TilesetProvider:
         self._mesh_bytes = 0
         try:
             db = self._db()
-            row = db.execute("SELECT value FROM metadata WHERE name = 'lodscape'").fetchone()
-        except sqlite3.Error as exc:
+            self.manifest = read_manifest(db, self.name)
+        except (sqlite3.Error, TilesetError) as exc:
             self.close()
+            if isinstance(exc, TilesetError):
+                raise
             raise TilesetError(f"{self.name}: not a lodscape tileset ({exc})") from None
-        if row is None:
-            self.close()
-            raise TilesetError(f"{self.name}: an SQLite file, but not a lodscape tileset")
-        self.manifest: dict[str, Any] = json.loads(row[0])
         if self.manifest.get("schema") != SCHEMA_VERSION:
             self.close()
             raise TilesetError(
