@@ -144,8 +144,8 @@ class Globe:
         la0, la1 = lat0[coarse, None], lat1[coarse, None]
         rows = (lat_edges[None, :-1] <= la1) & (lat_edges[None, 1:] >= la0)  # (C, nb)
         cols = np.zeros((int(coarse.sum()), nb), bool)
+        lo0, lo1 = lon0[coarse, None], lon1[coarse, None]
         for shift in (0.0, 360.0):  # a box in 0..360 meets the data at lon or lon + 360
-            lo0, lo1 = lon0[coarse, None], lon1[coarse, None]
             cols |= (lon_edges[None, :-1] + shift <= lo1) & (lon_edges[None, 1:] + shift >= lo0)
         over = rows[:, :, None] & cols[:, None, :]  # (C, nb, nb)
         any_ = over.any(axis=(1, 2))

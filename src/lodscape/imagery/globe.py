@@ -53,6 +53,7 @@ def regional_image(
     where there is no data, and the box (west, south, east, north, degrees). At most
     ``max_px`` across; None when the scene has no imagery tiles (a land-cover mask)."""
     from lodscape.geo.tiles import (
+        ORIGIN,
         Tile,
         lonlat_to_merc,
         merc_to_lonlat,
@@ -94,10 +95,7 @@ def regional_image(
     lat = north - (np.arange(height) + 0.5) * (north - south) / height
     xm, ym = lonlat_to_merc(lon[None, :], lat[:, None])
     size = float(tile_size(z)) / ts  # metres a texel
-    left, top = (
-        x0 * float(tile_size(z)) - float(tile_size(0)) / 2,
-        float(tile_size(0)) / 2 - y0 * float(tile_size(z)),
-    )
+    left, top = x0 * float(tile_size(z)) - ORIGIN, ORIGIN - y0 * float(tile_size(z))
     col = np.clip(((xm - left) / size).astype(np.int64), 0, nx * ts - 1)
     row = np.clip(((top - ym) / size).astype(np.int64), 0, ny * ts - 1)
     out = mosaic[np.broadcast_to(row, (height, width)), np.broadcast_to(col, (height, width))]

@@ -439,11 +439,14 @@ class TilesetProvider:
             if not len(idx):
                 continue
             cells, which = np.unique(np.stack([tx, ty], 1), axis=0, return_inverse=True)
+            # the points grouped by tile: tile k's are idx[order[ends[k]:ends[k + 1]]]
+            order = np.argsort(which.ravel(), kind="stable")
+            ends = np.searchsorted(which.ravel()[order], np.arange(len(cells) + 1))
             for k, (x, y) in enumerate(cells):  # a loop over tiles, each a vectorised lookup
                 mesh = self._decoded(lv.z, int(x), int(y))
                 if mesh is None:
                     continue
-                at = idx[which.ravel() == k]
+                at = idx[order[ends[k] : ends[k + 1]]]
                 h = _heights_in(mesh, lon[at], lat[at])
                 out[at] = h
                 todo[at[~np.isnan(h)]] = False
