@@ -24,6 +24,7 @@ import numpy as np
 import lodscape
 from lodscape import Camera, SceneOptions
 from lodscape.data import sample_dem_path
+from lodscape.geo.keys import mesh_key
 from lodscape.geo.tiles import merc_to_lonlat, tiles_array
 from lodscape.lod.select import select
 from lodscape.terrain.detail import Fractal
@@ -37,7 +38,7 @@ def _throughput(provider: object, z: int, x0: int, y0: int, n: int = 6) -> float
             if heights is not None:
                 heights.tile(z, x0 + i, y0 + j, 64)
             else:
-                provider.fetch(((_id(z, x0 + i, y0 + j)) << 3) | 2)  # type: ignore[attr-defined]
+                provider.fetch(mesh_key(_id(z, x0 + i, y0 + j), 2))  # type: ignore[attr-defined]
     return n * n / (time.perf_counter() - t)
 
 

@@ -95,8 +95,8 @@ def landcover_memory(frames: int, w: int, h: int) -> None:
     extract on level ground: the same tiles at the same ground resolution (256² texels a
     tile), texture bytes resident on the GPU, and frame times."""
     from lodscape.data import sample_city_path
+    from lodscape.geo.keys import is_texture
     from lodscape.imagery.landcover import ground_layers, read_landcover
-    from lodscape.lod.select import TEXTURE
     from lodscape.terrain.detail import Fractal
 
     cover = read_landcover(sample_city_path())
@@ -124,7 +124,7 @@ def landcover_memory(frames: int, w: int, h: int) -> None:
                 scene.render(cam)
                 times.append((time.perf_counter() - t) * 1e3)
             assert scene._renderer is not None
-            tex = [v for k, v in scene._renderer.resident().items() if k & 7 == TEXTURE]
+            tex = [v for k, v in scene._renderer.resident().items() if is_texture(k)]
             extra = ground_layers().nbytes * 4 // 3 if ground == "landcover" else 0
             print(
                 f"  {ground:9s}: {len(tex)} tile textures, {sum(tex) / 2**20:6.2f} MiB "

@@ -13,9 +13,9 @@ import lodscape
 from _synthetic import run_cli
 from lodscape import Camera, SceneOptions
 from lodscape.errors import SourceError
+from lodscape.geo.keys import is_texture
 from lodscape.geo.tiles import tile, xy_bounds
 from lodscape.imagery.landcover import CLASSES, Landcover, classify, read_landcover
-from lodscape.lod.select import TEXTURE
 
 
 def _sample() -> Path:
@@ -147,7 +147,7 @@ def test_landcover_ground_renders_and_holds_less_than_imagery(cover, mode: str) 
             assert np.isfinite(depth).mean() > 0.5
             renderer = scene._renderer
             assert renderer is not None
-            textures = {k: v for k, v in renderer.resident().items() if k & 7 == TEXTURE}
+            textures = {k: v for k, v in renderer.resident().items() if is_texture(k)}
             texture_bytes[ground] = sum(textures.values()) / len(textures)
             pictures[ground] = rgb
     # roads: dark grey, unlike anything in the tint

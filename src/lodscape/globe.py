@@ -204,7 +204,7 @@ class Globe:
             if self.terrain is not None and self.options.imagery:
                 from lodscape.imagery.globe import regional_image
 
-                region = regional_image(self.terrain)
+                region = regional_image(self.terrain.provider)
                 if region is not None:
                     self._renderer.set_region(*region)
         t = time.perf_counter()

@@ -24,16 +24,16 @@ from numpy.typing import NDArray
 
 from lodscape.errors import CameraError, SourceError
 from lodscape.geo.frames import WGS84_A, ecef_to_geodetic
+from lodscape.geo.keys import is_texture, mesh_key, texture_key, tile_id_of_array, tile_of
 from lodscape.geo.tiles import (
     lonlat_to_merc,
     merc_to_lonlat,
-    tile_from_id,
     tile_from_id_array,
     tile_id_array,
 )
 from lodscape.lod.camera import Camera
 from lodscape.lod.cull import backfacing
-from lodscape.lod.select import TEXTURE, Selection, SelectOptions, select, tile_boxes
+from lodscape.lod.select import Selection, SelectOptions, select, tile_boxes
 from lodscape.render import DrawItem, Renderer
 from lodscape.render.tess_pass import TessellationUnavailable
 from lodscape.store.provider import FractalProvider, Provider, RasterProvider
@@ -573,7 +573,7 @@ class Scene:
 
     def _prepare(self, key: int) -> TileMesh | NDArray[np.uint8]:
         p = self.provider
-        return p.texture(key) if key & 7 == TEXTURE else self._heights(key, p.mesh(key))
+        return p.texture(key) if is_texture(key) else self._heights(key, p.mesh(key))
 
     def _heights(self, key: int, made: Any) -> Any:
         """On a worker: in the GPU terrain mode, a mesh's height texture made beside it, so the
@@ -584,7 +584,7 @@ class Scene:
             return made
         from lodscape.terrain.heightmap import height_tile
 
-        t = tile_from_id(key >> 3)
+        t = tile_of(key)
         return replace(made, height_tile=height_tile(made, t.z, t.x, t.y))
 
     def _load(self, renderer: Renderer, keys: NDArray[np.uint64]) -> int:
@@ -647,11 +647,11 @@ def _keys(renderer: Renderer) -> NDArray[np.uint64]:
 
 def _roots(keys: list[int], zmin: int) -> list[int]:
     """The mesh (coarsest grid) and texture keys of the root tiles above ``keys``."""
-    ids = np.array(keys, dtype=np.uint64) >> np.uint64(3)
+    ids = tile_id_of_array(keys)
     z, x, y = tile_from_id_array(ids)
     up = z - zmin
     rid = np.unique(tile_id_array(np.full(z.size, zmin), x >> up, y >> up))
-    return [int(r << np.uint64(3)) for r in rid] + [int((r << np.uint64(3)) | 7) for r in rid]
+    return [mesh_key(int(r), 0) for r in rid] + [texture_key(int(r)) for r in rid]
 
 
 def _drawn_keys(sel: Selection) -> set[int]:

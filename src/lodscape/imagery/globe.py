@@ -46,25 +46,24 @@ def global_image(width: int = 2048, seed: int = 3) -> NDArray[np.uint8]:
 
 
 def regional_image(
-    scene: Any, max_px: int = 2048
+    provider: Any, max_px: int = 2048
 ) -> tuple[NDArray[np.uint8], tuple[float, float, float, float]] | None:
     """The terrain's own imagery (the tint, or the imagery a tileset or ``--imagery`` brings)
     over its data's box, resampled to latitude/longitude: (H, W, 4) RGBA, row 0 north, alpha 0
     where there is no data, and the box (west, south, east, north, degrees). At most
-    ``max_px`` across; None when the scene has no imagery tiles (a land-cover mask)."""
+    ``max_px`` across; None when the provider has no imagery tiles (a land-cover mask)."""
+    from lodscape.geo.keys import tile_texture_key
     from lodscape.geo.tiles import (
         ORIGIN,
         Tile,
         lonlat_to_merc,
         merc_to_lonlat,
-        tile_id,
         tile_size,
         tiles_array,
     )
-    from lodscape.lod.select import TEXTURE
 
-    b = scene.provider.bounds_merc
-    tree = scene.tree
+    b = provider.bounds_merc
+    tree = provider.tree
     ts = 256
     # the level whose tiles put about max_px texels across the box, within the stored ones
     want = math.log2(max_px * float(tile_size(0)) / (ts * max(b.right - b.left, 1e-6)))
@@ -76,7 +75,7 @@ def regional_image(
     xs, ys = np.meshgrid(np.arange(x0, x1 + 1), np.arange(y0, y1 + 1))
     ok, _ = have.index(xs.ravel(), ys.ravel())
     for x, y in zip(xs.ravel()[ok], ys.ravel()[ok], strict=True):  # tens of tiles, once
-        img = scene.provider.texture((tile_id(Tile(int(x), int(y), z)) << 3) | TEXTURE)
+        img = provider.texture(tile_texture_key(Tile(int(x), int(y), z)))
         if img.ndim != 3 or img.shape[2] not in (3, 4):
             return None
         if img.shape[0] != ts:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lodscape.geo.keys import grid_of, tile_id_of
 from lodscape.geo.tiles import Tile, tile_id
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, TreeLike, tile_boxes
@@ -27,7 +28,9 @@ def select_reference(
     ztex = tree.zmax if tree.texture_zmax is None else tree.texture_zmax
     was = set(previous.refined.tolist()) if previous is not None else set()
     grid_before = (
-        {int(k) >> 3: int(k) & 7 for k in previous.keys.tolist()} if previous is not None else {}
+        {tile_id_of(int(k)): grid_of(int(k)) for k in previous.keys.tolist()}
+        if previous is not None
+        else {}
     )
     tex_before = (
         {

@@ -15,48 +15,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape.geo.cones import CONE_SIZE, normal_cone, patch_cones
+
 __all__ = ["CONE_SIZE", "backfacing", "normal_cone", "patch_cones"]
 
 F64 = NDArray[np.float64]
-#: A cone's values: axis (3), cos α, sin α, sphere centre (3, relative to the mesh's centre), r,
-#: the lowest a·p of the patch's points.
-CONE_SIZE = 10
-
-
-def normal_cone(
-    vertices: NDArray[np.floating], triangles: NDArray[np.integer], up: NDArray[np.floating]
-) -> F64 | None:
-    """The normal cone and bounding sphere of a height field's triangles (vertices (N, 3)
-    relative to the mesh centre): each normal taken on the side of ``up`` (the terrain's outside,
-    whatever the winding); None when the normals span a half-space or more (nothing can be
-    culled) or there are no triangles."""
-    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    if tri.size == 0:
-        return None
-    v = np.asarray(vertices, dtype=np.float64)[:, :3]
-    p0, p1, p2 = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
-    n = np.cross(p1 - p0, p2 - p0)
-    norm = np.linalg.norm(n, axis=1)
-    ok = norm > 0.0
-    if not ok.any():
-        return None
-    n = n[ok] / norm[ok, None]
-    n *= np.where(n @ np.asarray(up, np.float64) < 0.0, -1.0, 1.0)[:, None]
-    axis = n.sum(axis=0)
-    length = float(np.linalg.norm(axis))
-    if length == 0.0:
-        return None
-    axis /= length
-    cos_a = float(np.clip(n @ axis, -1.0, 1.0).min())
-    if cos_a <= 0.0:
-        return None
-    used = v[np.unique(tri)]
-    lo, hi = used.min(axis=0), used.max(axis=0)
-    centre = (lo + hi) / 2.0
-    r = float(np.linalg.norm(used - centre, axis=1).max())
-    sin_a = float(np.sqrt(max(0.0, 1.0 - cos_a * cos_a)))
-    low = float((used @ axis).min())
-    return np.array([*axis, cos_a, sin_a, *centre, r, low], dtype=np.float64)
 
 
 def backfacing(cones: F64, centres: F64, eye: F64) -> NDArray[np.bool_]:
@@ -76,38 +39,4 @@ def backfacing(cones: F64, centres: F64, eye: F64) -> NDArray[np.bool_]:
     # a margin for the float32 vertices the GPU draws: a millionth of the distance, a millimetre
     margin = 1e-6 * d + 1e-3
     out: NDArray[np.bool_] = np.isfinite(worst) & (big_a < -margin) & (worst < -margin)
-    return out
-
-
-def patch_cones(
-    vertices: NDArray[np.floating], triangles: NDArray[np.integer], up: NDArray[np.floating]
-) -> F64:
-    """(P, 10) cones of P patches of T triangles each, ``triangles`` (P, T, 3), as
-    ``normal_cone`` makes them, all patches at once; NaN rows where a patch has none."""
-    tri = np.asarray(triangles, dtype=np.int64)
-    out = np.full((tri.shape[0], CONE_SIZE), np.nan)
-    if tri.size == 0:
-        return out
-    v = np.asarray(vertices, dtype=np.float64)[:, :3]
-    p0, p1, p2 = v[tri[..., 0]], v[tri[..., 1]], v[tri[..., 2]]
-    n = np.cross(p1 - p0, p2 - p0)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    # degenerate triangles have no direction: leave them out of the cone
-    n = np.where(norm > 0.0, n / np.where(norm > 0.0, norm, 1.0), 0.0)
-    n *= np.where(n @ np.asarray(up, np.float64) < 0.0, -1.0, 1.0)[..., None]
-    axis = n.sum(axis=1)
-    length = np.linalg.norm(axis, axis=1, keepdims=True)
-    ok = length[:, 0] > 0.0
-    axis = axis / np.where(length > 0.0, length, 1.0)
-    dots = np.einsum("ptk,pk->pt", n, axis)
-    dots = np.where(norm[..., 0] > 0.0, dots, 1.0)
-    cos_a = np.clip(dots.min(axis=1), -1.0, 1.0)
-    ok &= cos_a > 0.0
-    pts = np.concatenate([p0, p1, p2], axis=1)
-    centre = (pts.min(axis=1) + pts.max(axis=1)) / 2.0
-    r = np.linalg.norm(pts - centre[:, None, :], axis=-1).max(axis=1)
-    sin_a = np.sqrt(np.clip(1.0 - cos_a * cos_a, 0.0, 1.0))
-    low = np.einsum("pvk,pk->pv", pts, axis).min(axis=1)
-    full = np.column_stack([axis, cos_a, sin_a, centre, r, low])
-    out[ok] = full[ok]
     return out

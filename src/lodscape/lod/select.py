@@ -18,8 +18,8 @@ tile that had to split) takes the texture of the ancestor k levels up for the sm
 H·2^k >= merge·T: it covers the tile with T/2^k texels, so every drawn texture stays inside the
 band (paper 000's 128..384 px for 256 px tiles) instead of being minified.
 
-Resources are keyed ``tile_id << 3 | slot``: slots 0..len(grids)-1 are the tile's meshes, slot 7
-(``TEXTURE``) its texture.
+Resources are keyed as ``lodscape.geo.keys`` says: a mesh key per tile and grid, a texture key
+per tile.
 """
 
 from __future__ import annotations
@@ -32,6 +32,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.geo.frames import WGS84_A, enu_basis, geodetic_to_ecef
+from lodscape.geo.keys import (
+    grid_of_array,
+    is_texture_array,
+    mesh_keys_zxy,
+    texture_keys_zxy,
+    tile_id_of_array,
+)
 from lodscape.geo.tiles import (
     ORIGIN,
     bounds_array,
@@ -43,14 +50,12 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.region import region_view
 
 __all__ = [
-    "TEXTURE",
     "LevelLike",
     "SelectOptions",
     "Selection",
     "TileStats",
     "TreeLike",
     "select",
-    "texture_key",
     "tile_boxes",
 ]
 
@@ -58,10 +63,6 @@ I64 = NDArray[np.int64]
 U64 = NDArray[np.uint64]
 F64 = NDArray[np.float64]
 
-#: The key slot of a tile's texture (slots below it are the tile's mesh grids).
-TEXTURE = 7
-_SLOT = np.uint64(7)
-_THREE = np.uint64(3)
 _EMPTY_U = np.zeros(0, dtype=np.uint64)
 #: Slack around each tile's box, as a share of its side.
 _MARGIN = 1e-3
@@ -69,18 +70,24 @@ _MARGIN = 1e-3
 _REGION_MIN = 32
 
 
-@dataclass(frozen=True, eq=False)
-class TileStats:
-    """What the selection needs of N tiles of one level (zero where a tile does not exist)."""
+class TileStats(Protocol):
+    """What the selection needs of N tiles of one level (zero where a tile does not exist); the
+    terrain's ``TileStats`` is the one the trees give."""
 
-    exists: NDArray[np.bool_]
-    min_h: NDArray[np.floating]
-    max_h: NDArray[np.floating]
+    @property
+    def exists(self) -> NDArray[np.bool_]: ...
+
+    @property
+    def min_h(self) -> NDArray[np.floating]: ...
+
+    @property
+    def max_h(self) -> NDArray[np.floating]: ...
+
     #: (len(grids), N) metres of geometric error of each grid.
-    error: NDArray[np.floating]
+    @property
+    def error(self) -> NDArray[np.floating]: ...
 
-    def take(self, m: NDArray[np.bool_]) -> TileStats:
-        return TileStats(self.exists[m], self.min_h[m], self.max_h[m], self.error[:, m])
+    def take(self, m: NDArray[np.bool_]) -> TileStats: ...
 
 
 class LevelLike(Protocol):
@@ -147,11 +154,6 @@ class SelectOptions:
             raise ValueError(f"Expected 0 < sse_merge <= 1, got {self.sse_merge}")
 
 
-def texture_key(z: I64, x: I64, y: I64) -> U64:
-    """Resource keys of the textures of tiles (z, x, y)."""
-    return (tile_id_array(z, x, y) << _THREE) | _SLOT
-
-
 @dataclass(frozen=True, eq=False)
 class Selection:
     """A frame's render list, load requests and counters. Arrays run over the drawn tiles."""
@@ -161,7 +163,7 @@ class Selection:
     y: I64
     #: Index into the tree's grids of the grid each tile is drawn with.
     grid: I64
-    #: Mesh resource keys (tile id << 3 | grid index) of the drawn tiles.
+    #: Mesh resource keys (``geo.keys.mesh_key``) of the drawn tiles.
     keys: U64
     #: Texture resource keys; the texture of the ancestor ``texture_up`` levels up.
     texture_keys: U64
@@ -437,8 +439,8 @@ def select(
         x=t.x,
         y=t.y,
         grid=t.k,
-        keys=(tile_id_array(t.z, t.x, t.y) << _THREE) | t.k.astype(np.uint64),
-        texture_keys=texture_key(t.z - tex_up, t.x >> tex_up, t.y >> tex_up),
+        keys=mesh_keys_zxy(t.z, t.x, t.y, t.k),
+        texture_keys=texture_keys_zxy(t.z - tex_up, t.x >> tex_up, t.y >> tex_up),
         texture_up=tex_up,
         screen_px=t.px,
         sse=t.sse,
@@ -515,10 +517,10 @@ def _keep_finer_grid(ids: U64, k: I64, prev_keys: U64) -> I64:
     if prev_keys.size == 0:
         return k
     pk = np.sort(prev_keys)
-    pid = pk >> _THREE
+    pid = tile_id_of_array(pk)
     pos = np.clip(np.searchsorted(pid, ids), 0, pid.size - 1)
     hit = pid[pos] == ids
-    kprev = (pk[pos] & _SLOT).astype(np.int64)
+    kprev = grid_of_array(pk[pos])
     return np.where(hit & (kprev == k + 1), kprev, k)
 
 
@@ -568,8 +570,8 @@ def _nearest_resident(
 
 def _missing(resident: U64, t: _Drawn, tex_up: I64) -> U64:
     """The meshes and textures the wanted tiles need that are not resident, most urgent first."""
-    mesh = (tile_id_array(t.z, t.x, t.y) << _THREE) | t.k.astype(np.uint64)
-    tex = texture_key(t.z - tex_up, t.x >> tex_up, t.y >> tex_up)
+    mesh = mesh_keys_zxy(t.z, t.x, t.y, t.k)
+    tex = texture_keys_zxy(t.z - tex_up, t.x >> tex_up, t.y >> tex_up)
     keys = np.concatenate([tex, mesh])
     dist = np.concatenate([t.dist_near, t.dist_near])
     m = ~_member(keys, resident)
@@ -579,12 +581,12 @@ def _missing(resident: U64, t: _Drawn, tex_up: I64) -> U64:
 def _fall_back(camera: Camera, tree: TreeLike, resident: U64, t: _Drawn) -> _Drawn:
     """Draw each tile whose mesh is not resident from the nearest resident mesh: the same tile at
     another grid, or its nearest ancestor (no holes)."""
-    keys = (tile_id_array(t.z, t.x, t.y) << _THREE) | t.k.astype(np.uint64)
+    keys = mesh_keys_zxy(t.z, t.x, t.y, t.k)
     present = _member(keys, resident)
     if present.all():
         return t
-    meshes = resident[(resident & _SLOT) != _SLOT]
-    mesh_ids = np.unique(meshes >> _THREE)
+    meshes = resident[~is_texture_array(resident)]
+    mesh_ids = np.unique(tile_id_of_array(meshes))
     miss = t.take(~present)
     found, up = _nearest_resident(miss.z, miss.x, miss.y, mesh_ids, tree.zmin, 0)
     # tiles with no resident mesh anywhere above them stay as wanted: the caller must load them
@@ -601,8 +603,8 @@ def _fall_back(camera: Camera, tree: TreeLike, resident: U64, t: _Drawn) -> _Dra
     keep = stays & ~covered
     # each fallback tile is drawn with its finest resident grid
     mk = np.sort(meshes)
-    last = np.searchsorted(mk >> _THREE, fid, side="right") - 1
-    fk = (mk[last] & _SLOT).astype(np.int64)
+    last = np.searchsorted(tile_id_of_array(mk), fid, side="right") - 1
+    fk = grid_of_array(mk[last])
     uz, ux, uy = tile_from_id_array(fid)
     back = _metrics_many(camera, tree, uz, ux, uy, fk, depth)
     return _Drawn.concat(t.take(keep), back)
@@ -627,11 +629,11 @@ def _metrics_many(
 def _texture_fall_back(tree: TreeLike, resident: U64, t: _Drawn, up: I64) -> tuple[I64, U64]:
     """Each drawn tile's nearest resident texture at or above the level it wants. A tile with
     none resident keeps the one it wants, which is returned to be loaded."""
-    want = texture_key(t.z - up, t.x >> up, t.y >> up)
+    want = texture_keys_zxy(t.z - up, t.x >> up, t.y >> up)
     m = ~_member(want, resident)
     if not m.any():
         return up, _EMPTY_U
-    tex_ids = np.sort(resident[(resident & _SLOT) == _SLOT] >> _THREE)
+    tex_ids = np.sort(tile_id_of_array(resident[is_texture_array(resident)]))
     # only from the wanted level up: a texture finer than the band asks for is not used
     found, steps = _nearest_resident(t.z[m], t.x[m], t.y[m], tex_ids, tree.zmin, up[m])
     new = up.copy()
@@ -641,7 +643,7 @@ def _texture_fall_back(tree: TreeLike, resident: U64, t: _Drawn, up: I64) -> tup
 
 def _order_loads(keys: U64, dist: F64 | None = None) -> U64:
     """Keys once each, coarse levels first, then nearest first (then in the order given)."""
-    z, _, _ = tile_from_id_array(keys >> _THREE)
+    z, _, _ = tile_from_id_array(tile_id_of_array(keys))
     d = np.zeros(keys.size) if dist is None else dist
     order = np.lexsort((d, z))
     ordered = keys[order]

@@ -22,10 +22,11 @@ import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape.geo.cones import CONE_SIZE
 from lodscape.geo.frames import enu_basis
-from lodscape.geo.tiles import bounds_array, tile_from_id, tile_from_id_array
+from lodscape.geo.keys import tile_id_of_array, tile_of
+from lodscape.geo.tiles import bounds_array, tile_from_id_array
 from lodscape.lod.camera import Camera
-from lodscape.lod.cull import CONE_SIZE
 from lodscape.render._context import create_context, is_software, make_current
 from lodscape.render.tess_pass import TessTerrain
 from lodscape.terrain.heightmap import height_tile
@@ -327,7 +328,7 @@ class Renderer:
         if mesh.key in self._tiles or mesh.key in self._gpu_tiles:
             return
         if self._tess is not None:
-            t = tile_from_id(mesh.key >> 3)
+            t = tile_of(mesh.key)
             ht = (
                 mesh.height_tile
                 if mesh.height_tile is not None
@@ -694,7 +695,7 @@ def _ground_windows(keys: Sequence[int], camera: Camera) -> list[tuple[float, fl
     over, continuous from tile to tile."""
     if not keys:
         return []
-    z, x, y = tile_from_id_array(np.array([k >> 3 for k in keys], dtype=np.uint64))
+    z, x, y = tile_from_id_array(tile_id_of_array(np.array(keys, dtype=np.uint64)))
     left, _, right, top = bounds_array(z, x, y)
     size = right - left
     k = math.cos(math.radians(camera.lat))
@@ -720,7 +721,7 @@ def _tints(keys: Sequence[int], on: bool) -> list[tuple[float, float, float, flo
         return [(0.0, 0.0, 0.0, 0.0)] * len(keys)
     out = []
     for k in keys:
-        r, g, b = _LEVEL_COLOURS[tile_from_id(k >> 3).z % len(_LEVEL_COLOURS)]
+        r, g, b = _LEVEL_COLOURS[tile_of(k).z % len(_LEVEL_COLOURS)]
         out.append((r, g, b, 0.5))
     return out
 

@@ -14,10 +14,10 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, tile_from_id, tile_size
+from lodscape.geo.keys import grid_of, is_texture, texture_key, tile_id_of, tile_of
+from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, tile_size
 from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError, ImageryFetcher, TileMissing
-from lodscape.lod.select import TEXTURE
 from lodscape.terrain.fractal import MAX_LEVEL
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import TileTree, build_tree
@@ -40,7 +40,7 @@ class Provider(Protocol):
         ...
 
     def fetch(self, key: int) -> bytes:
-        """The stored form of one resource key (tile id << 3 | slot): what the disk or the
+        """The stored form of one resource key (``geo.keys``): what the disk or the
         network gives, what the streamer's cache stage holds."""
         ...
 
@@ -70,7 +70,8 @@ def mesh_of(provider: Provider, key: int) -> TileMesh:
 
 def texture_of(provider: Provider, key: int) -> NDArray[np.uint8]:
     """fetch then decode a texture key."""
-    made = provider.decode(key | TEXTURE, provider.fetch(key | TEXTURE))
+    tex = texture_key(tile_id_of(key))
+    made = provider.decode(tex, provider.fetch(tex))
     if isinstance(made, TileMesh):
         raise TypeError(f"key {key} is not a texture key")
     return made
@@ -93,21 +94,21 @@ class RasterProvider:
 
     def fetch(self, key: int) -> bytes:
         """A mesh key's sampled heights (float32), or a texture key's RGBA pixels."""
-        t = tile_from_id(key >> 3)
-        if key & 7 == TEXTURE:
+        t = tile_of(key)
+        if is_texture(key):
             return self.imagery.texture(t.z, t.x, t.y).tobytes()
-        segments = self.tree.grids[key & 7]
+        segments = self.tree.grids[grid_of(key)]
         xs, ys = grid_coordinates(t.z, t.x, t.y, segments)
         xx, yy = np.meshgrid(xs, ys)
         heights, _ = self.source.sample(xx, yy, float(tile_size(t.z)) / segments)
         return heights.astype(np.float32).tobytes()
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
-        t = tile_from_id(key >> 3)
-        if key & 7 == TEXTURE:
+        t = tile_of(key)
+        if is_texture(key):
             n = self.imagery.tile_size
             return np.frombuffer(data, dtype=np.uint8).reshape(n, n, 4)
-        s = self.tree.grids[key & 7] + 1
+        s = self.tree.grids[grid_of(key)] + 1
         heights = np.frombuffer(data, dtype=np.float32).reshape(s, s)
         return build_mesh(key, t.z, t.x, t.y, heights)
 
@@ -115,7 +116,7 @@ class RasterProvider:
         return mesh_of(self, key)
 
     def texture(self, key: int) -> NDArray[np.uint8]:
-        t = tile_from_id(key >> 3)
+        t = tile_of(key)
         return self.imagery.texture(t.z, t.x, t.y)
 
     def close(self) -> None:
@@ -138,17 +139,17 @@ class FractalProvider(RasterProvider):
         return float(h[0]) if bool(valid[0]) else None
 
     def fetch(self, key: int) -> bytes:
-        t = tile_from_id(key >> 3)
-        if key & 7 == TEXTURE:
+        t = tile_of(key)
+        if is_texture(key):
             return self.imagery.texture(t.z, t.x, t.y).tobytes()
-        segments = self.tree.grids[key & 7]
+        segments = self.tree.grids[grid_of(key)]
         return bytes(self.heights.tile(t.z, t.x, t.y, segments).tobytes())
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
-        t = tile_from_id(key >> 3)
-        if key & 7 == TEXTURE:
+        t = tile_of(key)
+        if is_texture(key):
             return super().decode(key, data)
-        g = self.tree.grids[key & 7]
+        g = self.tree.grids[grid_of(key)]
         heights = np.frombuffer(data, dtype=np.float32).reshape(g + 1, g + 1)
         return build_mesh(key, t.z, t.x, t.y, heights, adaptive=self.detail_tree.adaptive(t.z, g))
 
@@ -176,9 +177,9 @@ class ImageryProvider:
         return self.base.ground_height(lon, lat)
 
     def fetch(self, key: int) -> bytes:
-        if key & 7 != TEXTURE:
+        if not is_texture(key):
             return self.base.fetch(key)
-        t = tile_from_id(key >> 3)
+        t = tile_of(key)
         try:
             return self.imagery.fetch(t.z, t.x, t.y)
         except TileMissing:
@@ -189,7 +190,7 @@ class ImageryProvider:
             return b""
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
-        if key & 7 != TEXTURE:
+        if not is_texture(key):
             return self.base.decode(key, data)
         tint = self.base.texture(key)
         if not data:
@@ -240,18 +241,18 @@ class LandcoverProvider:
         return self.base.ground_height(lon, lat)
 
     def fetch(self, key: int) -> bytes:
-        if key & 7 != TEXTURE:
+        if not is_texture(key):
             return self.base.fetch(key)
         from lodscape.imagery.landcover import NODATA
 
-        t = tile_from_id(key >> 3)
+        t = tile_of(key)
         coverage = self.base.texture(key)[..., 3]
         mask = self.landcover.mask(t.z, t.x, t.y, coverage.shape[0])
         mask[coverage < 128] = NODATA
         return bytes(mask.tobytes())
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
-        if key & 7 != TEXTURE:
+        if not is_texture(key):
             return self.base.decode(key, data)
         n = math.isqrt(len(data))
         return np.frombuffer(data, dtype=np.uint8).reshape(n, n, 1).copy()

@@ -32,16 +32,15 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lodscape.errors import LodscapeError, SourceError
+from lodscape.geo.keys import is_texture, tile_of
 from lodscape.geo.tiles import (
     Bbox,
     Tile,
     bounds,
     lonlat_to_merc,
     merc_to_lonlat,
-    tile_from_id,
     tiles_array,
 )
-from lodscape.lod.select import TEXTURE
 from lodscape.store.quantized_mesh import QuantizedMeshError, decode
 from lodscape.terrain.mesh import TileMesh, tin_mesh
 from lodscape.terrain.pyramid import Level, TileTree
@@ -355,8 +354,8 @@ class TilesetProvider:
 
     def fetch(self, key: int) -> bytes:
         """A tile's stored bytes: gzipped quantized-mesh for a mesh key, PNG for a texture key."""
-        t = tile_from_id(key >> 3)
-        if key & 7 == TEXTURE:
+        t = tile_of(key)
+        if is_texture(key):
             row = (
                 self._db()
                 .execute(
@@ -376,8 +375,8 @@ class TilesetProvider:
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
         """The stored bytes made ready to upload: a TileMesh with skirts, or RGBA pixels."""
-        t = tile_from_id(key >> 3)
-        if key & 7 == TEXTURE:
+        t = tile_of(key)
+        if is_texture(key):
             from PIL import Image
 
             try:

@@ -40,10 +40,9 @@ from numpy.typing import NDArray
 
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import ORIGIN, Bbox
-from lodscape.lod.select import TileStats
 from lodscape.terrain.fractal import MAX_LEVEL, fbm_window
 from lodscape.terrain.mesh import GRIDS
-from lodscape.terrain.pyramid import sag
+from lodscape.terrain.pyramid import TileStats, sag
 
 __all__ = [
     "DetailLevel",

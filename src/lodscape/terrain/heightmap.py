@@ -74,7 +74,7 @@ class HeightTile:
     basis: F64
     #: The ellipsoid normal at the centre (ECEF): where skirts hang, and for back-face culling.
     up: F32
-    #: Normal cones of the tile's patches (``lodscape.lod.cull``), as the mesh had them.
+    #: Normal cones of the tile's patches (``lodscape.geo.cones``), as the mesh had them.
     cone: F64 | None = None
 
     @property

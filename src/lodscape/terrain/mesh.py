@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape.geo.cones import patch_cones
 from lodscape.geo.frames import geodetic_to_ecef, up_vector
 from lodscape.geo.tiles import ORIGIN, Tile, lonlat_to_merc, merc_to_lonlat, xy_bounds
-from lodscape.lod.cull import patch_cones
 
 __all__ = [
     "GRIDS",
@@ -54,7 +54,7 @@ class TileMesh:
     up: NDArray[np.float32]
     #: (M, 3) uint32 triangles of an irregular mesh, skirts included; None for a grid.
     indices: NDArray[np.uint32] | None = None
-    #: (P, 10) each surface patch's normal cone and bounding sphere (``lodscape.lod.cull``; NaN
+    #: (P, 10) each surface patch's normal cone and bounding sphere (``lodscape.geo.cones``; NaN
     #: rows: none); a grid's patches are runs of 2·PATCH² triangles, a TIN is one patch.
     cone: NDArray[np.float64] | None = None
     #: The (S+1)² heights a grid was built from (row 0 north), for the GPU terrain mode's

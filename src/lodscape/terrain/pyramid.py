@@ -22,10 +22,9 @@ from numpy.typing import NDArray
 from lodscape.errors import SourceError
 from lodscape.geo.frames import WGS84_A
 from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, merc_to_lonlat, tiles_array
-from lodscape.lod.select import TileStats
 from lodscape.terrain.mesh import GRIDS
 
-__all__ = ["Level", "SampleSource", "TileTree", "build_tree", "level_range"]
+__all__ = ["Level", "SampleSource", "TileStats", "TileTree", "build_tree", "level_range"]
 
 _BASE = GRIDS[0]
 #: Samples of the deepest level above which on-the-fly rendering coarsens the data (a build keeps
@@ -47,6 +46,20 @@ class SampleSource(Protocol):
     def sample_grid(
         self, xs: NDArray[np.float64], ys: NDArray[np.float64], spacing: float
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]: ...
+
+
+@dataclass(frozen=True, eq=False)
+class TileStats:
+    """What the selection needs of N tiles of one level (zero where a tile does not exist)."""
+
+    exists: NDArray[np.bool_]
+    min_h: NDArray[np.floating]
+    max_h: NDArray[np.floating]
+    #: (len(grids), N) metres of geometric error of each grid.
+    error: NDArray[np.floating]
+
+    def take(self, m: NDArray[np.bool_]) -> TileStats:
+        return TileStats(self.exists[m], self.min_h[m], self.max_h[m], self.error[:, m])
 
 
 @dataclass(frozen=True, eq=False)
