@@ -162,7 +162,7 @@ class CityModel:
         order = np.argsort(dist, kind="stable")
         leaves, dist = leaves[order], dist[order]
         if options.lod:
-            px = self.leaf_size[leaves] * camera.scale / np.maximum(dist, 1e-3)
+            px = camera.screen_size(self.leaf_size[leaves], dist)
             lod = np.where(px >= options.full_px, 0, np.where(px >= options.min_px, 1, 2))
         else:
             lod = np.zeros(len(leaves), dtype=np.int64)

@@ -18,7 +18,10 @@ from numpy.typing import ArrayLike, NDArray
 from lodscape.errors import CameraError
 from lodscape.geo.frames import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
-__all__ = ["Camera"]
+__all__ = ["MIN_DISTANCE", "Camera"]
+
+#: Metres: the closest distance a screen-space formula sees (below it, a point is on the eye).
+MIN_DISTANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -123,12 +126,19 @@ class Camera:
 
     # --- screen-space formulas ----------------------------------------------------------
 
+    def pixels_per_metre(self, distance: ArrayLike) -> NDArray[np.float64]:
+        """d/dist: pixels a metre covers at ``distance``, the one place a distance is clamped
+        (to the near plane, and never under a millimetre: nothing is seen closer)."""
+        floor = max(self.near or 0.0, MIN_DISTANCE)
+        return self.scale / np.maximum(np.asarray(distance, np.float64), floor)
+
     def screen_size(self, size: ArrayLike, distance: ArrayLike) -> NDArray[np.float64]:
         """Paper 000's H = h·d/dist: pixels covered by ``size`` metres at ``distance``."""
-        return np.asarray(size, np.float64) * self.scale / np.maximum(distance, 1e-9)
+        return np.asarray(size, np.float64) * self.pixels_per_metre(distance)
 
     def screen_error(self, error: ArrayLike, distance: ArrayLike) -> NDArray[np.float64]:
-        """Screen-space error in pixels of a geometric error (metres) seen at ``distance``."""
+        """Screen-space error in pixels of a geometric error (metres) seen at ``distance``: the
+        quadtree, the globe and the city all refine by this one formula."""
         return self.screen_size(error, distance)
 
     # --- clip space --------------------------------------------------------------------

@@ -136,9 +136,9 @@ class _Caps:
         return out
 
     def sse(self, eye: F64, camera: Camera) -> F64:
-        dist = np.linalg.norm(self.centre - eye, axis=1) - self.radius
-        out: F64 = self.error * camera.scale / np.maximum(dist, camera.near or 1.0)
-        return out
+        return camera.screen_error(
+            self.error, np.linalg.norm(self.centre - eye, axis=1) - self.radius
+        )
 
 
 def _caps(v: F64, relief: F64 | None = None) -> _Caps:
@@ -390,8 +390,8 @@ def naive_by_error(camera: Camera, *, max_sse: float = 2.0, max_level: int = 20)
         rel = m - eye
         if np.any(planes[:, :3] @ rel + planes[:, 3] < -radius):
             return
-        dist = max(float(np.linalg.norm(rel)) - radius, camera.near or 1.0)
-        if sag * camera.scale / dist > max_sse and level < max_level:
+        dist = float(np.linalg.norm(rel)) - radius
+        if float(camera.screen_error(sag, dist)) > max_sse and level < max_level:
             kids = split(v[None])[0]
             for d in range(4):
                 visit(level + 1, fid * 4 + d, kids[d])

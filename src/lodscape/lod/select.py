@@ -116,6 +116,9 @@ class TreeLike(Protocol):
     @property
     def texture_zmax(self) -> int | None: ...
 
+    @property
+    def height_range(self) -> tuple[float, float]: ...
+
     def level(self, z: int) -> LevelLike: ...
 
     def roots(self) -> tuple[I64, I64]: ...
@@ -314,7 +317,7 @@ class _Metrics:
 
 def _metrics(camera: Camera, z: int, x: I64, y: I64, st: TileStats) -> _Metrics:
     box = tile_boxes(camera, z, x, y, st.min_h, st.max_h)
-    scale = camera.scale / np.maximum(box.dist_near, camera.near or 0.0)
+    scale = camera.pixels_per_metre(box.dist_near)
     return _Metrics(box, np.asarray(st.error, dtype=np.float32), scale)
 
 
