@@ -123,8 +123,8 @@ def landcover_memory(frames: int, w: int, h: int) -> None:
                 t = time.perf_counter()
                 scene.render(cam)
                 times.append((time.perf_counter() - t) * 1e3)
-            assert scene._renderer is not None
-            tex = [v for k, v in scene._renderer.resident().items() if is_texture(k)]
+            assert scene.renderer is not None
+            tex = [v for k, v in scene.renderer.resident().items() if is_texture(k)]
             extra = ground_layers().nbytes * 4 // 3 if ground == "landcover" else 0
             print(
                 f"  {ground:9s}: {len(tex)} tile textures, {sum(tex) / 2**20:6.2f} MiB "

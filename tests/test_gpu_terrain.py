@@ -109,14 +109,14 @@ def test_gpu_mode_draws_the_cpu_terrain_without_cracks(dem: str) -> None:
                 pictures[mode, name] = (rgb, depth)
             if mode == "gpu":
                 # the crack test is not vacuous here either: without skirts, gaps show
-                from lodscape.scene import draw_items
+                from lodscape.lod.view import draw_items
 
                 cam = scene.prepare(_views(scene)["low"])
                 scene.render(cam)
-                assert scene._previous is not None
-                assert scene._renderer is not None
-                items = [replace(i, skirt=0.0) for i in draw_items(scene._previous)]
-                rgb, _ = scene._renderer.draw(cam, items, background=MAGENTA)
+                assert scene.view.previous is not None
+                assert scene.renderer is not None
+                items = [replace(i, skirt=0.0) for i in draw_items(scene.view.previous)]
+                rgb, _ = scene.renderer.draw(cam, items, background=MAGENTA)
                 assert _cracks(rgb) > 0
     # the same terrain: distances within a fraction of a percent, colours within a few levels
     for name in ("down", "oblique", "low", "steep-near"):

@@ -145,7 +145,7 @@ def test_landcover_ground_renders_and_holds_less_than_imagery(cover, mode: str) 
             rgb, depth = scene.render(CAM)
             assert scene.last is not None
             assert np.isfinite(depth).mean() > 0.5
-            renderer = scene._renderer
+            renderer = scene.renderer
             assert renderer is not None
             textures = {k: v for k, v in renderer.resident().items() if is_texture(k)}
             texture_bytes[ground] = sum(textures.values()) / len(textures)

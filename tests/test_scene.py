@@ -65,13 +65,13 @@ def test_no_cracks_across_levels(scene: lodscape.Scene) -> None:
 
 def test_cracks_would_show_without_skirts(scene: lodscape.Scene) -> None:
     """The crack detector is not vacuous: with skirts forced to zero, gaps appear."""
-    from lodscape.scene import draw_items
+    from lodscape.lod.view import draw_items
 
     cam = scene.prepare(_views(scene)["low"])
     scene.render(cam)
-    sel = scene._previous
+    sel = scene.view.previous
     assert sel is not None
-    renderer = scene._renderer
+    renderer = scene.renderer
     assert renderer is not None
     items = [replace(item, skirt=0.0) for item in draw_items(sel)]
     rgb, _ = renderer.draw(cam, items, background=MAGENTA)
@@ -146,12 +146,12 @@ def test_no_gl_object_leaks_over_1000_renders(dem: str) -> None:
             height=48,
         )
         s.render(cam)
-        renderer = s._renderer
+        renderer = s.renderer
         assert renderer is not None
         counts.append(renderer.live_objects())
         assert renderer.ctx.error == "GL_NO_ERROR"
     # bounded by the budget: what a lap holds, the next lap holds too
     assert max(counts[750:]) <= max(counts[:500]) + 8
-    renderer = s._renderer
+    renderer = s.renderer
     s.close()
     assert renderer.live_objects() == 0

@@ -255,10 +255,9 @@ def fly(
     whole or not at all). Returns the per-frame statistics."""
     from lodscape.stream import SimClock
 
-    streamer = scene.streamer
-    if streamer is None or not isinstance(streamer.clock, SimClock):
+    clock = scene.clock
+    if not scene.streaming or not isinstance(clock, SimClock):
         raise ValueError("fly needs a Scene streaming on a SimClock (Scene(..., clock=SimClock()))")
-    clock = streamer.clock
     budget = 1000.0 / fps
     rows: list[dict[str, float]] = []
     with _Video(video, fps) as out:

@@ -12,33 +12,25 @@ from __future__ import annotations
 
 import math
 import time
-from collections import OrderedDict
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from os import PathLike
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import CameraError, SourceError
-from lodscape.geo.frames import WGS84_A, ecef_to_geodetic
-from lodscape.geo.keys import is_texture, mesh_key, texture_key, tile_id_of_array, tile_of
-from lodscape.geo.tiles import (
-    lonlat_to_merc,
-    merc_to_lonlat,
-    tile_from_id_array,
-    tile_id_array,
-)
+from lodscape.geo.tiles import lonlat_to_merc
 from lodscape.lod.camera import Camera
-from lodscape.lod.cull import backfacing
-from lodscape.lod.select import Selection, SelectOptions, select, tile_boxes
-from lodscape.render import DrawItem, Renderer
+from lodscape.lod.select import Selection, SelectOptions, select
+from lodscape.lod.view import TerrainView
+from lodscape.render import Renderer
 from lodscape.render.tess_pass import TessellationUnavailable
 from lodscape.store.provider import FractalProvider, Provider, RasterProvider
 from lodscape.store.tileset import TilesetProvider, is_tileset
 from lodscape.stream import RealClock, Streamer, StreamOptions
+from lodscape.stream.loader import Loader
 from lodscape.stream.streamer import Clock
 from lodscape.terrain.detail import (
     DetailHeights,
@@ -48,15 +40,12 @@ from lodscape.terrain.detail import (
     ProceduralTree,
     parse_procedural,
 )
-from lodscape.terrain.mesh import TileMesh
 from lodscape.terrain.pyramid import TileTree, build_tree
 from lodscape.terrain.source import ArraySource, HeightSource, RasterSource
 
 __all__ = ["FrameStats", "Scene", "SceneOptions", "open"]
 
 SKY = (0.62, 0.75, 0.88)
-#: Seconds (on the scene's clock) between predictions of where the camera is going.
-_PREDICT_EVERY = 0.15
 
 
 @dataclass(frozen=True)
@@ -143,7 +132,8 @@ class FrameStats:
 
 class Scene:
     """A terrain ready to render from any camera: a provider (a raster meshed on the fly, or a
-    prebuilt tileset) and the GPU resources of its tiles."""
+    prebuilt tileset), the view that plans its frames, and the loader and renderer that carry
+    them out. One frame path for one-shot renders (a blocking loader) and streaming."""
 
     def __init__(
         self,
@@ -154,15 +144,20 @@ class Scene:
         owns: bool = False,
         clock: Clock | None = None,
     ) -> None:
-        # a height source has ``sample``; anything else is already a provider
+        # a height source samples heights; anything else is already a provider
         if hasattr(source, "sample"):
             self.provider: Provider = RasterProvider(source, tree)  # type: ignore[arg-type]
         else:
             self.provider = source  # type: ignore[assignment]
         self._owns = owns
-        self.options = options or SceneOptions()
+        self._options = options or SceneOptions()
         self.tree = self.provider.tree
+        self.view = TerrainView(
+            self.tree, self._options.select, cull_backfacing=self._options.cull_backfacing
+        )
+        self.clock: Clock = clock or RealClock()
         self._renderer: Renderer | None = None
+        self._loader: Loader | None = None
         #: A context to draw in (a viewer's window) instead of a headless one of its own.
         self._ctx: Any = None
         #: Why frames are drawn in the CPU terrain mode though the options asked for "gpu".
@@ -170,18 +165,28 @@ class Scene:
         self.city: Any = None
         self.city_options: Any = None
         self._city_pass: Any = None
-        self._previous: Selection | None = None
-        self._used: OrderedDict[int, None] = OrderedDict()
-        self._pool = ThreadPoolExecutor(max(1, self.options.workers), "lodscape-load")
         self.last: FrameStats | None = None
-        self.streamer: Streamer | None = None
-        if self.options.stream is not None:
-            self.streamer = Streamer(
-                self.provider, self.options.stream, clock or RealClock(), prepare=self._heights
-            )
-        self._motion: tuple[float, NDArray[np.float64]] | None = None
-        self._predicted_at = -math.inf
-        self._predicted: Future[list[tuple[Literal["memory", "cache"], list[int]]]] | None = None
+
+    @property
+    def options(self) -> SceneOptions:
+        return self._options
+
+    @options.setter
+    def options(self, options: SceneOptions) -> None:
+        """New options from the next frame on (the viewer's culling key); the selection's and
+        the loader's stay those the scene was made with."""
+        self._options = options
+        self.view.cull_backfacing = options.cull_backfacing
+
+    @property
+    def streaming(self) -> bool:
+        """Whether frames stream (never waiting but for the roots) rather than load everything."""
+        return self._options.stream is not None
+
+    @property
+    def streamer(self) -> Streamer | None:
+        """The loader's cache and memory stages (None before the first frame)."""
+        return None if self._loader is None else self._loader.streamer
 
     # --- geometry helpers ----------------------------------------------------------------
 
@@ -196,189 +201,51 @@ class Scene:
 
     def overview_camera(self, width: int = 1280, height: int = 720, fov_y: float = 60.0) -> Camera:
         """A camera south of the data looking north at its centre, seeing all of it."""
-        b = self.source.bounds_merc
-        (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
-        lon, lat = (w + e) / 2.0, (s + n) / 2.0
-        lo, hi = self.tree.height_range
-        extent = max(b.right - b.left, b.top - b.bottom) * math.cos(math.radians(lat))
-        back = 0.75 * extent
-        cam_lat = lat - math.degrees(back / WGS84_A)
-        alt = hi + 0.55 * extent
-        return Camera.looking_at(
-            lon, cam_lat, alt, (lon, lat, (lo + hi) / 2.0), fov_y=fov_y, width=width, height=height
-        )
+        return self.view.overview(self.provider.bounds_merc, width, height, fov_y)
 
     def prepare(self, camera: Camera) -> Camera:
         """The camera with clip distances fitted to the terrain; refuses one under the ground."""
-        ground = self.ground_height(camera.lon, camera.lat)
-        lo, hi = self.tree.height_range
-        if ground is not None and camera.alt <= ground:
-            raise CameraError(
-                f"camera is under the ground: alt {camera.alt:.1f} m but the terrain at "
-                f"{camera.lon:.5f}, {camera.lat:.5f} is {ground:.1f} m"
-            )
-        clearance = camera.alt - (ground if ground is not None else hi)
-        near = camera.near or min(max(0.1 * clearance, 0.5), 1e5)
-        if camera.far is not None:
-            return camera.with_clip(near, camera.far)
-        x, y = self.tree.roots()
-        st = self.tree.level(self.tree.zmin).stats(x, y)
-        probe = camera.with_clip(1.0, 2.0)
-        boxes = tile_boxes(probe, self.tree.zmin, x, y, st.min_h, st.max_h)
-        # everything in the data lies within its root boxes; the horizon bounds it on a planet
-        horizon = math.sqrt(max(camera.alt - lo, 1.0) * 2.0 * WGS84_A) + math.sqrt(
-            max(hi - lo, 1.0) * 2.0 * WGS84_A
-        )
-        far = max(min(float(boxes.dist_far.max()), horizon), near * 10.0) * 1.01
-        return camera.with_clip(near, far)
+        return self.view.fit(camera, self.ground_height(camera.lon, camera.lat))
 
     # --- frames ----------------------------------------------------------------------------
 
     def select(self, camera: Camera) -> Selection:
         """This frame's selection as if everything were resident (no loading, no drawing)."""
-        return select(self.options.select, self.prepare(camera), self.tree, previous=self._previous)
+        return select(self._options.select, self.prepare(camera), self.tree, self.view.previous)
 
     def render(self, camera: Camera) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """RGB (H, W, 3) uint8 and depth (H, W) float32 metres along the view axis (inf: sky)."""
         cam = self.prepare(camera)
         renderer = self._renderer_for(cam)
-        if self.streamer is not None:
-            return self._render_streaming(cam, renderer, self.streamer)
+        loader = self._loader_for(renderer)
+        blocking = not self.streaming
         t0 = time.perf_counter()
-        resident = np.array(sorted(renderer.resident()), dtype=np.uint64)
-        sel = select(self.options.select, cam, self.tree, self._previous, resident)
-        t1 = time.perf_counter()
-        loaded = 0
-        if sel.loads.size:
-            loaded = self._load(renderer, sel.loads)
-            resident = np.array(sorted(renderer.resident()), dtype=np.uint64)
-            sel = select(self.options.select, cam, self.tree, self._previous, resident)
+        plan = self.view.update(cam, loader.resident(), blocking=blocking)
+        report = loader.serve(plan, blocking=blocking)
         t2 = time.perf_counter()
-        items, culled, culled_tris = self._facing(
-            renderer, cam, draw_items(sel, self.options.select.max_sse)
+        items, culled, culled_tris = self.view.facing(
+            plan, loader.gpu.meshes, whole_tiles=renderer.terrain_mode == "gpu"
         )
         rgb, depth = renderer.draw(
-            cam, items, background=self.options.background, after=self._city_passes(renderer)
+            cam, items, background=self._options.background, after=self._city_passes(renderer)
         )
         t3 = time.perf_counter()
-        self._previous = sel
-        self._evict(renderer, sel)
-        res_mb = sum(renderer.resident().values()) / 2**20
+        loader.finish(plan)
+        stream: dict[str, float] = {}
+        if not blocking:
+            stream = {
+                **loader.stream_stats(),
+                "stall_ms": round(report.stall_ms, 2),
+                "frame_cpu_ms": round((t2 - t0) * 1e3, 2),
+            }
         self.last = FrameStats(
-            sel.stats(),
+            plan.selection.stats(),
             renderer.last_stats.draw_calls,
             renderer.last_stats.triangles,
-            loaded,
-            res_mb,
-            (t1 - t0) * 1e3,
-            (t2 - t1) * 1e3,
-            (t3 - t2) * 1e3,
-            backfacing=culled,
-            backfacing_triangles=culled_tris,
-            city=self._city_stats(),
-            submit_ms=renderer.last_stats.submit_ms,
-            terrain_mode=renderer.terrain_mode,
-        )
-        return rgb, depth
-
-    def _facing(
-        self, renderer: Renderer, cam: Camera, items: list[DrawItem]
-    ) -> tuple[list[DrawItem], int, int]:
-        """The draw list less the patches facing away from the camera (paper 003): a tile
-        with none left is dropped, one with some left draws the runs of its other patches (and
-        its skirts). Returns the list, the patches dropped and the triangles they held."""
-        if not self.options.cull_backfacing or not items:
-            return items, 0, 0
-        keys = [it.key for it in items]
-        cones, centres, owner = renderer.cones(keys)
-        away = backfacing(cones, centres, cam.position)
-        if not away.any():
-            return items, 0, 0
-        counts = np.bincount(owner, minlength=len(items))
-        gone = np.bincount(owner, weights=away, minlength=len(items)).astype(np.int64)
-        kept: list[DrawItem] = []
-        saved = 0
-        start = 0
-        for i, item in enumerate(items):
-            n = int(counts[i])
-            if gone[i] == 0 or (gone[i] < n and renderer.terrain_mode == "gpu"):
-                # the GPU mode draws a tile whole: it is kept unless all of it faces away
-                kept.append(item)
-            else:
-                total = renderer.triangles([item.key])
-                if gone[i] == n:
-                    saved += total
-                else:
-                    per = (total - _skirt_triangles(total, n)) // n
-                    runs = _runs(~away[start : start + n], per, total)
-                    saved += total - sum(c for _, c in runs)
-                    kept.append(replace(item, runs=runs))
-            start += n
-        return kept, int(away.sum()), saved
-
-    def _render_streaming(
-        self, cam: Camera, renderer: Renderer, streamer: Streamer
-    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
-        """One frame that never waits on the pipeline, except for tiles with nothing resident
-        above them (the roots, at the start): those are taken at once and counted as a stall."""
-        opts = self.options
-        before = streamer.stats.snapshot()
-        t0 = time.perf_counter()
-        sel = select(opts.select, cam, self.tree, self._previous, _keys(renderer))
-        on_gpu = renderer.has
-        stall = 0.0
-        unresolved = [k for k in _drawn_keys(sel) if not on_gpu(k)]
-        taken = 0
-        if unresolved:
-            # the roots above them come at once, and the rest streams in while they stand in
-            ts = time.perf_counter()
-            for keys in (_roots(unresolved, self.tree.zmin), None):
-                if keys is None:
-                    keys = [k for k in _drawn_keys(sel) if not on_gpu(k)]
-                for key in keys:
-                    if not on_gpu(key):
-                        _upload(renderer, key, streamer.take(key))
-                        taken += 1
-                sel = select(opts.select, cam, self.tree, self._previous, _keys(renderer))
-            stall = (time.perf_counter() - ts) * 1e3
-        t1 = time.perf_counter()
-        streamer.request((int(k) for k in sel.loads), "memory", on_gpu)
-        self._prefetch(cam, streamer, on_gpu)
-        streamer.collect()
-        wanted = [int(k) for k in sel.loads]
-        budget = streamer.options.upload_ms
-        uploaded = streamer.upload(renderer, [*wanted, *list(streamer.memory)], budget)
-        if uploaded:
-            sel = select(opts.select, cam, self.tree, self._previous, _keys(renderer))
-        t2 = time.perf_counter()
-        items, culled, culled_tris = self._facing(
-            renderer, cam, draw_items(sel, self.options.select.max_sse)
-        )
-        rgb, depth = renderer.draw(
-            cam, items, background=opts.background, after=self._city_passes(renderer)
-        )
-        t3 = time.perf_counter()
-        self._previous = sel
-        self._evict(renderer, sel)
-        gpu = sum(renderer.resident().values())
-        stages = streamer.resident()
-        stream = {
-            **streamer.stats.since(before),
-            "stall_ms": round(stall, 2),
-            "frame_cpu_ms": round((t2 - t0) * 1e3, 2),
-            "gpu_bytes": gpu,
-            "memory_bytes": stages["memory"],
-            "cache_bytes": stages["cache"],
-            "in_flight": streamer.in_flight(),
-        }
-        self.last = FrameStats(
-            sel.stats(),
-            renderer.last_stats.draw_calls,
-            renderer.last_stats.triangles,
-            uploaded + taken,
-            gpu / 2**20,
-            (t1 - t0) * 1e3,
-            (t2 - t1) * 1e3,
+            report.loaded,
+            loader.gpu.nbytes / 2**20,
+            plan.select_ms,
+            report.load_ms,
             (t3 - t2) * 1e3,
             stream,
             culled,
@@ -389,54 +256,33 @@ class Scene:
         )
         return rgb, depth
 
-    def _prefetch(self, cam: Camera, streamer: Streamer, on_gpu: Callable[[int], bool]) -> None:
-        """The memory and cache radii: what the camera will want ``ahead`` seconds on along its
-        velocity. The predicted selections run on a worker (a few milliseconds each), and their
-        keys are asked for once they are ready; what they ask for then may be a frame stale."""
-        pending = self._predicted
-        if pending is not None and pending.done():
-            self._predicted = None
-            for stage, keys in pending.result():
-                streamer.request(keys, stage, on_gpu)
-        now = streamer.clock.now()
-        pos = cam.position
-        last, self._motion = self._motion, (now, pos)
-        ahead = streamer.options.ahead
-        if last is None or not ahead or self._predicted is not None or now <= last[0]:
-            return
-        # a few times a second is enough: the radii move little in a tenth of a second
-        if now - self._predicted_at < _PREDICT_EVERY:
-            return
-        self._predicted_at = now
-        velocity = (pos - last[1]) / (now - last[0])
-        self._predicted = self._pool.submit(self._predict, cam, pos, velocity, ahead)
+    def _loader_for(self, renderer: Renderer) -> Loader:
+        if self._loader is None:
+            opts = self._options
+            # one-shot renders keep a modest cache of fetched bytes and predict nothing
+            stream = opts.stream or StreamOptions(workers=opts.workers, cache_mb=64.0, ahead=())
+            self._loader = Loader(
+                self.provider,
+                renderer,
+                stream,
+                self.clock,
+                gpu_budget_bytes=opts.gpu_budget_mb * 2**20,
+                predict=self._predict,
+            )
+        return self._loader
 
-    def _predict(
-        self,
-        cam: Camera,
-        pos: NDArray[np.float64],
-        velocity: NDArray[np.float64],
-        ahead: tuple[float, ...],
-    ) -> list[tuple[Literal["memory", "cache"], list[int]]]:
-        out: list[tuple[Literal["memory", "cache"], list[int]]] = []
-        for i, seconds in enumerate(ahead):
-            lon, lat, alt = ecef_to_geodetic(pos + velocity * seconds)
-            try:
-                future = self.prepare(cam.moved(lon=float(lon), lat=float(lat), alt=float(alt)))
-            except CameraError:
-                continue  # the path would go under the ground: nothing to fetch for it
-            sel = select(self.options.select, future, self.tree)
-            keys = [int(k) for k in np.concatenate([sel.texture_keys, sel.keys])]
-            out.append(("memory" if i == 0 else "cache", keys))
-        return out
+    def _predict(self, camera: Camera) -> list[int] | None:
+        """On a worker: the keys a camera the flight is heading for would draw."""
+        try:
+            return self.view.predict(self.prepare(camera))
+        except CameraError:
+            return None
 
     def frames(
         self, cameras: Iterator[Camera]
     ) -> Iterator[tuple[NDArray[np.uint8], NDArray[np.float32]]]:
         for cam in cameras:
             yield self.render(cam)
-
-    # --- resources --------------------------------------------------------------------------
 
     # --- the city (paper 001) ---------------------------------------------------------------
 
@@ -571,58 +417,15 @@ class Scene:
             return self._renderer.terrain_mode
         return self.options.terrain_mode
 
-    def _prepare(self, key: int) -> TileMesh | NDArray[np.uint8]:
-        p = self.provider
-        return p.texture(key) if is_texture(key) else self._heights(key, p.mesh(key))
-
-    def _heights(self, key: int, made: Any) -> Any:
-        """On a worker: in the GPU terrain mode, a mesh's height texture made beside it, so the
-        GL thread only uploads."""
-        if self.terrain_mode != "gpu" or not isinstance(made, TileMesh):
-            return made
-        if made.height_tile is not None:
-            return made
-        from lodscape.terrain.heightmap import height_tile
-
-        t = tile_of(key)
-        return replace(made, height_tile=height_tile(made, t.z, t.x, t.y))
-
-    def _load(self, renderer: Renderer, keys: NDArray[np.uint64]) -> int:
-        # workers read, mesh and shade; this thread, which owns the GL context, uploads
-        todo = [int(k) for k in keys]
-        for key, made in zip(todo, self._pool.map(self._prepare, todo), strict=True):
-            if isinstance(made, TileMesh):
-                renderer.upload(made)
-            else:
-                renderer.upload_texture(key, made)
-        return len(todo)
-
-    def _evict(self, renderer: Renderer, sel: Selection) -> None:
-        drawn = _drawn_keys(sel)
-        for k in drawn:
-            self._used[k] = None
-            self._used.move_to_end(k)
-        budget = self.options.gpu_budget_mb * 2**20
-        sizes = renderer.resident()
-        total = sum(sizes.values())
-        for key in list(self._used):
-            if total <= budget:
-                break
-            if key in drawn:
-                continue
-            total -= sizes.get(key, 0)
-            renderer.release(key)
-            del self._used[key]
-
     def release_provider(self) -> None:
         """Stop owning the provider: closing the scene then leaves it open (for a caller that
         wraps it in another scene)."""
         self._owns = False
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True)
-        if self.streamer is not None:
-            self.streamer.close()
+        if self._loader is not None:
+            self._loader.close()
+            self._loader = None
         if self._renderer is not None:
             if self._city_pass is not None:
                 self._renderer._use()
@@ -639,70 +442,6 @@ class Scene:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _keys(renderer: Renderer) -> NDArray[np.uint64]:
-    return np.array(sorted(renderer.resident()), dtype=np.uint64)
-
-
-def _roots(keys: list[int], zmin: int) -> list[int]:
-    """The mesh (coarsest grid) and texture keys of the root tiles above ``keys``."""
-    ids = tile_id_of_array(keys)
-    z, x, y = tile_from_id_array(ids)
-    up = z - zmin
-    rid = np.unique(tile_id_array(np.full(z.size, zmin), x >> up, y >> up))
-    return [mesh_key(int(r), 0) for r in rid] + [texture_key(int(r)) for r in rid]
-
-
-def _drawn_keys(sel: Selection) -> set[int]:
-    """The meshes and textures a selection draws."""
-    return {int(k) for k in sel.keys} | {int(k) for k in sel.texture_keys}
-
-
-def _upload(renderer: Renderer, key: int, made: TileMesh | NDArray[np.uint8]) -> None:
-    if isinstance(made, TileMesh):
-        renderer.upload(made)
-    else:
-        renderer.upload_texture(key, made)
-
-
-def _skirt_triangles(total: int, patches: int) -> int:
-    """Skirt triangles of a grid mesh of ``total`` triangles in ``patches`` patches: 8·S for S
-    segments, where total = 2·S² + 8·S."""
-    if patches <= 1:
-        # a TIN's patch is its whole surface; a small grid is one patch: skirts go with it
-        return 0
-    s = int((-8 + (64 + 8 * total) ** 0.5) / 4 + 0.5)
-    return 8 * s
-
-
-def _runs(keep: NDArray[np.bool_], per: int, total: int) -> tuple[tuple[int, int], ...]:
-    """Contiguous (first, count) runs of triangles of the kept patches (``per`` triangles
-    each), then the skirts that follow the last patch."""
-    edges = np.diff(np.concatenate([[0], keep.astype(np.int8), [0]]))
-    starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
-    out = [(int(a) * per, int(b - a) * per) for a, b in zip(starts, ends, strict=True)]
-    n = keep.size
-    if total > n * per:
-        out.append((n * per, total - n * per))
-    return tuple(out)
-
-
-def draw_items(sel: Selection, max_sse: float = 2.0) -> list[DrawItem]:
-    """The renderer's draw list for a selection: each tile's mesh, its texture and the window of
-    that texture it covers (a half per level up), its skirt, and the screen-space error the GPU
-    terrain mode's tessellation may add to the tile's own (``max_sse`` less it, at least a
-    tenth of ``max_sse``)."""
-    up = sel.texture_up
-    scale = np.exp2(-up.astype(np.float64))
-    u = (sel.x & ((1 << up) - 1)) * scale
-    v = (sel.y & ((1 << up) - 1)) * scale
-    budget = np.maximum(max_sse - sel.sse, 0.1 * max_sse)
-    cols = zip(sel.keys, sel.texture_keys, sel.skirt, u, v, scale, budget, strict=True)
-    return [
-        DrawItem(int(k), int(t), float(sk), (float(a), float(b), float(c)), sse_budget=float(e))
-        for k, t, sk, a, b, c, e in cols
-    ]
 
 
 def open(

@@ -14,19 +14,19 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import TracebackType
-from typing import Protocol, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.cones import CONE_SIZE
 from lodscape.geo.frames import enu_basis
-from lodscape.geo.keys import tile_id_of_array, tile_of
+from lodscape.geo.keys import is_texture, tile_id_of_array, tile_of
 from lodscape.geo.tiles import bounds_array, tile_from_id_array
 from lodscape.lod.camera import Camera
+from lodscape.lod.view import DrawItem
 from lodscape.render._context import create_context, is_software, make_current
 from lodscape.render.tess_pass import TessTerrain
 from lodscape.terrain.heightmap import height_tile
@@ -150,23 +150,6 @@ _VERTEX_FORMAT = ("3f 2f 1f", "in_pos", "in_uv", "in_skirt")
 _MAX_ANISOTROPY = 16.0
 _ALL = (True, True, True, True)
 _NONE = (False, False, False, False)
-
-
-@dataclass(frozen=True)
-class DrawItem:
-    """One tile in a frame: an uploaded mesh, the uploaded texture it wears, and how far its
-    skirts hang this frame."""
-
-    key: int
-    texture: int
-    #: Metres to lower skirt vertices (0 hides them inside the tile's edge).
-    skirt: float = 0.0
-    #: The window of the texture the tile covers: offset u, offset v, scale (1: all of it).
-    uv: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    #: Runs of triangles to draw, (first, count); None: the whole mesh.
-    runs: tuple[tuple[int, int], ...] | None = None
-    #: Screen-space error (pixels) the GPU terrain mode's tessellation may add to this tile's.
-    sse_budget: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -322,6 +305,31 @@ class Renderer:
 
     # --- resources --------------------------------------------------------------------------
 
+    def prepare(self, key: int, made: TileMesh | NDArray[np.uint8]) -> Any:
+        """On a worker (``stream.gpu.GpuResources``): in the GPU terrain mode, a mesh's height
+        texture made beside it, so the GL thread only uploads. Touches no GL state."""
+        if self._tess is None or not isinstance(made, TileMesh) or made.height_tile is not None:
+            return made
+        t = tile_of(key)
+        return replace(made, height_tile=height_tile(made, t.z, t.x, t.y))
+
+    def upload_resource(self, key: int, made: TileMesh | NDArray[np.uint8]) -> int:
+        """On the GL thread (``stream.gpu.GpuResources``): upload a mesh or a texture by its
+        key; returns the GPU bytes it holds."""
+        if is_texture(key):
+            self.upload_texture(key, np.asarray(made))
+        elif isinstance(made, TileMesh):
+            self.upload(made)
+        else:
+            raise TypeError(f"mesh key {key} came with {type(made).__name__}, not a TileMesh")
+        return self._nbytes(key)
+
+    def _nbytes(self, key: int) -> int:
+        if key in self._textures:
+            return self._textures[key][1]
+        tile: _Tile | _GpuTile | None = self._tiles.get(key) or self._gpu_tiles.get(key)
+        return 0 if tile is None else tile.nbytes
+
     def upload(self, mesh: TileMesh) -> None:
         """Make ``mesh`` drawable under its key; uploading a key again is a no-op."""
         self._use()
@@ -445,26 +453,6 @@ class Renderer:
     def has(self, key: int) -> bool:
         """Whether mesh or texture ``key`` is uploaded."""
         return key in self._tiles or key in self._textures or key in self._gpu_tiles
-
-    def cones(
-        self, keys: Sequence[int]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
-        """Every patch of meshes ``keys``: its normal cone ((M, 10), NaN rows where it has none),
-        its mesh's centre ((M, 3) ECEF) and the position in ``keys`` of its mesh ((M,))."""
-        cones, centres, owner = [], [], []
-        for i, key in enumerate(keys):
-            tile: _Tile | _GpuTile | None = self._tiles.get(key) or self._gpu_tiles.get(key)
-            if tile is None or tile.cone is None:
-                cones.append(np.full((1, CONE_SIZE), np.nan))
-                centres.append(np.zeros((1, 3)))
-                owner.append(np.full(1, i))
-                continue
-            cones.append(tile.cone)
-            centres.append(np.broadcast_to(tile.center, (tile.cone.shape[0], 3)))
-            owner.append(np.full(tile.cone.shape[0], i))
-        if not cones:
-            return np.zeros((0, CONE_SIZE)), np.zeros((0, 3)), np.zeros(0, np.int64)
-        return np.concatenate(cones), np.concatenate(centres), np.concatenate(owner)
 
     def triangles(self, keys: Sequence[int]) -> int:
         """Triangles (skirts included) of the uploaded meshes among ``keys``."""

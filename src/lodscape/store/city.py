@@ -28,7 +28,7 @@ import shapely
 from shapely.geometry import Polygon
 
 from lodscape.city.osm import Building, City, Feature
-from lodscape.store.tileset import TilesetError, is_tileset, read_manifest
+from lodscape.store.manifest import TilesetError, is_tileset, read_manifest
 
 __all__ = ["add_city", "list_cities", "read_city", "remove_city"]
 

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lodscape.errors import LodscapeError, SourceError
+from lodscape._lru import ByteLRU
+from lodscape.errors import SourceError
 from lodscape.geo.keys import is_texture, tile_of
 from lodscape.geo.tiles import (
     Bbox,
@@ -41,6 +42,7 @@ from lodscape.geo.tiles import (
     merc_to_lonlat,
     tiles_array,
 )
+from lodscape.store.manifest import TilesetError, is_tileset, read_manifest
 from lodscape.store.quantized_mesh import QuantizedMeshError, decode
 from lodscape.terrain.mesh import TileMesh, tin_mesh
 from lodscape.terrain.pyramid import Level, TileTree
@@ -57,7 +59,6 @@ __all__ = [
 ]
 
 SCHEMA_VERSION = 1
-_MAGIC = b"SQLite format 3\x00"
 #: The grid size a tileset's meshes are cut from (and what Selection counts triangles by).
 TIN_GRID = 64
 
@@ -74,32 +75,6 @@ CREATE TABLE IF NOT EXISTS plan (
     z INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL, done INTEGER NOT NULL DEFAULT 0,
     PRIMARY KEY (z, x, y)) WITHOUT ROWID;
 """
-
-
-class TilesetError(LodscapeError):
-    """A tileset file that cannot be used: not one, another version, incomplete, damaged."""
-
-
-def read_manifest(db: sqlite3.Connection, name: str) -> dict[str, Any]:
-    """The tileset's manifest (its ``lodscape`` metadata); ``TilesetError`` naming ``name`` if
-    the file is not a lodscape tileset."""
-    try:
-        row = db.execute("SELECT value FROM metadata WHERE name = 'lodscape'").fetchone()
-    except sqlite3.Error as exc:
-        raise TilesetError(f"{name}: not a lodscape tileset ({exc})") from None
-    if row is None:
-        raise TilesetError(f"{name}: an SQLite file, but not a lodscape tileset")
-    manifest: dict[str, Any] = json.loads(row[0])
-    return manifest
-
-
-def is_tileset(path: str | os.PathLike[str]) -> bool:
-    """Whether ``path`` is an SQLite file (a tileset, or something to refuse as one)."""
-    try:
-        with open(path, "rb") as f:
-            return f.read(16) == _MAGIC
-    except OSError:
-        return False
 
 
 @dataclass(frozen=True)
@@ -306,8 +281,7 @@ class TilesetProvider:
         self._local = threading.local()
         self._lock = threading.Lock()
         self._connections: list[sqlite3.Connection] = []
-        self._meshes: dict[tuple[int, int, int], _Mesh | None] = {}
-        self._mesh_bytes = 0
+        self._meshes: ByteLRU[tuple[int, int, int], _Mesh | None] = ByteLRU()
         try:
             db = self._db()
             self.manifest = read_manifest(db, self.name)
@@ -460,8 +434,7 @@ class TilesetProvider:
         cache = self._meshes
         with self._lock:
             if key in cache:
-                cache[key] = cache.pop(key)  # most recent last
-                return cache[key]
+                return cache.get(key)
         data = self._terrain(z, x, y)
         made = None
         if data is not None:
@@ -472,11 +445,8 @@ class TilesetProvider:
         size = sum(a.nbytes for a in made) if made is not None else 0
         with self._lock:
             if key not in cache:
-                cache[key] = made
-                self._mesh_bytes += size
-            while self._mesh_bytes > self.DECODED_BYTES and len(cache) > 1:
-                old = cache.pop(next(iter(cache)))
-                self._mesh_bytes -= sum(a.nbytes for a in old) if old is not None else 0
+                cache.put(key, made, size)
+            cache.shrink(self.DECODED_BYTES, keep={key})
         return made
 
     def city(self, names: list[str] | None = None) -> Any:

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections import OrderedDict
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
@@ -13,6 +12,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape._lru import ByteLRU
 from lodscape.errors import LodscapeError
 from lodscape.terrain.mesh import TileMesh
 
@@ -28,14 +28,6 @@ class Source(Protocol):
     def fetch(self, key: int) -> bytes: ...
 
     def decode(self, key: int, data: bytes) -> Made: ...
-
-
-class Uploader(Protocol):
-    """What the streamer hands decoded resources to (the renderer, on the GL thread)."""
-
-    def upload(self, mesh: TileMesh) -> None: ...
-
-    def upload_texture(self, key: int, image: NDArray[np.uint8]) -> None: ...
 
 
 class Clock(Protocol):
@@ -144,10 +136,8 @@ class Streamer:
     prepare: Callable[[int, Made], Made] | None = None
 
     def __post_init__(self) -> None:
-        self.cache: OrderedDict[int, bytes] = OrderedDict()
-        self.memory: OrderedDict[int, Made] = OrderedDict()
-        self.cache_bytes = 0
-        self.memory_bytes = 0
+        self.cache: ByteLRU[int, bytes] = ByteLRU()
+        self.memory: ByteLRU[int, Made] = ByteLRU()
         self.stats = StreamStats()
         self._jobs: dict[int, _Job] = {}
         self._failures: dict[int, _Failure] = {}
@@ -165,16 +155,14 @@ class Streamer:
             if skip(key):
                 continue
             if key in self.memory:
-                self.memory.move_to_end(key)
+                self.memory.touch(key)
                 continue
             job = self._jobs.get(key)
             if job is not None:
                 continue
             cached = self.cache.get(key)
-            if cached is not None:
-                self.cache.move_to_end(key)
-                if stage == "cache":
-                    continue
+            if cached is not None and stage == "cache":
+                continue
             failure = self._failures.get(key)
             if failure is not None and now < failure.retry_at:
                 continue
@@ -250,83 +238,78 @@ class Streamer:
         """Keys whose last attempt failed, with its message."""
         return {k: f.message for k, f in self._failures.items()}
 
-    # --- uploads -----------------------------------------------------------------------------
+    # --- handing over -----------------------------------------------------------------------
 
-    def upload(self, target: Uploader, keys: Iterable[int], budget_ms: float) -> int:
-        """On the GL thread: upload decoded ``keys`` (most urgent first) until ``budget_ms`` is
-        spent; each leaves the memory stage for the GPU. Returns how many went up."""
-        spent = 0.0
-        count = 0
-        for key in keys:
-            made = self.memory.get(key)
-            if made is None:
-                continue
-            if spent >= budget_ms:
-                break
-            t = time.perf_counter()
-            if isinstance(made, TileMesh):
-                target.upload(made)
-            else:
-                target.upload_texture(key, made)
-            spent += (time.perf_counter() - t) * 1e3
-            del self.memory[key]
-            self.memory_bytes -= _nbytes(made)
-            count += 1
-        self.stats.uploaded += count
-        self.stats.upload_ms += spent
-        return count
+    def pop(self, key: int) -> Made | None:
+        """A decoded resource out of the memory stage (to go to the GPU), or None."""
+        return self.memory.pop(key)
 
     def take(self, key: int) -> Made:
         """A resource now, whatever it costs (the frame cannot be drawn without it): from
         memory, from the cache, or fetched on this thread."""
-        made = self.memory.pop(key, None)
-        if made is not None:
-            self.memory_bytes -= _nbytes(made)
-            self.stats.memory_hits += 1
-            return made
-        data = self.cache.get(key)
-        if data is None:
-            try:
-                data = self.source.fetch(key)
-            except LodscapeError as exc:
-                # a frame cannot wait for retries: a source that has a stand-in gives it
-                placeholder = getattr(self.source, "placeholder", None)
-                if placeholder is None:
-                    raise
-                self._fail(key, exc, self.clock.now())
-                return placeholder(key)  # type: ignore[no-any-return]
-            self.stats.fetched += 1
-            self._put_cache(key, data)
-        else:
-            self.stats.cache_hits += 1
-        self.stats.decoded += 1
-        return self._decode(key, data)
+        return self.take_many([key])[0]
+
+    def take_many(self, keys: Sequence[int]) -> list[Made]:
+        """Resources now, fetched and decoded on the workers at once (a frame that must wait
+        waits for the slowest, not the sum): each from memory, the cache, or the source."""
+        out: list[Made | None] = [self.memory.pop(k) for k in keys]
+        self.stats.memory_hits += sum(m is not None for m in out)
+        todo = [i for i, m in enumerate(out) if m is None]
+        cached = [self.cache.get(keys[i]) for i in todo]
+        work = [
+            self._pool.submit(self._take, keys[i], c) for i, c in zip(todo, cached, strict=True)
+        ]
+        for i, c, job in zip(todo, cached, work, strict=True):
+            data, made = job.result()
+            if c is None and data is not None:
+                self.stats.fetched += 1
+                self._put_cache(keys[i], data)
+            elif c is not None:
+                self.stats.cache_hits += 1
+            self.stats.decoded += 1
+            out[i] = made
+        return [m for m in out if m is not None]
+
+    def _take(self, key: int, cached: bytes | None) -> tuple[bytes | None, Made]:
+        """On a worker: what ``take_many`` needs of one key."""
+        if cached is not None:
+            return cached, self._decode(key, cached)
+        try:
+            data = self.source.fetch(key)
+        except LodscapeError as exc:
+            # a frame cannot wait for retries: a source that has a stand-in gives it
+            placeholder = getattr(self.source, "placeholder", None)
+            if placeholder is None:
+                raise
+            self._fail(key, exc, self.clock.now())
+            return None, placeholder(key)  # type: ignore[no-any-return]
+        return data, self._decode(key, data)
 
     # --- budgets -----------------------------------------------------------------------------
 
     def _put_cache(self, key: int, data: bytes) -> None:
-        if key not in self.cache:
-            self.cache_bytes += len(data)
-        self.cache[key] = data
-        self.cache.move_to_end(key)
-        limit = self.options.cache_mb * 2**20
-        while self.cache_bytes > limit and len(self.cache) > 1:
-            _, old = self.cache.popitem(last=False)
-            self.cache_bytes -= len(old)
+        self.cache.put(key, data, len(data))
+        self.cache.shrink(self.options.cache_mb * 2**20, keep={key})
 
     def _put_memory(self, key: int, made: Made) -> None:
-        if key not in self.memory:
-            self.memory_bytes += _nbytes(made)
-        self.memory[key] = made
-        self.memory.move_to_end(key)
-        limit = self.options.memory_mb * 2**20
-        while self.memory_bytes > limit and len(self.memory) > 1:
-            _, old = self.memory.popitem(last=False)
-            self.memory_bytes -= _nbytes(old)
+        self.memory.put(key, made, _nbytes(made))
+        self.memory.shrink(self.options.memory_mb * 2**20, keep={key})
+
+    @property
+    def cache_bytes(self) -> int:
+        return self.cache.nbytes
+
+    @property
+    def memory_bytes(self) -> int:
+        return self.memory.nbytes
 
     def resident(self) -> dict[str, int]:
         """Bytes held now in each of the streamer's stages."""
-        return {"cache": self.cache_bytes, "memory": self.memory_bytes}
+        return {"cache": self.cache.nbytes, "memory": self.memory.nbytes}
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future[Any]:
+        """Run ``fn`` on the workers (the prefetch's predicted selections)."""
+        return self._pool.submit(fn, *args)
 
     def in_flight(self) -> int:
         return len(self._jobs)

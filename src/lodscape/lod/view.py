@@ -1,0 +1,280 @@
+"""The terrain's view of one frame, with no IO, no GL and no threads (cesium-native's
+``Tileset::updateView`` and its ``ViewUpdateResult``).
+
+``TerrainView.update(camera, resident)`` selects once and returns a ``FramePlan``: the render
+list, what the frame cannot be drawn without (``required``), what it would like loaded
+(``loads``, most urgent first) and the keys the draw list uses (which the GPU stage must not
+evict). Two policies share it:
+
+- **blocking** (one-shot renders): every wanted tile is drawn as wanted, and all of its resources
+  are required;
+- **streaming**: only what is resident is drawn; a wanted tile that is not stands in as its
+  nearest resident ancestor. The roots are always taken as drawable, so no tile is ever left
+  without a stand-in, and a root that is drawn but not resident is required (the one stall, at
+  the start).
+
+Back-facing patches (paper 003) are dropped by ``facing`` once the drawn meshes' normal cones are
+known, that is once they are resident.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.errors import CameraError
+from lodscape.geo.frames import WGS84_A
+from lodscape.geo.keys import mesh_keys_zxy, texture_keys_zxy
+from lodscape.geo.tiles import Bbox, merc_to_lonlat
+from lodscape.lod.camera import Camera
+from lodscape.lod.cull import backfacing
+from lodscape.lod.select import Selection, SelectOptions, TreeLike, select, tile_boxes
+
+__all__ = ["DrawItem", "FramePlan", "MeshInfo", "TerrainView", "draw_items"]
+
+U64 = NDArray[np.uint64]
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class DrawItem:
+    """One tile in a frame: an uploaded mesh, the uploaded texture it wears, and how far its
+    skirts hang this frame."""
+
+    key: int
+    texture: int
+    #: Metres to lower skirt vertices (0 hides them inside the tile's edge).
+    skirt: float = 0.0
+    #: The window of the texture the tile covers: offset u, offset v, scale (1: all of it).
+    uv: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    #: Runs of triangles to draw, (first, count); None: the whole mesh.
+    runs: tuple[tuple[int, int], ...] | None = None
+    #: Screen-space error (pixels) the GPU terrain mode's tessellation may add to this tile's.
+    sse_budget: float = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class MeshInfo:
+    """What the view keeps of a resident mesh: its centre (ECEF), its patches' normal cones
+    ((P, 10), ``geo.cones``; None: no cone) and its triangles, skirts included."""
+
+    center: F64
+    cone: F64 | None
+    triangles: int
+
+
+@dataclass(frozen=True, eq=False)
+class FramePlan:
+    """One frame's decisions (``TerrainView.update``)."""
+
+    #: The camera with its clip distances fitted to the terrain.
+    camera: Camera
+    selection: Selection
+    #: The draw list, before back-facing patches are dropped.
+    items: list[DrawItem]
+    #: Keys the frame cannot be drawn without, that are not resident.
+    required: list[int]
+    #: Keys wanted and not resident, most urgent first (coarse levels, then near tiles).
+    loads: U64
+    #: Every key the draw list uses.
+    drawn: frozenset[int]
+    select_ms: float
+
+
+class TerrainView:
+    """Selection and culling of one terrain's tile tree, frame after frame (it remembers the
+    last selection, for hysteresis)."""
+
+    def __init__(
+        self, tree: TreeLike, options: SelectOptions | None = None, *, cull_backfacing: bool = True
+    ) -> None:
+        self.tree = tree
+        self.options = options or SelectOptions()
+        self.cull_backfacing = cull_backfacing
+        #: Last frame's selection (hysteresis), None before the first.
+        self.previous: Selection | None = None
+        #: Selections made by ``update`` so far (one per frame).
+        self.selections = 0
+        x, y = tree.roots()
+        z = np.full(x.size, tree.zmin)
+        self._roots = np.sort(
+            np.concatenate([mesh_keys_zxy(z, x, y, np.zeros_like(x)), texture_keys_zxy(z, x, y)])
+        )
+
+    # --- the camera ----------------------------------------------------------------------------
+
+    def fit(self, camera: Camera, ground: float | None) -> Camera:
+        """``camera`` with clip distances fitted to the terrain (``ground``: its height under the
+        camera, None outside the data); refuses a camera under the ground."""
+        lo, hi = self.tree.height_range
+        if ground is not None and camera.alt <= ground:
+            raise CameraError(
+                f"camera is under the ground: alt {camera.alt:.1f} m but the terrain at "
+                f"{camera.lon:.5f}, {camera.lat:.5f} is {ground:.1f} m"
+            )
+        clearance = camera.alt - (ground if ground is not None else hi)
+        near = camera.near or min(max(0.1 * clearance, 0.5), 1e5)
+        if camera.far is not None:
+            return camera.with_clip(near, camera.far)
+        x, y = self.tree.roots()
+        st = self.tree.level(self.tree.zmin).stats(x, y)
+        probe = camera.with_clip(1.0, 2.0)
+        boxes = tile_boxes(probe, self.tree.zmin, x, y, st.min_h, st.max_h)
+        # everything in the data lies within its root boxes; the horizon bounds it on a planet
+        horizon = math.sqrt(max(camera.alt - lo, 1.0) * 2.0 * WGS84_A) + math.sqrt(
+            max(hi - lo, 1.0) * 2.0 * WGS84_A
+        )
+        far = max(min(float(boxes.dist_far.max()), horizon), near * 10.0) * 1.01
+        return camera.with_clip(near, far)
+
+    def overview(self, b: Bbox, width: int, height: int, fov_y: float) -> Camera:
+        """A camera south of the data (``b``, EPSG:3857) looking north at its centre, seeing
+        all of it."""
+        (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+        lon, lat = (w + e) / 2.0, (s + n) / 2.0
+        lo, hi = self.tree.height_range
+        extent = max(b.right - b.left, b.top - b.bottom) * math.cos(math.radians(lat))
+        back = 0.75 * extent
+        cam_lat = lat - math.degrees(back / WGS84_A)
+        alt = hi + 0.55 * extent
+        return Camera.looking_at(
+            lon, cam_lat, alt, (lon, lat, (lo + hi) / 2.0), fov_y=fov_y, width=width, height=height
+        )
+
+    # --- frames --------------------------------------------------------------------------------
+
+    def update(self, camera: Camera, resident: U64, *, blocking: bool = False) -> FramePlan:
+        """This frame's plan for a fitted ``camera`` (``fit``) given the sorted ``resident`` keys:
+        one selection. Remembered as the previous frame's."""
+        t0 = time.perf_counter()
+        if blocking:
+            sel = select(self.options, camera, self.tree, self.previous)
+            loads = _absent(np.union1d(sel.keys, sel.texture_keys), resident)
+        else:
+            drawable = np.union1d(resident, self._roots)
+            sel = select(self.options, camera, self.tree, self.previous, drawable)
+            loads = sel.loads
+        self.selections += 1
+        self.previous = sel
+        drawn = frozenset(int(k) for k in np.union1d(sel.keys, sel.texture_keys))
+        required = [int(k) for k in _absent(np.array(sorted(drawn), np.uint64), resident)]
+        items = draw_items(sel, self.options.max_sse)
+        ms = (time.perf_counter() - t0) * 1e3
+        return FramePlan(camera, sel, items, required, loads, drawn, ms)
+
+    def predict(self, camera: Camera) -> list[int]:
+        """Every key a selection from ``camera`` (fitted) would draw, textures first (what a
+        prefetch asks for); not remembered, so it leaves the next frame's hysteresis alone."""
+        sel = select(self.options, camera, self.tree)
+        return [int(k) for k in np.concatenate([sel.texture_keys, sel.keys])]
+
+    def facing(
+        self,
+        plan: FramePlan,
+        meshes: Mapping[int, MeshInfo],
+        whole_tiles: bool = False,
+    ) -> tuple[list[DrawItem], int, int]:
+        """The draw list less the patches facing away from the camera (paper 003): a tile with
+        none left is dropped, one with some left draws the runs of its other patches (and its
+        skirts); with ``whole_tiles`` (the GPU terrain mode) a tile is kept unless all of it
+        faces away. Returns the list, the patches dropped and the triangles they held."""
+        items = plan.items
+        if not self.cull_backfacing or not items:
+            return items, 0, 0
+        infos = [meshes.get(it.key) for it in items]
+        cones, centres, owner = _cones(infos)
+        away = backfacing(cones, centres, plan.camera.position)
+        if not away.any():
+            return items, 0, 0
+        counts = np.bincount(owner, minlength=len(items))
+        gone = np.bincount(owner, weights=away, minlength=len(items)).astype(np.int64)
+        kept: list[DrawItem] = []
+        saved = 0
+        start = 0
+        for i, item in enumerate(items):  # per drawn tile (tens), with numpy per patch
+            n = int(counts[i])
+            info = infos[i]
+            if gone[i] == 0 or (gone[i] < n and whole_tiles):
+                kept.append(item)
+            else:
+                total = info.triangles if info is not None else 0
+                if gone[i] == n:
+                    saved += total
+                else:
+                    per = (total - _skirt_triangles(total, n)) // n
+                    runs = _runs(~away[start : start + n], per, total)
+                    saved += total - sum(c for _, c in runs)
+                    kept.append(replace(item, runs=runs))
+            start += n
+        return kept, int(away.sum()), saved
+
+
+def _absent(keys: U64, resident: U64) -> U64:
+    """``keys`` not in the sorted ``resident``."""
+    if resident.size == 0:
+        return keys
+    pos = np.clip(np.searchsorted(resident, keys), 0, resident.size - 1)
+    out: U64 = keys[resident[pos] != keys]
+    return out
+
+
+def _cones(infos: list[MeshInfo | None]) -> tuple[F64, F64, NDArray[np.int64]]:
+    """Every patch of the drawn meshes: its cone (NaN rows where it has none), its mesh's
+    centre and the index of its mesh."""
+    from lodscape.geo.cones import CONE_SIZE
+
+    cones, centres, owner = [], [], []
+    for i, info in enumerate(infos):
+        if info is None or info.cone is None:
+            cones.append(np.full((1, CONE_SIZE), np.nan))
+            centres.append(np.zeros((1, 3)))
+            owner.append(np.full(1, i))
+            continue
+        cones.append(info.cone)
+        centres.append(np.broadcast_to(info.center, (info.cone.shape[0], 3)))
+        owner.append(np.full(info.cone.shape[0], i))
+    return np.concatenate(cones), np.concatenate(centres), np.concatenate(owner)
+
+
+def _skirt_triangles(total: int, patches: int) -> int:
+    """Skirt triangles of a grid mesh of ``total`` triangles in ``patches`` patches: 8·S for S
+    segments, where total = 2·S² + 8·S."""
+    if patches <= 1:
+        # a TIN's patch is its whole surface; a small grid is one patch: skirts go with it
+        return 0
+    s = int((-8 + (64 + 8 * total) ** 0.5) / 4 + 0.5)
+    return 8 * s
+
+
+def _runs(keep: NDArray[np.bool_], per: int, total: int) -> tuple[tuple[int, int], ...]:
+    """Contiguous (first, count) runs of triangles of the kept patches (``per`` triangles
+    each), then the skirts that follow the last patch."""
+    edges = np.diff(np.concatenate([[0], keep.astype(np.int8), [0]]))
+    starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    out = [(int(a) * per, int(b - a) * per) for a, b in zip(starts, ends, strict=True)]
+    n = keep.size
+    if total > n * per:
+        out.append((n * per, total - n * per))
+    return tuple(out)
+
+
+def draw_items(sel: Selection, max_sse: float = 2.0) -> list[DrawItem]:
+    """The renderer's draw list for a selection: each tile's mesh, its texture and the window of
+    that texture it covers (a half per level up), its skirt, and the screen-space error the GPU
+    terrain mode's tessellation may add to the tile's own (``max_sse`` less it, at least a
+    tenth of ``max_sse``)."""
+    up = sel.texture_up
+    scale = np.exp2(-up.astype(np.float64))
+    u = (sel.x & ((1 << up) - 1)) * scale
+    v = (sel.y & ((1 << up) - 1)) * scale
+    budget = np.maximum(max_sse - sel.sse, 0.1 * max_sse)
+    cols = zip(sel.keys, sel.texture_keys, sel.skirt, u, v, scale, budget, strict=True)
+    return [
+        DrawItem(int(k), int(t), float(sk), (float(a), float(b), float(c)), sse_budget=float(e))
+        for k, t, sk, a, b, c, e in cols
+    ]

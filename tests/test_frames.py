@@ -1,0 +1,237 @@
+"""Streaming frame by frame with no GL: the view plans, the loader serves the plan through a fake
+GPU (the ``GpuResources`` seam), on a simulated clock, over an in-memory height source. The
+Scene runs these same two steps around its draw."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from _synthetic import fbm_heights
+from lodscape.geo.keys import is_texture
+from lodscape.geo.tiles import merc_to_lonlat
+from lodscape.lod.camera import Camera
+from lodscape.lod.view import FramePlan, TerrainView
+from lodscape.store.provider import RasterProvider
+from lodscape.stream import SimClock, StreamOptions
+from lodscape.stream.gpu import Made
+from lodscape.stream.loader import Loader, LoadReport
+from lodscape.terrain.source import ArraySource
+
+
+class FakeGpu:
+    """The renderer's half of the GPU seam, keeping sizes instead of GL objects."""
+
+    def __init__(self) -> None:
+        self.live: dict[int, int] = {}
+        self.uploads: list[int] = []
+        self.released: list[int] = []
+        self.prepared = 0
+
+    def prepare(self, key: int, made: Made) -> Made:
+        self.prepared += 1
+        return made
+
+    def upload_resource(self, key: int, made: Made) -> int:
+        assert key not in self.live, f"key {key} uploaded twice"
+        assert is_texture(key) == (not hasattr(made, "vertices"))
+        self.live[key] = int(made.nbytes)
+        self.uploads.append(key)
+        return int(made.nbytes)
+
+    def release(self, key: int) -> None:
+        del self.live[key]
+        self.released.append(key)
+
+
+@pytest.fixture(scope="module")
+def provider() -> RasterProvider:
+    """10 km of fBm relief in UTM 16N, held in memory."""
+    heights = fbm_heights(513, seed=3)
+    return RasterProvider(
+        ArraySource(heights, (20.0, 0, 700000.0, 0, -20.0, 4060000.0), "EPSG:32616")
+    )
+
+
+def _camera(provider: RasterProvider) -> Camera:
+    """South of the data's centre, looking north over it from above its highest point."""
+    b = provider.bounds_merc
+    (lon, _), (lat, _) = merc_to_lonlat([(b.left + b.right) / 2, 0], [(b.bottom + b.top) / 2, 0])
+    hi = provider.tree.height_range[1]
+    return Camera(float(lon), float(lat) - 0.03, hi + 1200.0, pitch=-20, width=640, height=360)
+
+
+@pytest.fixture(scope="module")
+def cam(provider: RasterProvider) -> Camera:
+    return _camera(provider)
+
+
+class Rig:
+    """A view and a loader over one provider and one fake GPU, stepped one frame at a time."""
+
+    def __init__(
+        self, provider: RasterProvider, gpu_budget: float = 1e12, upload_ms: float = 6.0
+    ) -> None:
+        self.view = TerrainView(provider.tree)
+        self.gpu = FakeGpu()
+        self.clock = SimClock()
+        opts = StreamOptions(ahead=(), upload_ms=upload_ms)
+        self.loader = Loader(provider, self.gpu, opts, self.clock, gpu_budget_bytes=gpu_budget)
+        self.provider = provider
+
+    def fit(self, cam: Camera) -> Camera:
+        return self.view.fit(cam, self.provider.ground_height(cam.lon, cam.lat))
+
+    def step(
+        self, cam: Camera, *, blocking: bool = False, dt: float = 1 / 30
+    ) -> tuple[FramePlan, LoadReport]:
+        plan = self.view.update(self.fit(cam), self.loader.resident(), blocking=blocking)
+        report = self.loader.serve(plan, blocking=blocking)
+        # what the renderer would draw is on the GPU
+        missing = plan.drawn - set(self.gpu.live)
+        assert not missing, f"drawn but not uploaded: {sorted(missing)[:5]}"
+        self.loader.finish(plan)
+        self.loader.streamer.drain()
+        self.clock.advance(dt)
+        return plan, report
+
+    def close(self) -> None:
+        self.loader.close()
+
+
+def _roots(rig: Rig) -> set[int]:
+    return {int(k) for k in rig.view._roots}
+
+
+def test_the_first_frame_stalls_on_the_roots_only(provider: RasterProvider, cam: Camera) -> None:
+    rig = Rig(provider)
+    try:
+        plan, report = rig.step(cam)
+        assert rig.view.selections == 1
+        # with nothing resident, what is drawn is the roots, taken at once
+        assert plan.required
+        assert set(plan.required) <= _roots(rig)
+        assert np.all(plan.selection.z == provider.tree.zmin)
+        assert report.stall_ms > 0.0
+        assert plan.loads.size > 0
+        assert int(plan.selection.fallback.max()) > 0
+        plan2, report2 = rig.step(cam)
+        assert rig.view.selections == 2
+        assert plan2.required == []
+        assert report2.stall_ms == 0.0
+    finally:
+        rig.close()
+
+
+def test_streaming_converges_to_the_blocking_selection(
+    provider: RasterProvider, cam: Camera
+) -> None:
+    rig = Rig(provider)
+    blocking = Rig(provider)
+    try:
+        want, _ = blocking.step(cam, blocking=True)
+        assert want.selection.fallback.max() == 0
+        falls = []
+        for _ in range(60):
+            plan, _ = rig.step(cam)
+            falls.append(int(plan.selection.fallback.max()))
+            if plan.loads.size == 0:
+                break
+        assert falls[0] > 0
+        assert falls[-1] == 0, falls
+        # never a hole: every frame drew only resident keys (checked in step), and at the end
+        # the same tiles as a one-shot render
+        assert set(plan.selection.keys.tolist()) == set(want.selection.keys.tolist())
+        assert rig.view.selections == len(falls)
+    finally:
+        rig.close()
+        blocking.close()
+
+
+def test_uploads_keep_to_their_time_slice(provider: RasterProvider, cam: Camera) -> None:
+    rig = Rig(provider, upload_ms=1e-9)
+    try:
+        rig.step(cam, dt=1.0)  # the roots
+        counts = []
+        for _ in range(8):
+            before = len(rig.gpu.uploads)
+            rig.step(cam, dt=1.0)  # a second a frame: the workers are never the limit
+            counts.append(len(rig.gpu.uploads) - before)
+        # a slice smaller than any upload lets one through per frame, never more
+        assert max(counts) == 1
+        assert sum(counts) == 8
+    finally:
+        rig.close()
+
+
+def test_what_the_last_frame_drew_is_never_evicted(provider: RasterProvider, cam: Camera) -> None:
+    rig = Rig(provider, gpu_budget=1.0)
+    try:
+        cams = [cam.moved(lon=cam.lon + 0.01 * i) for i in range(6)]
+        for c in cams:
+            plan, _ = rig.step(c)
+            # a budget of one byte keeps exactly what this frame drew
+            assert set(rig.gpu.live) == set(plan.drawn)
+        assert rig.gpu.released
+        assert not set(rig.gpu.released) & set(plan.drawn)
+    finally:
+        rig.close()
+
+
+def test_a_failing_source_is_retried_while_ancestors_stand_in(
+    provider: RasterProvider, cam: Camera
+) -> None:
+    class Flaky:
+        """The provider, with every texture below the roots failing for a while."""
+
+        def __init__(self) -> None:
+            self.failing = True
+            self.tree = provider.tree
+
+        def fetch(self, key: int) -> bytes:
+            if self.failing and is_texture(key):
+                from lodscape.geo.keys import tile_of
+
+                if tile_of(key).z > provider.tree.zmin:
+                    raise OSError("server answered 500")
+            return provider.fetch(key)
+
+        def decode(self, key: int, data: bytes) -> Made:
+            return provider.decode(key, data)
+
+    flaky = Flaky()
+    rig = Rig(provider)
+    rig.loader = Loader(flaky, rig.gpu, StreamOptions(ahead=()), rig.clock, gpu_budget_bytes=1e12)
+    try:
+        for _ in range(10):
+            plan, _ = rig.step(cam)
+        # drawn from the roots' textures: nothing finer came, and nothing was left undrawn
+        assert np.all(plan.selection.texture_up >= plan.selection.z - provider.tree.zmin)
+        assert rig.loader.streamer.failures()
+        flaky.failing = False
+        for _ in range(80):
+            rig.clock.advance(1.0)  # past the backoff
+            plan, _ = rig.step(cam)
+            if plan.loads.size == 0:
+                break
+        assert plan.loads.size == 0
+        assert int(plan.selection.fallback.max()) == 0
+    finally:
+        rig.close()
+
+
+def test_the_blocking_policy_loads_everything_in_one_frame(
+    provider: RasterProvider, cam: Camera
+) -> None:
+    rig = Rig(provider)
+    try:
+        plan, report = rig.step(cam, blocking=True)
+        assert rig.view.selections == 1
+        assert report.loaded == len(plan.drawn)
+        assert set(plan.required) == set(plan.drawn)
+        assert int(plan.selection.fallback.max()) == 0
+        plan2, report2 = rig.step(cam, blocking=True)
+        assert plan2.required == []
+        assert report2.loaded == 0
+    finally:
+        rig.close()
