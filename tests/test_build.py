@@ -138,7 +138,7 @@ def test_a_tilesets_heights_are_its_meshes(dem: str, tileset: Path) -> None:
         assert got.shape == lon.shape
         assert provider.heights(lon.reshape(60, 50), lat.reshape(60, 50)).shape == (60, 50)
         kept = sum(sum(a.nbytes for a in m) for m in provider._meshes.values() if m is not None)
-        assert kept == provider._mesh_bytes <= provider.DECODED_BYTES
+        assert kept == provider._meshes.nbytes <= provider.DECODED_BYTES
     finally:
         provider.close()
 

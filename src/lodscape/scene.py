@@ -21,7 +21,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import CameraError, SourceError
-from lodscape.geo.tiles import lonlat_to_merc
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 from lodscape.lod.view import TerrainView
@@ -313,24 +312,7 @@ class Scene:
 
     def heights(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
         """Ground heights at many points (NaN outside the data)."""
-        lon = np.asarray(lon, np.float64)
-        lat = np.asarray(lat, np.float64)
-        provider: Any = self.provider
-        # through the wrappers that change only the textures (imagery, land cover)
-        while getattr(provider, "source", None) is None and getattr(provider, "base", None):
-            provider = provider.base
-        source = getattr(provider, "source", None)
-        if source is not None and hasattr(source, "sample"):
-            xm, ym = lonlat_to_merc(lon, lat)
-            h, ok = source.sample(xm, ym, source.resolution_merc)
-            return np.where(ok, np.asarray(h, np.float64), np.nan)
-        if hasattr(provider, "heights") and callable(provider.heights):  # a tileset
-            return np.asarray(provider.heights(lon, lat), np.float64)
-        out = [
-            self.ground_height(float(a), float(b))
-            for a, b in zip(lon.ravel(), lat.ravel(), strict=False)
-        ]
-        return np.array([np.nan if v is None else v for v in out]).reshape(lon.shape)
+        return self.provider.heights_at(np.asarray(lon, np.float64), np.asarray(lat, np.float64))
 
     def city_camera(self, width: int = 1280, height: int = 720, fov_y: float = 60.0) -> Camera:
         """A camera south of the city looking north over it, a little above its roofs."""

@@ -39,6 +39,10 @@ class Provider(Protocol):
         """Terrain height at a point, or None outside the data."""
         ...
 
+    def heights_at(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Terrain heights at many points (degrees), NaN outside the data."""
+        ...
+
     def fetch(self, key: int) -> bytes:
         """The stored form of one resource key (``geo.keys``): what the disk or the
         network gives, what the streamer's cache stage holds."""
@@ -91,6 +95,11 @@ class RasterProvider:
         xm, ym = lonlat_to_merc([lon], [lat])
         h, valid = self.source.sample(xm, ym, self.source.resolution_merc)
         return float(h[0]) if bool(valid[0]) else None
+
+    def heights_at(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
+        xm, ym = lonlat_to_merc(lon, lat)
+        h, ok = self.source.sample(xm, ym, self.source.resolution_merc)
+        return np.where(ok, np.asarray(h, np.float64), np.nan)
 
     def fetch(self, key: int) -> bytes:
         """A mesh key's sampled heights (float32), or a texture key's RGBA pixels."""
@@ -176,6 +185,9 @@ class ImageryProvider:
     def ground_height(self, lon: float, lat: float) -> float | None:
         return self.base.ground_height(lon, lat)
 
+    def heights_at(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
+        return self.base.heights_at(lon, lat)
+
     def fetch(self, key: int) -> bytes:
         if not is_texture(key):
             return self.base.fetch(key)
@@ -239,6 +251,9 @@ class LandcoverProvider:
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         return self.base.ground_height(lon, lat)
+
+    def heights_at(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
+        return self.base.heights_at(lon, lat)
 
     def fetch(self, key: int) -> bytes:
         if not is_texture(key):

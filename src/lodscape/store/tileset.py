@@ -391,6 +391,10 @@ class TilesetProvider:
         h = float(self.heights(np.array([lon]), np.array([lat]))[0])
         return None if np.isnan(h) else h
 
+    def heights_at(self, lon: ArrayLike, lat: ArrayLike) -> NDArray[np.float64]:
+        """Terrain heights at many points (degrees), NaN outside the data."""
+        return self.heights(lon, lat)
+
     def heights(self, lon: ArrayLike, lat: ArrayLike) -> NDArray[np.float64]:
         """Heights of the finest stored meshes at many points (NaN outside the data): each
         tile is read and decoded once per call (and kept for the next few calls)."""

@@ -1,0 +1,178 @@
+"""Frame benchmark: selections per frame and CPU time per frame, for this checkout and (with
+``--before REV``) an earlier commit of the repository, in one script.
+
+Two workloads, through the public API only (so an older lodscape runs them too):
+- **views**: the spine's four test views (straight down, oblique, low and grazing, steep and
+  near) of a 2049² spectral fBm DEM at 1280×720, one-shot renders (the blocking loader), each
+  drawn ``--repeat`` times once everything is resident;
+- **flight**: the issue-4 flight (300 m/s, 300 m above the smoothed ground, 30 frames/s,
+  640×360, 16 MiB per stage) over the same DEM built into a tileset, streaming on a simulated
+  clock.
+
+Counted: calls to the selection on the frame's thread per frame (the prefetch's predicted
+selections run on workers and are counted apart), and the frame's CPU time: selection and
+loading (``select_ms + load_ms``) for the views, ``frame_cpu_ms`` for the flight. Medians.
+
+    python bench/bench_frame.py [--before 54794d2] [--work DIR] [--seconds 10] [--repeat 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from lodscape import SceneOptions
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from _synthetic import spine_views
+from bench_flight import BUDGET_MB, FPS, cameras
+from bench_spine import write
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Counter:
+    """Wraps the selection wherever a module holds it by name, counting calls per thread."""
+
+    def __init__(self) -> None:
+        import lodscape.lod.select as sel
+
+        self.main = 0
+        self.workers = 0
+        original = sel.select
+
+        def counted(*args: Any, **kwargs: Any) -> Any:
+            if threading.current_thread() is threading.main_thread():
+                self.main += 1
+            else:
+                self.workers += 1
+            return original(*args, **kwargs)
+
+        for mod in list(sys.modules.values()):
+            name = getattr(mod, "__name__", "")
+            if name.startswith("lodscape") and getattr(mod, "select", None) is original:
+                mod.select = counted  # type: ignore[attr-defined]
+
+
+def measure(dem: Path, tileset: Path, seconds: float, repeat: int) -> dict[str, Any]:
+    # the modules whose ``select`` the counter replaces (lod.view is absent before the split)
+    import lodscape.flight
+    import lodscape.scene
+    import lodscape.store.tileset
+    from lodscape.stream import SimClock, StreamOptions
+
+    with contextlib.suppress(ImportError):
+        import lodscape.lod.view
+    counter = Counter()
+    out: dict[str, Any] = {"views": {}, "lodscape": lodscape.__file__}
+    with lodscape.open(dem, SceneOptions(anisotropy=1.0)) as scene:
+        for name, cam in spine_views(scene, 1280, 720).items():
+            scene.render(cam)  # loads
+            sels, cpu, total = [], [], []
+            for _ in range(repeat):
+                before = counter.main
+                t = time.perf_counter()
+                scene.render(cam)
+                total.append((time.perf_counter() - t) * 1e3)
+                assert scene.last is not None
+                sels.append(counter.main - before)
+                cpu.append(scene.last.select_ms + scene.last.load_ms)
+            out["views"][name] = {
+                "selections": statistics.median(sels),
+                "cpu_ms": statistics.median(cpu),
+                "frame_ms": statistics.median(total),
+            }
+    cams = cameras(dem, seconds)
+    opts = SceneOptions(gpu_budget_mb=BUDGET_MB, anisotropy=1.0, stream=StreamOptions())
+    main0, work0 = counter.main, counter.workers
+    provider = lodscape.store.tileset.TilesetProvider(tileset)
+    with lodscape.Scene(provider, opts, owns=True, clock=SimClock()) as scene:
+        rows = lodscape.flight.fly(scene, iter(cams), FPS)
+    out["flight"] = {
+        "frames": len(rows),
+        "selections_per_frame": (counter.main - main0) / len(rows),
+        "predictions_per_frame": (counter.workers - work0) / len(rows),
+        "cpu_ms": statistics.median(r["frame_cpu_ms"] for r in rows),
+        "fallback_gt_1": sum(r["fallback_max"] > 1 for r in rows if r["time_s"] >= 1.0),
+    }
+    return out
+
+
+def _report(label: str, r: dict[str, Any]) -> None:
+    print(f"{label} ({r['lodscape']}):")
+    for name, v in r["views"].items():
+        print(
+            f"  view {name:<11} selections/frame {v['selections']:.0f}  "
+            f"CPU {v['cpu_ms']:6.2f} ms  whole frame {v['frame_ms']:6.1f} ms"
+        )
+    f = r["flight"]
+    print(
+        f"  flight ({f['frames']} frames) selections/frame {f['selections_per_frame']:.2f}  "
+        f"predictions/frame {f['predictions_per_frame']:.2f}  CPU median {f['cpu_ms']:.2f} ms  "
+        f"fallbacks > 1 level: {f['fallback_gt_1']}"
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--before", default=None, help="a commit to measure in the same run")
+    ap.add_argument("--work", type=Path, default=None, help="keep the DEM and tileset here")
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.work or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        dem, tileset = work / "fbm2049.tif", work / "fbm2049.lods"
+        if not dem.exists():
+            write(dem, 2049)
+        if not tileset.exists():
+            from lodscape.build import build
+
+            build([dem], tileset)
+        now = measure(dem, tileset, args.seconds, args.repeat)
+        if args.json:
+            print(json.dumps(now))
+            return
+        _report("this checkout", now)
+        if args.before is None:
+            return
+        tree = Path(tmp) / "before"
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), args.before],
+            check=True,
+            capture_output=True,
+        )
+        try:
+            env = {**os.environ, "PYTHONPATH": str(tree / "src")}
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--json"]
+            cmd += ["--work", str(work), "--seconds", str(args.seconds)]
+            cmd += ["--repeat", str(args.repeat)]
+            run = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
+            before = json.loads(run.stdout.strip().splitlines()[-1])
+        finally:
+            subprocess.run(
+                ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False
+            )
+        _report(f"before ({args.before})", before)
+        print("ratios, before / now (CPU per frame):")
+        for name, v in now["views"].items():
+            b = before["views"][name]
+            print(f"  view {name:<11} ×{b['cpu_ms'] / max(v['cpu_ms'], 1e-9):.2f}")
+        print(f"  flight           ×{before['flight']['cpu_ms'] / now['flight']['cpu_ms']:.2f}")
+
+
+if __name__ == "__main__":
+    main()
