@@ -116,6 +116,18 @@ def run(
     }
 
 
+def dataset(work: Path, n: int) -> tuple[Path, Path]:
+    """The n² fBm DEM and its tileset in ``work``, made unless they are there already."""
+    dem, tileset = work / f"fbm{n}.tif", work / f"fbm{n}.lods"
+    if not dem.exists():
+        write(dem, n)
+    if not tileset.exists():
+        t = time.perf_counter()
+        build([dem], tileset)
+        print(f"built {tileset} in {time.perf_counter() - t:.0f} s")
+    return dem, tileset
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--work", type=Path, default=None, help="keep the DEM and tileset here")
@@ -125,13 +137,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        dem, tileset = work / "fbm4097.tif", work / "fbm4097.lods"
-        if not dem.exists():
-            write(dem, 4097)
-        if not tileset.exists():
-            t = time.perf_counter()
-            build([dem], tileset)
-            print(f"built {tileset} in {time.perf_counter() - t:.0f} s")
+        dem, tileset = dataset(work, 4097)
         size = tileset.stat().st_size / 2**20
         cams = cameras(dem, args.seconds)
         print(

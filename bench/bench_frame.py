@@ -36,8 +36,7 @@ from lodscape import SceneOptions
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from _synthetic import spine_views
-from bench_flight import BUDGET_MB, FPS, cameras
-from bench_spine import write
+from bench_flight import BUDGET_MB, FPS, cameras, dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -135,13 +134,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        dem, tileset = work / "fbm2049.tif", work / "fbm2049.lods"
-        if not dem.exists():
-            write(dem, 2049)
-        if not tileset.exists():
-            from lodscape.build import build
-
-            build([dem], tileset)
+        dem, tileset = dataset(work, 2049)
         now = measure(dem, tileset, args.seconds, args.repeat)
         if args.json:
             print(json.dumps(now))
