@@ -70,13 +70,24 @@ class Rig:
     """A view and a loader over one provider and one fake GPU, stepped one frame at a time."""
 
     def __init__(
-        self, provider: RasterProvider, gpu_budget: float = 1e12, upload_ms: float = 6.0
+        self,
+        provider: RasterProvider,
+        gpu_budget: float = 1e12,
+        upload_ms: float = 6.0,
+        ahead: tuple[float, ...] = (),
     ) -> None:
         self.view = TerrainView(provider.tree)
         self.gpu = FakeGpu()
         self.clock = SimClock()
-        opts = StreamOptions(ahead=(), upload_ms=upload_ms)
-        self.loader = Loader(provider, self.gpu, opts, self.clock, gpu_budget_bytes=gpu_budget)
+        opts = StreamOptions(ahead=ahead, upload_ms=upload_ms)
+        self.loader = Loader(
+            provider,
+            self.gpu,
+            opts,
+            self.clock,
+            gpu_budget_bytes=gpu_budget,
+            predict=lambda c: self.view.predict(self.fit(c)),
+        )
         self.provider = provider
 
     def fit(self, cam: Camera) -> Camera:
@@ -86,7 +97,11 @@ class Rig:
         self, cam: Camera, *, blocking: bool = False, dt: float = 1 / 30
     ) -> tuple[FramePlan, LoadReport]:
         plan = self.view.update(self.fit(cam), self.loader.resident(), blocking=blocking)
+        n = len(self.gpu.uploads)
         report = self.loader.serve(plan, blocking=blocking)
+        # only what this frame wants goes up (prefetched resources wait in memory)
+        wanted = {int(k) for k in plan.loads} | set(plan.required)
+        assert set(self.gpu.uploads[n:]) <= wanted
         # what the renderer would draw is on the GPU
         missing = plan.drawn - set(self.gpu.live)
         assert not missing, f"drawn but not uploaded: {sorted(missing)[:5]}"
@@ -169,11 +184,14 @@ def test_what_the_last_frame_drew_is_never_evicted(provider: RasterProvider, cam
     try:
         cams = [cam.moved(lon=cam.lon + 0.01 * i) for i in range(6)]
         for c in cams:
+            n = len(rig.gpu.uploads)
             plan, _ = rig.step(c)
-            # a budget of one byte keeps exactly what this frame drew
-            assert set(rig.gpu.live) == set(plan.drawn)
+            fresh = set(rig.gpu.uploads[n:])
+            # a budget of one byte keeps exactly what this frame drew, and what it uploaded for
+            # the next (it is not drawn yet: freeing it would only load it again)
+            assert set(rig.gpu.live) == set(plan.drawn) | fresh
+        # the budget did free what the frames before drew
         assert rig.gpu.released
-        assert not set(rig.gpu.released) & set(plan.drawn)
     finally:
         rig.close()
 
@@ -216,6 +234,21 @@ def test_a_failing_source_is_retried_while_ancestors_stand_in(
                 break
         assert plan.loads.size == 0
         assert int(plan.selection.fallback.max()) == 0
+    finally:
+        rig.close()
+
+
+def test_prefetched_resources_wait_in_memory(provider: RasterProvider, cam: Camera) -> None:
+    """Flying north, the radii ahead fill the memory stage; none of it goes to the GPU before a
+    frame wants it (``step`` checks every upload against the frame's plan)."""
+    rig = Rig(provider, ahead=(1.0, 3.0))
+    try:
+        for i in range(30):
+            rig.step(cam.moved(lat=cam.lat + 0.0005 * i), dt=0.1)
+        assert rig.view.selections == 30
+        # the memory radius holds decoded tiles the frames have not wanted yet
+        assert len(rig.loader.streamer.memory) > 0
+        assert not set(rig.loader.streamer.memory) & set(rig.gpu.live)
     finally:
         rig.close()
 

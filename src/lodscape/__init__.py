@@ -13,7 +13,8 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 
 if _typing.TYPE_CHECKING:
-    from lodscape.scene import FrameStats, Scene, SceneOptions, open
+    from lodscape.scene import FrameStats, Scene, SceneOptions
+    from lodscape.sources import open
 
 __version__ = "0.1.0"
 
@@ -36,6 +37,10 @@ _LAZY = {"FrameStats", "Scene", "SceneOptions", "open"}
 
 
 def __getattr__(name: str) -> _typing.Any:
+    if name == "open":
+        from lodscape import sources
+
+        return sources.open
     if name in _LAZY:
         from lodscape import scene
 

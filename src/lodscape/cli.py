@@ -7,10 +7,13 @@ outputs are written to a temporary name beside the target and renamed only when 
 from __future__ import annotations
 
 import contextlib
+import functools
+import inspect
 import math
 import os
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -23,8 +26,8 @@ from lodscape.geo.tiles import merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import SelectOptions
 from lodscape.scene import Scene, SceneOptions
-from lodscape.scene import open as open_scene
-from lodscape.store.tileset import is_tileset
+from lodscape.sources import SourceSpec, parse_source
+from lodscape.sources import open as open_scene
 from lodscape.stream.streamer import Clock
 from lodscape.terrain.detail import Fractal, parse_procedural
 
@@ -135,7 +138,7 @@ def _detail(
     source: str, detail: str, hurst: float | None, sigma: float | None, seed: int | None
 ) -> Fractal | None:
     """The fractal detail the flags ask for (None: none); one-line errors."""
-    procedural = source == "procedural" or source.startswith("procedural:")
+    procedural = parse_source(source).kind == "procedural"
     if detail not in ("none", "fractal"):
         raise LodscapeError(f"--detail must be none or fractal, got {detail!r}")
     if detail == "none" and not procedural:
@@ -157,80 +160,114 @@ def _detail(
         raise LodscapeError(f"bad option: {exc}") from None
 
 
-def _open(
-    source: str,
-    options: SceneOptions,
-    imagery: str | None,
-    cache: Path | None,
-    *,
-    strict: bool = True,
-    clock: Clock | None = None,
-    detail: Fractal | None = None,
-    landcover: Any = None,
-) -> Scene:
-    """A scene, with its textures from ``imagery`` when one is given, or its ground coloured
-    from a land-cover mask (``landcover``, an ``imagery.landcover.Landcover``)."""
-    if landcover is not None:
-        if imagery is not None:
-            raise LodscapeError("--imagery and --ground landcover both colour the ground: pick one")
-        return open_scene(source, options, clock=clock, detail=detail, landcover=landcover)
-    if imagery is None:
-        return open_scene(source, options, clock=clock, detail=detail)
-    from lodscape.imagery.sources import imagery_source
-    from lodscape.store.provider import ImageryProvider
-
-    if cache is None:
-        base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
-        cache = Path(base) / "lodscape"
-    fetcher = imagery_source(imagery, cache_dir=cache)
-    try:
-        terrain = open_scene(source, options, detail=detail)
-    except BaseException:
-        fetcher.close()
-        raise
-    # the terrain's provider, now serving imagery too; the first scene hands it over
-    provider = ImageryProvider(terrain.provider, fetcher, strict=strict)
-    terrain.release_provider()
-    terrain.close()
-    return Scene(provider, options, owns=True, clock=clock)
-
-
 CityOpt = Annotated[
     Path | None,
     typer.Option(help="An OpenStreetMap file (.osm.pbf, .osm) whose city to drape on the terrain."),
 ]
 
 
-def _city_source(source: str, city: Path | None) -> tuple[str, Any]:
-    """The source to open and the city read from --city; SOURCE ``flat`` is level ground
-    under the city."""
-    if city is None:
-        if source == "flat":
+@dataclass(frozen=True)
+class TerrainFlags:
+    """The terrain flags render, fly and view share, declared once (``_terrain_flags``)."""
+
+    max_sse: float = 2.0
+    terrain_mode: str = "cpu"
+    ground: str = "tint"
+    landcover: Path | None = None
+    anisotropy: float = 16.0
+    imagery: str | None = None
+    imagery_cache: Path | None = None
+    detail: str = "none"
+    hurst: float | None = None
+    sigma: float | None = None
+    seed: int | None = None
+    city: Path | None = None
+
+    def fractal(self, source: str) -> Fractal | None:
+        return _detail(source, self.detail, self.hurst, self.sigma, self.seed)
+
+    def options(self, budget_mb: float | None = None) -> SceneOptions:
+        return _scene_options(
+            max_sse=self.max_sse,
+            anisotropy=self.anisotropy,
+            terrain_mode=self.terrain_mode,
+            budget_mb=budget_mb,
+        )
+
+    def open(
+        self,
+        source: str,
+        options: SceneOptions,
+        *,
+        clock: Clock | None = None,
+        strict: bool = True,
+        detail: Fractal | bool | None = True,
+    ) -> Scene:
+        """The scene the flags ask for (``detail`` True: the flags' own fractal detail)."""
+        cover = _landcover(self.ground, self.landcover, self.city)
+        if self.imagery is not None and cover is not None:
+            raise LodscapeError("--imagery and --ground landcover both colour the ground: pick one")
+        if parse_source(source).text == "flat" and self.city is None:
             raise LodscapeError("SOURCE flat (level ground) needs --city to know where")
-        return source, None
-    from lodscape.city.osm import read_osm
+        return open_scene(
+            source,
+            options,
+            clock=clock,
+            detail=self.fractal(source) if detail is True else detail or None,
+            landcover=cover,
+            imagery=self.imagery,
+            imagery_cache=self.imagery_cache,
+            strict_imagery=strict,
+            city=self.city,
+        )
 
-    c = read_osm(city)
-    if source == "flat":
-        w, s, e, n = c.bounds
-        pw, ps = 0.3 * (e - w) + 0.002, 0.3 * (n - s) + 0.001
-        source = f"flat:{w - pw},{s - ps},{e + pw},{n + ps}"
-    return source, c
+    def refuse_for_globe(self) -> None:
+        """--globe draws the QTM globe with its own image: refuse what it would ignore."""
+        if (
+            self.city is not None
+            or self.imagery is not None
+            or self.ground != "tint"
+            or self.detail != "none"
+        ):
+            raise LodscapeError(
+                "--globe draws the QTM globe with its own image: no --city, --imagery, "
+                "--ground or --detail"
+            )
 
 
-def _drape(scene: Scene, town: Any) -> Any:
-    """Add the cities a tileset stores and the one from --city to the scene; the city drawn,
-    or None."""
-    provider: Any = scene.provider
-    while provider is not None and not hasattr(provider, "city"):
-        provider = getattr(provider, "base", None)
-    stored = provider.city() if provider is not None else None
-    if stored is not None and town is not None:
-        stored = stored.merged(town)
-    city = stored if stored is not None else town
-    if city is not None:
-        scene.add_city(city)
-    return city
+_TERRAIN_FLAGS = [
+    inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=ann)
+    for name, ann, default in (
+        ("max_sse", SseOpt, 2.0),
+        ("terrain_mode", TerrainModeOpt, "cpu"),
+        ("ground", GroundOpt, "tint"),
+        ("landcover", LandcoverOpt, None),
+        ("anisotropy", AnisotropyOpt, 16.0),
+        ("imagery", ImageryOpt, None),
+        ("imagery_cache", CacheOpt, None),
+        ("detail", DetailOpt, "none"),
+        ("hurst", HurstOpt, None),
+        ("sigma", SigmaOpt, None),
+        ("seed", SeedOpt, None),
+        ("city", CityOpt, None),
+    )
+]
+
+
+def _terrain_flags(command: Callable[..., None]) -> Callable[..., None]:
+    """Give ``command`` the shared terrain flags: typer sees them in its signature, and the
+    command gets them as one ``terrain: TerrainFlags``."""
+    sig = inspect.signature(command, eval_str=True)
+    own = [p for p in sig.parameters.values() if p.name != "terrain"]
+    names = [p.name for p in _TERRAIN_FLAGS]
+
+    @functools.wraps(command)
+    def wrapper(**kwargs: Any) -> None:
+        flags = TerrainFlags(**{n: kwargs.pop(n) for n in names if n in kwargs})
+        command(terrain=flags, **kwargs)
+
+    wrapper.__signature__ = sig.replace(parameters=[*own, *_TERRAIN_FLAGS])  # type: ignore[attr-defined]
+    return wrapper
 
 
 def _scene_options(
@@ -346,6 +383,7 @@ def _render(
 
 
 @app.command()
+@_terrain_flags
 def render(
     source: Annotated[str, typer.Argument(help="A DEM: GeoTIFF or any GDAL raster, any CRS.")],
     output: OutOpt = Path("view.png"),
@@ -370,18 +408,6 @@ def render(
         Path | None,
         typer.Option(help="Also write depth (metres along the view axis) as .npy or .tif."),
     ] = None,
-    max_sse: SseOpt = 2.0,
-    terrain_mode: TerrainModeOpt = "cpu",
-    ground: GroundOpt = "tint",
-    landcover: LandcoverOpt = None,
-    anisotropy: AnisotropyOpt = 16.0,
-    imagery: ImageryOpt = None,
-    imagery_cache: CacheOpt = None,
-    detail: DetailOpt = "none",
-    hurst: HurstOpt = None,
-    sigma: SigmaOpt = None,
-    seed: SeedOpt = None,
-    city: CityOpt = None,
     camera_file: CameraFileOpt = None,
     globe: Annotated[
         bool,
@@ -392,16 +418,14 @@ def render(
         ),
     ] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
+    *,
+    terrain: TerrainFlags,
 ) -> None:
     """Render one view of SOURCE (a DEM, a .lods tileset, procedural:seed=N, or flat with
     --city). Without --lon/--lat/--alt, a view of the whole data (or of the city)."""
     w, h = _size(size)
     if globe:
-        if city is not None or imagery is not None or ground != "tint" or detail != "none":
-            raise LodscapeError(
-                "--globe draws the QTM globe with its own image: no --city, --imagery, "
-                "--ground or --detail"
-            )
+        terrain.refuse_for_globe()
         if camera_file is not None and (lon is not None or lat is not None or alt is not None):
             raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
         if (lon is None) != (lat is None) or (lon is None) != (alt is None):
@@ -409,7 +433,7 @@ def render(
         from lodscape.globe import GlobeOptions
 
         try:
-            globe_options = GlobeOptions(max_sse=max_sse)
+            globe_options = GlobeOptions(max_sse=terrain.max_sse)
         except ValueError as exc:
             raise LodscapeError(f"bad option: {exc}") from None
         pose = (
@@ -426,21 +450,14 @@ def render(
             lambda terrain: _globe_camera(terrain, camera_file, pose, w, h, fov),
         )
         return
-    options = _scene_options(max_sse=max_sse, anisotropy=anisotropy, terrain_mode=terrain_mode)
-    fractal = _detail(source, detail, hurst, sigma, seed)
-    source, town = _city_source(source, city)
-    cover = _landcover(ground, landcover, city)
-    with _open(
-        source, options, imagery, imagery_cache, strict=False, detail=fractal, landcover=cover
-    ) as scene:
-        town = _drape(scene, town)
+    with terrain.open(source, terrain.options(), strict=False) as scene:
         if camera_file is not None:
             if lon is not None or lat is not None or alt is not None:
                 raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
             from lodscape.view import load_camera
 
             camera = load_camera(camera_file, w, h)
-        elif lon is None and lat is None and alt is None and town is not None:
+        elif lon is None and lat is None and alt is None and scene.city is not None:
             camera = scene.city_camera(w, h, fov)
         elif lon is None and lat is None and alt is None:
             camera = scene.overview_camera(w, h, fov)
@@ -455,6 +472,7 @@ def render(
 
 
 @app.command()
+@_terrain_flags
 def fly(
     source: Annotated[str, typer.Argument(help="A DEM (any GDAL raster) or a .lods tileset.")],
     output: Annotated[Path, typer.Option("-o", "--output", help="The video to write (.mp4).")],
@@ -484,18 +502,6 @@ def fly(
     budget_mb: Annotated[
         float, typer.Option(callback=_finite, help="MiB each of GPU, memory and cache.")
     ] = 256.0,
-    max_sse: SseOpt = 2.0,
-    terrain_mode: TerrainModeOpt = "cpu",
-    ground: GroundOpt = "tint",
-    landcover: LandcoverOpt = None,
-    anisotropy: AnisotropyOpt = 16.0,
-    imagery: ImageryOpt = None,
-    imagery_cache: CacheOpt = None,
-    detail: DetailOpt = "none",
-    hurst: HurstOpt = None,
-    sigma: SigmaOpt = None,
-    seed: SeedOpt = None,
-    city: CityOpt = None,
     globe: Annotated[
         bool,
         typer.Option(
@@ -505,6 +511,8 @@ def fly(
         ),
     ] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    *,
+    terrain: TerrainFlags,
 ) -> None:
     """Fly a camera over SOURCE along a route, an orbit or a line into an MP4, streaming tiles
     on a simulated clock: the statistics say what a real-time viewer at --fps would have seen."""
@@ -527,8 +535,6 @@ def fly(
     for target in (output, stats):
         if target is not None and not (target.parent if str(target.parent) else Path(".")).is_dir():
             raise LodscapeError(f"{target}: folder {target.parent} does not exist")
-    fractal = _detail(source, detail, hurst, sigma, seed)
-    source, town = _city_source(source, city)
     given = [p for p in (path, orbit, line) if p is not None]
     if len(given) != 1:
         raise LodscapeError("give one of --path, --orbit or --line")
@@ -541,18 +547,13 @@ def fly(
         assert line is not None
         lon1, lat1, lon2, lat2, alt = _numbers(line, 5, "--line LON1,LAT1,LON2,LAT2,ALT")
         route = flight.line_route(lon1, lat1, lon2, lat2, alt, speed)
-    options = _scene_options(
-        max_sse=max_sse, anisotropy=anisotropy, terrain_mode=terrain_mode, budget_mb=budget_mb
-    )
-    cover = _landcover(ground, landcover, city)
+    options = terrain.options(budget_mb)
     cams = list(flight.cameras(route, fps, w, h, pitch=pitch, fov=fov, duration=duration))
     if globe:
-        from lodscape.globe import Globe, GlobeOptions
+        from lodscape.globe import GlobeOptions
 
-        earth = Globe(
-            None if source in ("-", "none") else open_scene(source),
-            GlobeOptions(max_sse=max_sse, background=(0.0, 0.0, 0.0)),
-        )
+        terrain.refuse_for_globe()
+        earth = _globe(source, GlobeOptions(max_sse=terrain.max_sse, background=(0.0, 0.0, 0.0)))
         try:
             with Progress(
                 TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), disable=quiet
@@ -577,18 +578,9 @@ def fly(
         return
     columns = (TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with (
-        _open(
-            source,
-            options,
-            imagery,
-            imagery_cache,
-            clock=SimClock(),
-            detail=fractal,
-            landcover=cover,
-        ) as scene,
+        terrain.open(source, options, clock=SimClock()) as scene,
         Progress(*columns, disable=quiet) as bar,
     ):
-        _drape(scene, town)
         task = bar.add_task("frames", total=len(cams))
         rows = flight.fly(
             scene,
@@ -796,6 +788,7 @@ def export(
 
 
 @app.command()
+@_terrain_flags
 def view(
     source: Annotated[
         str, typer.Argument(help="A DEM, a .lods tileset, procedural:seed=N, or flat with --city.")
@@ -810,18 +803,9 @@ def view(
     ] = Path("."),
     size: SizeOpt = "1280x720",
     fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 60.0,
-    max_sse: SseOpt = 2.0,
-    terrain_mode: TerrainModeOpt = "cpu",
-    ground: GroundOpt = "tint",
-    landcover: LandcoverOpt = None,
-    anisotropy: AnisotropyOpt = 16.0,
     budget_mb: Annotated[
         float, typer.Option(callback=_finite, help="MiB each of GPU, memory and cache.")
     ] = 512.0,
-    imagery: ImageryOpt = None,
-    imagery_cache: CacheOpt = None,
-    detail: DetailOpt = "none",
-    city: CityOpt = None,
     exit_after: Annotated[
         float | None,
         typer.Option(callback=_finite, help="Close the window after this many seconds."),
@@ -833,6 +817,8 @@ def view(
             help="The whole Earth on the QTM grid, with SOURCE's heights where it covers.",
         ),
     ] = False,
+    *,
+    terrain: TerrainFlags,
 ) -> None:
     """Fly over SOURCE in a window: W/S/A/D/Q/E move, arrows and mouse drag look, the wheel
     sets the speed; T wireframe, L level colours, C back-face culling, G fractal detail, P
@@ -841,44 +827,35 @@ def view(
 
     w, h = _size(size)
     if globe:
-        _view_globe(source, camera_file, save_camera, screenshots, w, h, fov, max_sse, exit_after)
+        terrain.refuse_for_globe()
+        _view_globe(
+            source, camera_file, save_camera, screenshots, w, h, fov, terrain.max_sse, exit_after
+        )
         return
-    fractal = _detail(source, detail, None, None, None)
-    options = _scene_options(
-        max_sse=max_sse, anisotropy=anisotropy, terrain_mode=terrain_mode, budget_mb=budget_mb
-    )
-    source, town = _city_source(source, city)
-    cover = _landcover(ground, landcover, city)
-    opened = _open(source, options, imagery, imagery_cache, detail=fractal, landcover=cover)
+    fractal = terrain.fractal(source)
+    options = terrain.options(budget_mb)
+    opened = terrain.open(source, options)
     try:
-        town = _drape(opened, town)
         if camera_file is not None:
             from lodscape.view import load_camera
 
             camera = load_camera(camera_file, w, h)
-        elif town is not None:
+        elif opened.city is not None:
             camera = opened.city_camera(w, h, fov)
         else:
             camera = opened.overview_camera(w, h, fov)
-        raster = not is_tileset(source) and not source.startswith("procedural")
+        lattice = parse_source(source).has_lattice
 
         def other(with_detail: bool) -> Scene:
-            made = _open(
-                source,
-                options,
-                imagery,
-                imagery_cache,
-                detail=(fractal or Fractal()) if with_detail else None,
-                landcover=cover,
+            return terrain.open(
+                source, options, detail=(fractal or Fractal()) if with_detail else None
             )
-            _drape(made, town)
-            return made
 
         # the G key's other scene, made when first asked for
         scenes: dict[str, Any] = {"detail" if fractal is not None else "plain": opened}
         if fractal is not None:
             scenes["plain"] = lambda: other(False)
-        elif raster and cover is None:
+        elif lattice and terrain.ground == "tint":
             scenes["detail"] = lambda: other(True)
     except BaseException:
         opened.close()
@@ -974,6 +951,21 @@ def globe(
     _render_globe(source, options, output, None, quiet, lambda _: camera)
 
 
+def _globe(source: str | None, options: Any) -> Any:
+    """The QTM globe over SOURCE's heights (None, "-" or "none": the ellipsoid alone), for
+    ``globe`` and every command's --globe."""
+    from lodscape.globe import Globe
+
+    spec: SourceSpec | None = None if source is None else parse_source(source)
+    terrain = None if spec is None or spec.kind == "none" else open_scene(spec.text)
+    try:
+        return Globe(terrain, options)
+    except BaseException:
+        if terrain is not None:
+            terrain.close()
+        raise
+
+
 def _globe_camera(
     terrain: Scene | None,
     camera_file: Path | None,
@@ -1013,10 +1005,9 @@ def _render_globe(
 ) -> None:
     """One view of the QTM globe (``globe``, ``render --globe``): heights from SOURCE (None,
     "-" or "none": the ellipsoid), the camera made from the terrain opened."""
-    from lodscape.globe import Globe
 
-    terrain = None if source in (None, "-", "none") else open_scene(source)
-    g = Globe(terrain, options)
+    g = _globe(source, options)
+    terrain = g.terrain
     try:
         rgb, dist = g.render(camera(terrain))
         _save_image(output, rgb)
@@ -1042,15 +1033,15 @@ def _view_globe(
     exit_after: float | None,
 ) -> None:
     """``view --globe``: the QTM globe in the window (SOURCE "-" or "none": no heights)."""
-    from lodscape.globe import Globe, GlobeOptions
+    from lodscape.globe import GlobeOptions
     from lodscape.view import view as run_view
 
-    terrain = None if source in ("-", "none") else open_scene(source)
     try:
-        g = Globe(terrain, GlobeOptions(max_sse=max_sse, background=(0.0, 0.0, 0.0)))
+        options = GlobeOptions(max_sse=max_sse, background=(0.0, 0.0, 0.0))
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None
-    camera = _globe_camera(terrain, camera_file, None, w, h, fov)
+    g = _globe(source, options)
+    camera = _globe_camera(g.terrain, camera_file, None, w, h, fov)
     done = run_view(
         {"plain": g},
         camera,

@@ -20,29 +20,20 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.errors import CameraError, SourceError
+from lodscape.errors import CameraError
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 from lodscape.lod.view import TerrainView
 from lodscape.render import Renderer
 from lodscape.render.tess_pass import TessellationUnavailable
-from lodscape.store.provider import FractalProvider, Provider, RasterProvider
-from lodscape.store.tileset import TilesetProvider, is_tileset
+from lodscape.store.provider import Provider, RasterProvider
 from lodscape.stream import RealClock, Streamer, StreamOptions
 from lodscape.stream.loader import Loader
 from lodscape.stream.streamer import Clock
-from lodscape.terrain.detail import (
-    DetailHeights,
-    DetailTree,
-    Fractal,
-    ProceduralHeights,
-    ProceduralTree,
-    parse_procedural,
-)
-from lodscape.terrain.pyramid import TileTree, build_tree
-from lodscape.terrain.source import ArraySource, HeightSource, RasterSource
+from lodscape.terrain.pyramid import TileTree
+from lodscape.terrain.source import HeightSource
 
-__all__ = ["FrameStats", "Scene", "SceneOptions", "open"]
+__all__ = ["FrameStats", "Scene", "SceneOptions"]
 
 SKY = (0.62, 0.75, 0.88)
 
@@ -399,11 +390,6 @@ class Scene:
             return self._renderer.terrain_mode
         return self.options.terrain_mode
 
-    def release_provider(self) -> None:
-        """Stop owning the provider: closing the scene then leaves it open (for a caller that
-        wraps it in another scene)."""
-        self._owns = False
-
     def close(self) -> None:
         if self._loader is not None:
             self._loader.close()
@@ -424,128 +410,3 @@ class Scene:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def open(
-    source: str | PathLike[str] | HeightSource | Provider | NDArray[np.floating],
-    options: SceneOptions | None = None,
-    *,
-    clock: Clock | None = None,
-    detail: Fractal | None = None,
-    landcover: Any = None,
-    **array_kwargs: Any,
-) -> Scene:
-    """A scene over a tileset built by ``lodscape build`` (.lods), a GeoTIFF (any GDAL raster), a
-    numpy array (with ``transform``, ``crs``), the procedural planet (``"procedural:seed=N"``),
-    or a ready HeightSource or Provider. ``detail`` adds fractal detail below a raster's
-    resolution (paper 003). ``landcover`` (an ``imagery.landcover.Landcover``) colours the
-    ground from its class masks instead of the tint. A scene opened from a path or an array
-    closes what it opened when it closes."""
-    if landcover is None:
-        return _open_terrain(source, options, clock=clock, detail=detail, **array_kwargs)
-    from lodscape.store.provider import LandcoverProvider
-
-    raster = isinstance(source, np.ndarray) or (
-        isinstance(source, str | PathLike)
-        and not is_tileset(source)
-        and not str(source).startswith("procedural")
-    )
-    if detail is None and raster:
-        # a mask is worth metres, not the DEM's resolution: the tree goes on below the data
-        # with heights interpolated (fractal detail of no amplitude), and its masks with it
-        detail = Fractal(0.7, 0.0, 0)
-    terrain = _open_terrain(source, options, detail=detail, **array_kwargs)
-    provider = LandcoverProvider(terrain.provider, landcover)
-    terrain.release_provider()
-    terrain.close()
-    return Scene(provider, options, owns=True, clock=clock)
-
-
-def _open_terrain(
-    source: str | PathLike[str] | HeightSource | Provider | NDArray[np.floating],
-    options: SceneOptions | None = None,
-    *,
-    clock: Clock | None = None,
-    detail: Fractal | None = None,
-    **array_kwargs: Any,
-) -> Scene:
-    """``open`` without a land cover."""
-    if isinstance(source, str) and (source == "procedural" or source.startswith("procedural:")):
-        return Scene(procedural_provider(source, detail), options, owns=True, clock=clock)
-    if isinstance(source, str) and source.startswith("flat:"):
-        src: HeightSource = flat_source(source)
-    elif isinstance(source, np.ndarray):
-        src = ArraySource(source, **array_kwargs)
-    elif isinstance(source, str | PathLike):
-        if is_tileset(source):
-            if detail is not None:
-                raise SourceError(
-                    f"{source}: fractal detail needs a raster source; a tileset keeps no lattice "
-                    "of the data to add it to"
-                )
-            return Scene(TilesetProvider(source), options, owns=True, clock=clock)
-        src = RasterSource(source)
-    else:
-        if detail is not None:
-            raise SourceError("fractal detail needs a raster source, not a ready provider")
-        return Scene(source, options, clock=clock)
-    if detail is None:
-        return Scene(src, options, owns=True, clock=clock)
-    try:
-        return Scene(fractal_provider(src, detail), options, owns=True, clock=clock)
-    except BaseException:
-        src.close()
-        raise
-
-
-def flat_source(spec: str) -> ArraySource:
-    """``flat:WEST,SOUTH,EAST,NORTH[,HEIGHT]``: level ground (the ellipsoid, or HEIGHT metres
-    above it) over a box in degrees, for cities and tests with no DEM."""
-    try:
-        vals = [float(v) for v in spec.split(":", 1)[1].split(",")]
-    except ValueError:
-        vals = []
-    if len(vals) not in (4, 5) or not all(math.isfinite(v) for v in vals):
-        raise SourceError(f"{spec}: expected flat:WEST,SOUTH,EAST,NORTH[,HEIGHT] in degrees")
-    w, s, e, n = vals[:4]
-    h = vals[4] if len(vals) == 5 else 0.0
-    if not (-180.0 <= w < e <= 180.0 and -85.0 <= s < n <= 85.0):
-        raise SourceError(f"{spec}: the box must have west < east and south < north, in degrees")
-    size = 65
-    from affine import Affine
-
-    transform = Affine(
-        (e - w) / (size - 1),
-        0.0,
-        w - 0.5 * (e - w) / (size - 1),
-        0.0,
-        -(n - s) / (size - 1),
-        n + 0.5 * (n - s) / (size - 1),
-    )
-    src = ArraySource(np.full((size, size), h), transform, crs="EPSG:4326")
-    src.name = spec
-    return src
-
-
-def fractal_provider(source: HeightSource, fractal: Fractal) -> FractalProvider:
-    """A raster with fractal detail below its resolution."""
-    tree = DetailTree.over(build_tree(source), fractal)
-    return FractalProvider(DetailHeights(source, tree), tree)
-
-
-def procedural_provider(spec: str, override: Fractal | None = None) -> FractalProvider:
-    """The procedural planet of ``procedural:seed=N[,hurst=H][,sigma=S]``; ``override``'s
-    fields, where given, win over the spec's."""
-    try:
-        f = parse_procedural(spec)
-    except ValueError as exc:
-        raise SourceError(str(exc)) from None
-    if override is not None:
-        f = Fractal(
-            override.hurst,
-            override.sigma if override.sigma is not None else f.sigma,
-            override.seed,
-        )
-    sigma = float(f.sigma if f.sigma is not None else 0.0)
-    tree = ProceduralTree(f, sigma)
-    return FractalProvider(ProceduralHeights(tree), tree)

@@ -43,6 +43,11 @@ class Provider(Protocol):
         """Terrain heights at many points (degrees), NaN outside the data."""
         ...
 
+    def city(self) -> Any:
+        """The cities the source stores (a tileset's ``lodscape city add``) as one
+        ``city.osm.City``, or None."""
+        ...
+
     def fetch(self, key: int) -> bytes:
         """The stored form of one resource key (``geo.keys``): what the disk or the
         network gives, what the streamer's cache stage holds."""
@@ -100,6 +105,9 @@ class RasterProvider:
         xm, ym = lonlat_to_merc(lon, lat)
         h, ok = self.source.sample(xm, ym, self.source.resolution_merc)
         return np.where(ok, np.asarray(h, np.float64), np.nan)
+
+    def city(self) -> Any:
+        return None
 
     def fetch(self, key: int) -> bytes:
         """A mesh key's sampled heights (float32), or a texture key's RGBA pixels."""
@@ -188,6 +196,9 @@ class ImageryProvider:
     def heights_at(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
         return self.base.heights_at(lon, lat)
 
+    def city(self) -> Any:
+        return self.base.city()
+
     def fetch(self, key: int) -> bytes:
         if not is_texture(key):
             return self.base.fetch(key)
@@ -254,6 +265,9 @@ class LandcoverProvider:
 
     def heights_at(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
         return self.base.heights_at(lon, lat)
+
+    def city(self) -> Any:
+        return self.base.city()
 
     def fetch(self, key: int) -> bytes:
         if not is_texture(key):

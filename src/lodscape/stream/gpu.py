@@ -49,6 +49,8 @@ class GpuStage:
         self._lru: ByteLRU[int, MeshInfo | None] = ByteLRU()
         self._meshes: dict[int, MeshInfo] = {}
         self._keys: NDArray[np.uint64] | None = None
+        #: Uploaded since the last eviction: not drawn yet, wanted by the next frame.
+        self._fresh: set[int] = set()
         self.uploaded = 0
         self.released = 0
 
@@ -83,6 +85,7 @@ class GpuStage:
             self._meshes[key] = info
         self._lru.put(key, info, nbytes)
         self._keys = None
+        self._fresh.add(key)
         self.uploaded += 1
 
     def upload_within(self, items: Iterable[tuple[int, Made]], budget_ms: float) -> int:
@@ -106,8 +109,10 @@ class GpuStage:
 
     def evict(self, keep: frozenset[int]) -> int:
         """Release the least recently drawn resources, never one of ``keep`` (what the last
-        frame drew), until the stage fits its budget; returns how many went."""
-        gone = self._lru.shrink(self.budget_bytes, keep)
+        frame drew) nor one uploaded since the last eviction (what the next frame asked for),
+        until the stage fits its budget; returns how many went."""
+        gone = self._lru.shrink(self.budget_bytes, keep | self._fresh)
+        self._fresh = set()
         for key, _ in gone:
             self._meshes.pop(key, None)
             self.gpu.release(key)
@@ -120,4 +125,5 @@ class GpuStage:
         """Forget everything (the GPU objects went with their renderer)."""
         self._lru.clear()
         self._meshes.clear()
+        self._fresh = set()
         self._keys = None

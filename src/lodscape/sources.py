@@ -1,0 +1,257 @@
+"""What a SOURCE is and how a scene is opened from it: the source string parsed once, the
+provider composed (terrain, then imagery or land cover on top) before the scene is made, and the
+cities draped.
+
+    scene = lodscape.open("dem.tif", imagery="https://tile.example/{z}/{x}/{y}.png",
+                          city="town.osm.pbf")
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from os import PathLike
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.errors import LodscapeError, SourceError
+from lodscape.scene import Scene, SceneOptions
+from lodscape.store.provider import FractalProvider, Provider, RasterProvider
+from lodscape.store.tileset import TilesetProvider, is_tileset
+from lodscape.stream.streamer import Clock
+from lodscape.terrain.detail import (
+    DetailHeights,
+    DetailTree,
+    Fractal,
+    ProceduralHeights,
+    ProceduralTree,
+    parse_procedural,
+)
+from lodscape.terrain.pyramid import build_tree
+from lodscape.terrain.source import ArraySource, HeightSource, RasterSource
+
+__all__ = [
+    "SourceSpec",
+    "flat_source",
+    "fractal_provider",
+    "open",
+    "parse_source",
+    "procedural_provider",
+]
+
+Kind = Literal["tileset", "raster", "procedural", "flat", "none"]
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """A SOURCE argument, read once: what kind of terrain it names, and the text."""
+
+    kind: Kind
+    text: str
+
+    @property
+    def has_lattice(self) -> bool:
+        """Whether heights come on a lattice fractal detail can refine (not a tileset)."""
+        return self.kind in ("raster", "flat")
+
+
+def parse_source(source: str | PathLike[str]) -> SourceSpec:
+    """``none`` or ``-`` (no terrain: the globe alone), ``flat`` (level ground under a city),
+    ``flat:W,S,E,N[,H]``, ``procedural[:seed=N,…]``, a .lods tileset, or a raster path."""
+    text = os.fspath(source)
+    if text in ("none", "-"):
+        return SourceSpec("none", text)
+    if text == "flat" or text.startswith("flat:"):
+        return SourceSpec("flat", text)
+    if text == "procedural" or text.startswith("procedural:"):
+        return SourceSpec("procedural", text)
+    if is_tileset(text):
+        return SourceSpec("tileset", text)
+    return SourceSpec("raster", text)
+
+
+def open(
+    source: str | PathLike[str] | HeightSource | Provider | NDArray[np.floating],
+    options: SceneOptions | None = None,
+    *,
+    clock: Clock | None = None,
+    detail: Fractal | None = None,
+    landcover: Any = None,
+    imagery: str | None = None,
+    imagery_cache: str | PathLike[str] | None = None,
+    strict_imagery: bool = True,
+    city: Any = None,
+    **array_kwargs: Any,
+) -> Scene:
+    """A scene over a tileset built by ``lodscape build`` (.lods), a GeoTIFF (any GDAL raster), a
+    numpy array (with ``transform``, ``crs``), the procedural planet (``"procedural:seed=N"``),
+    level ground (``"flat:W,S,E,N"``, or ``"flat"`` under ``city``), or a ready HeightSource or
+    Provider.
+
+    - ``detail`` adds fractal detail below a raster's resolution (paper 003);
+    - ``landcover`` (an ``imagery.landcover.Landcover``) colours the ground from its class masks;
+    - ``imagery`` (an XYZ URL template, an .mbtiles file or a folder of z/x/y tiles) textures
+      it, cached under ``imagery_cache``; with ``strict_imagery`` False a failed tile is the
+      tint at once instead of retried;
+    - ``city`` (an OSM file or a ``City``) is draped on it, with the cities a tileset stores.
+
+    A scene opened from a path or an array closes what it opened when it closes."""
+    if landcover is not None and imagery is not None:
+        raise LodscapeError("imagery and a land cover both colour the ground: pick one")
+    town = _read_city(city)
+    spec = None if not isinstance(source, str | PathLike) else parse_source(source)
+    if spec is not None and spec.kind == "flat" and spec.text == "flat":
+        if town is None:
+            raise SourceError("SOURCE flat (level ground) needs a city to know where")
+        source = _ground_under(town)
+        spec = parse_source(source)
+    lattice = isinstance(source, np.ndarray) or (spec is not None and spec.has_lattice)
+    if landcover is not None and detail is None and lattice:
+        # a mask is worth metres, not the DEM's resolution: the tree goes on below the data
+        # with heights interpolated (fractal detail of no amplitude), and its masks with it
+        detail = Fractal(0.7, 0.0, 0)
+    provider, owns = _terrain(source, spec, detail, array_kwargs)
+    try:
+        if landcover is not None:
+            from lodscape.store.provider import LandcoverProvider
+
+            provider = LandcoverProvider(provider, landcover)
+        elif imagery is not None:
+            provider = _with_imagery(provider, imagery, imagery_cache, strict_imagery)
+    except BaseException:
+        if owns:
+            provider.close()
+        raise
+    scene = Scene(provider, options, owns=owns, clock=clock)
+    try:
+        stored = provider.city()
+        if stored is not None and town is not None:
+            stored = stored.merged(town)
+        if stored is not None or town is not None:
+            scene.add_city(stored if stored is not None else town)
+    except BaseException:
+        scene.close()
+        raise
+    return scene
+
+
+def _read_city(city: Any) -> Any:
+    if city is None or not isinstance(city, str | PathLike):
+        return city
+    from lodscape.city.osm import read_osm
+
+    return read_osm(Path(city))
+
+
+def _ground_under(town: Any) -> str:
+    """``flat:…`` level ground over a city's box and a margin around it."""
+    w, s, e, n = town.bounds
+    pw, ps = 0.3 * (e - w) + 0.002, 0.3 * (n - s) + 0.001
+    return f"flat:{w - pw},{s - ps},{e + pw},{n + ps}"
+
+
+def _terrain(
+    source: Any, spec: SourceSpec | None, detail: Fractal | None, array_kwargs: dict[str, Any]
+) -> tuple[Provider, bool]:
+    """The terrain provider a source names, and whether the scene owns it."""
+    if spec is None:
+        if isinstance(source, np.ndarray):
+            return _lattice(ArraySource(source, **array_kwargs), detail), True
+        if detail is not None:
+            raise SourceError("fractal detail needs a raster source, not a ready provider")
+        if hasattr(source, "sample"):  # a height source: meshed on the fly
+            return RasterProvider(source), False
+        return source, False
+    if spec.kind == "none":
+        raise SourceError(f"{spec.text}: no terrain (none is for the globe alone)")
+    if spec.kind == "procedural":
+        return procedural_provider(spec.text, detail), True
+    if spec.kind == "tileset":
+        if detail is not None:
+            raise SourceError(
+                f"{spec.text}: fractal detail needs a raster source; a tileset keeps no lattice "
+                "of the data to add it to"
+            )
+        return TilesetProvider(spec.text), True
+    src = flat_source(spec.text) if spec.kind == "flat" else RasterSource(spec.text)
+    return _lattice(src, detail), True
+
+
+def _lattice(src: HeightSource, detail: Fractal | None) -> Provider:
+    if detail is None:
+        return RasterProvider(src)
+    try:
+        return fractal_provider(src, detail)
+    except BaseException:
+        src.close()
+        raise
+
+
+def _with_imagery(
+    provider: Provider, imagery: str, cache: str | PathLike[str] | None, strict: bool
+) -> Provider:
+    from lodscape.imagery.sources import imagery_source
+    from lodscape.store.provider import ImageryProvider
+
+    if cache is None:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
+        cache = Path(base) / "lodscape"
+    fetcher = imagery_source(imagery, cache_dir=Path(cache))
+    return ImageryProvider(provider, fetcher, strict=strict)
+
+
+def flat_source(spec: str) -> ArraySource:
+    """``flat:WEST,SOUTH,EAST,NORTH[,HEIGHT]``: level ground (the ellipsoid, or HEIGHT metres
+    above it) over a box in degrees, for cities and tests with no DEM."""
+    try:
+        vals = [float(v) for v in spec.split(":", 1)[1].split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) not in (4, 5) or not all(math.isfinite(v) for v in vals):
+        raise SourceError(f"{spec}: expected flat:WEST,SOUTH,EAST,NORTH[,HEIGHT] in degrees")
+    w, s, e, n = vals[:4]
+    h = vals[4] if len(vals) == 5 else 0.0
+    if not (-180.0 <= w < e <= 180.0 and -85.0 <= s < n <= 85.0):
+        raise SourceError(f"{spec}: the box must have west < east and south < north, in degrees")
+    size = 65
+    from affine import Affine
+
+    transform = Affine(
+        (e - w) / (size - 1),
+        0.0,
+        w - 0.5 * (e - w) / (size - 1),
+        0.0,
+        -(n - s) / (size - 1),
+        n + 0.5 * (n - s) / (size - 1),
+    )
+    src = ArraySource(np.full((size, size), h), transform, crs="EPSG:4326")
+    src.name = spec
+    return src
+
+
+def fractal_provider(source: HeightSource, fractal: Fractal) -> FractalProvider:
+    """A raster with fractal detail below its resolution."""
+    tree = DetailTree.over(build_tree(source), fractal)
+    return FractalProvider(DetailHeights(source, tree), tree)
+
+
+def procedural_provider(spec: str, override: Fractal | None = None) -> FractalProvider:
+    """The procedural planet of ``procedural:seed=N[,hurst=H][,sigma=S]``; ``override``'s
+    fields, where given, win over the spec's."""
+    try:
+        f = parse_procedural(spec)
+    except ValueError as exc:
+        raise SourceError(str(exc)) from None
+    if override is not None:
+        f = Fractal(
+            override.hurst,
+            override.sigma if override.sigma is not None else f.sigma,
+            override.seed,
+        )
+    sigma = float(f.sigma if f.sigma is not None else 0.0)
+    tree = ProceduralTree(f, sigma)
+    return FractalProvider(ProceduralHeights(tree), tree)
