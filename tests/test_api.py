@@ -28,6 +28,7 @@ def test_exported_members_resolve() -> None:
         "view",
         "serve",
         "globe",
+        "sources",
         "annotations",
     }
 

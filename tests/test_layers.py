@@ -25,7 +25,7 @@ LAYERS: dict[str, set[str]] = {
     "stream": {"geo", "lod", "terrain"},
     "render": {"geo", "lod", "terrain", "imagery", "city"},
 }
-APP = {"scene", "globe", "flight", "view", "serve", "cli", "data", "__init__"}
+APP = {"scene", "sources", "globe", "flight", "view", "serve", "cli", "data", "__init__"}
 
 
 def _modules() -> dict[str, Path]:

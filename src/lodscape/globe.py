@@ -239,15 +239,18 @@ class Globe:
     def ground_height(self, lon: float, lat: float) -> float | None:
         return float(self.heights(np.array([lat]), np.array([lon]))[0])
 
-    @property
-    def stats(self) -> dict[str, Any]:
-        """The last frame's figures in the viewer's names."""
+    def hud_stats(self) -> dict[str, Any]:
+        """The last frame's figures in the viewer's names (``view.Viewable``)."""
         return {
             "tiles": self.last.get("triangles", 0),
             "triangles": self.last.get("triangles", 0),
             "max_sse_px": self.last.get("screen_error_px", 0.0),
             "max_depth": self.last.get("max_level", 0),
         }
+
+    def toggle_culling(self) -> bool | None:
+        """The globe culls by its horizon and frustum only: nothing to toggle."""
+        return None
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from os import PathLike
 from typing import Any
 
@@ -389,6 +389,15 @@ class Scene:
         if self._renderer is not None:
             return self._renderer.terrain_mode
         return self.options.terrain_mode
+
+    def hud_stats(self) -> dict[str, Any]:
+        """The last frame's figures (``view.Viewable``)."""
+        return {} if self.last is None else dict(self.last.as_dict())
+
+    def toggle_culling(self) -> bool | None:
+        """Back-face culling off if on, on if off; returns the new setting (``view.Viewable``)."""
+        self.options = replace(self._options, cull_backfacing=not self._options.cull_backfacing)
+        return self._options.cull_backfacing
 
     def close(self) -> None:
         if self._loader is not None:

@@ -18,14 +18,14 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from lodscape.errors import CameraError, LodscapeError
 from lodscape.lod.camera import Camera
 
-__all__ = ["load_camera", "save_camera", "view"]
+__all__ = ["Viewable", "load_camera", "save_camera", "view"]
 
 CAMERA_FIELDS = ("lon", "lat", "alt", "heading", "pitch", "roll", "fov_y")
 
@@ -76,6 +76,38 @@ void main() { f_color = texture(u_text, v_uv); }
 """
 
 
+class Viewable(Protocol):
+    """What the window asks of what it shows: a terrain ``Scene`` and the QTM ``Globe`` both
+    answer it."""
+
+    def use_context(self, ctx: Any) -> None:
+        """Draw in the window's OpenGL context (before the first frame)."""
+        ...
+
+    def render(self, camera: Camera) -> Any: ...
+
+    @property
+    def renderer(self) -> Any:
+        """What drew the last frame: its ``colour_framebuffer``, ``read_back``, ``wireframe``
+        and ``lod_colours``."""
+        ...
+
+    @property
+    def terrain_mode(self) -> str: ...
+
+    def ground_height(self, lon: float, lat: float) -> float | None: ...
+
+    def hud_stats(self) -> dict[str, Any]:
+        """The last frame's figures: tiles, triangles, resident_mb, max_sse_px, fallback_max."""
+        ...
+
+    def toggle_culling(self) -> bool | None:
+        """Flip back-face culling; the new setting, or None where there is none."""
+        ...
+
+    def close(self) -> None: ...
+
+
 @dataclass
 class _State:
     camera: Camera
@@ -86,6 +118,223 @@ class _State:
     screenshots: int = 0
     message: str = ""
     message_until: float = 0.0
+
+    def say(self, msg: str) -> None:
+        self.message, self.message_until = msg, time.perf_counter() + 2.5
+
+
+def _open_window(camera: Camera, title: str, gpu: bool) -> Any:
+    """A pyglet window through moderngl-window (OpenGL 4.1 for the GPU terrain mode, 3.3 where
+    that is refused); a one-line error where none opens."""
+    import moderngl_window
+    from moderngl_window.conf import settings
+
+    settings.WINDOW["class"] = "moderngl_window.context.pyglet.Window"
+    settings.WINDOW["size"] = (camera.width, camera.height)
+    settings.WINDOW["title"] = title
+    settings.WINDOW["vsync"] = False
+    settings.WINDOW["resizable"] = True
+    settings.WINDOW["gl_version"] = (4, 1) if gpu else (3, 3)
+    try:
+        return moderngl_window.create_window_from_settings()
+    except Exception as exc:  # pyglet raises its own classes per platform
+        if not gpu:
+            raise LodscapeError(f"cannot open a window: {exc}") from None
+    settings.WINDOW["gl_version"] = (3, 3)
+    try:
+        return moderngl_window.create_window_from_settings()
+    except Exception as exc:
+        raise LodscapeError(f"cannot open a window: {exc}") from None
+
+
+class _Hud:
+    """The text in the window's top left corner: a texture remade only when the text changes."""
+
+    def __init__(self, ctx: Any) -> None:
+        self.ctx = ctx
+        self.prog = ctx.program(vertex_shader=_HUD_VERTEX, fragment_shader=_HUD_FRAGMENT)
+        quad = ctx.buffer(np.array([0, 0, 1, 0, 0, 1, 1, 1], np.float32).tobytes())
+        self.vao = ctx.vertex_array(self.prog, [(quad, "2f", "in_pos")])
+        self.tex: Any = None
+        self.text = ""
+
+    def draw(self, text: str, w: int, h: int) -> None:
+        import moderngl
+
+        if text != self.text or self.tex is None:
+            self.text = text
+            from PIL import Image, ImageDraw
+
+            lines = text.split("\n")
+            img = Image.new(
+                "RGBA", (8 * max(len(s) for s in lines) + 8, 14 * len(lines) + 6), (0, 0, 0, 140)
+            )
+            dr = ImageDraw.Draw(img)
+            for i, line in enumerate(lines):
+                dr.text((4, 3 + 14 * i), line, fill=(255, 255, 255, 255))
+            if self.tex is not None:
+                self.tex.release()
+            self.tex = self.ctx.texture(img.size, 4, img.tobytes())
+            self.tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        tw, th = self.tex.size
+        rect: Any = self.prog["u_rect"]
+        rect.value = (-1.0, 1.0 - 2.0 * th / h, 2.0 * tw / w, 2.0 * th / h)
+        self.ctx.enable_only(moderngl.BLEND)
+        self.ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
+        self.tex.use(0)
+        self.vao.render(moderngl.TRIANGLE_STRIP)
+
+
+def _hud_text(st: _State, scene: Viewable) -> str:
+    stats = scene.hud_stats()
+    text = (
+        f"{st.fps:5.1f} fps  tiles {stats.get('tiles', 0)}  "
+        f"triangles {int(stats.get('triangles', 0)):,}  "
+        f"resident {float(stats.get('resident_mb', 0.0)):.1f} MiB  "
+        f"max SSE {float(stats.get('max_sse_px', 0.0)):.2f} px  "
+        f"fallback {stats.get('fallback_max', 0)}  [{scene.terrain_mode}]"
+    )
+    if time.perf_counter() < st.message_until:
+        text += "\n" + st.message
+    return text
+
+
+class _Controller:
+    """Keys and mouse onto the camera and the scene: the viewer's state between frames."""
+
+    def __init__(
+        self,
+        window: Any,
+        scenes: dict[str, Any],
+        start: str,
+        camera: Camera,
+        screenshot_dir: Path,
+        camera_file: Path | None,
+    ) -> None:
+        self.window = window
+        self.keys = window.keys
+        self.scenes = scenes
+        self.active = start
+        self.scene: Viewable = scenes[start]
+        self.screenshot_dir = screenshot_dir
+        self.camera_file = camera_file
+        ground = self.scene.ground_height(camera.lon, camera.lat)
+        start_agl = camera.alt - (ground if ground is not None else 0.0)
+        self.st = _State(camera, speed=max(start_agl, 20.0))
+        window.key_event_func = self.on_key
+        window.mouse_drag_event_func = self.on_drag
+        window.mouse_scroll_event_func = self.on_scroll
+
+    def screenshot(self) -> Path:
+        rend = self.scene.renderer
+        fbo = rend.colour_framebuffer if rend is not None else None
+        if fbo is None:
+            raise LodscapeError("no frame yet")
+        w, h = fbo.size
+        rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
+        rgb = rgb.reshape(h, w, 3)[::-1]
+        from PIL import Image
+
+        self.screenshot_dir.mkdir(parents=True, exist_ok=True)
+        self.st.screenshots += 1
+        path = self.screenshot_dir / f"lodscape-{self.st.screenshots:04d}.png"
+        tmp = path.with_name(path.name + ".tmp.png")
+        Image.fromarray(np.ascontiguousarray(rgb)).save(tmp)
+        tmp.replace(path)
+        return path
+
+    def on_key(self, key: int, action: Any, modifiers: Any) -> None:
+        keys, st = self.keys, self.st
+        if action == keys.ACTION_RELEASE:
+            st.keys.discard(key)
+            return
+        if action != keys.ACTION_PRESS:
+            return
+        st.keys.add(key)
+        rend = self.scene.renderer
+        if key == keys.ESCAPE:
+            self.window.close()
+        elif key == keys.P:
+            st.say(f"saved {self.screenshot().name}")
+        elif key == keys.K:
+            if self.camera_file is None:
+                st.say("no --camera-file to save to")
+            else:
+                save_camera(self.camera_file, st.camera)
+                st.say(f"saved the camera to {self.camera_file.name}")
+        elif key == keys.T and rend is not None:
+            rend.wireframe = not rend.wireframe
+            st.say(f"wireframe {'on' if rend.wireframe else 'off'}")
+        elif key == keys.L and rend is not None:
+            rend.lod_colours = not rend.lod_colours
+            st.say(f"level colours {'on' if rend.lod_colours else 'off'}")
+        elif key == keys.C:
+            on = self.scene.toggle_culling()
+            if on is not None:
+                st.say(f"back-face culling {'on' if on else 'off'}")
+        elif key == keys.G:
+            self.switch_detail()
+
+    def switch_detail(self) -> None:
+        """The G key: the other of the plain and the fractal-detail scene, made when first
+        asked for."""
+        other = "detail" if self.active == "plain" else "plain"
+        made = self.scenes.get(other)
+        if made is None:
+            self.st.say("fractal detail needs a raster source")
+            return
+        if callable(made):
+            try:
+                made = made()
+            except LodscapeError as exc:
+                self.scenes.pop(other)
+                self.st.say(str(exc))
+                return
+            made.use_context(self.window.ctx)
+            self.scenes[other] = made
+        self.scene, self.active = made, other
+        self.st.say(f"fractal detail {'on' if other == 'detail' else 'off'}")
+
+    def on_drag(self, x: int, y: int, dx: int, dy: int) -> None:
+        c = self.st.camera
+        self.st.camera = c.moved(
+            heading=(c.heading + 0.25 * dx) % 360.0,
+            pitch=float(np.clip(c.pitch - 0.25 * dy, -89.0, 89.0)),
+        )
+
+    def on_scroll(self, x: float, y: float) -> None:
+        self.st.speed = float(np.clip(self.st.speed * 1.25**y, 0.5, 2e6))
+        self.st.say(f"speed {self.st.speed:,.0f} m/s")
+
+    def move(self, dt: float) -> None:
+        c, k, keys = self.st.camera, self.st.keys, self.keys
+        h, p = math.radians(c.heading), math.radians(c.pitch)
+        fwd = np.array([math.sin(h) * math.cos(p), math.cos(h) * math.cos(p), math.sin(p)])
+        right = np.array([math.cos(h), -math.sin(h), 0.0])
+        d = np.zeros(3)
+        d += fwd * ((keys.W in k) - (keys.S in k))
+        d += right * ((keys.D in k) - (keys.A in k))
+        d[2] += (keys.E in k) - (keys.Q in k)
+        turn = ((keys.RIGHT in k) - (keys.LEFT in k)) * 60.0 * dt
+        tilt = ((keys.UP in k) - (keys.DOWN in k)) * 40.0 * dt
+        step = d * self.st.speed * dt
+        # east/north metres to degrees at the camera
+        lat = c.lat + math.degrees(step[1] / 6_371_000.0)
+        lon = c.lon + math.degrees(
+            step[0] / (6_371_000.0 * max(math.cos(math.radians(c.lat)), 1e-6))
+        )
+        lat = float(np.clip(lat, -85.0, 85.0))
+        alt = c.alt + step[2]
+        g = self.scene.ground_height(lon, lat)
+        if g is not None:
+            alt = max(alt, g + 2.0)
+        self.st.camera = c.moved(
+            lon=(lon + 180.0) % 360.0 - 180.0,
+            lat=lat,
+            alt=alt,
+            heading=(c.heading + turn) % 360.0,
+            pitch=float(np.clip(c.pitch + tilt, -89.0, 89.0)),
+        )
 
 
 def view(
@@ -98,198 +347,16 @@ def view(
     title: str = "lodscape",
     start: str = "plain",
 ) -> dict[str, Any]:
-    """Open a window on ``scenes[start]`` (the other of "plain" and "detail", a scene or a
-    factory of one, is what the G key switches to) and fly until Esc, the window closing, or
-    ``exit_after`` seconds. Returns what happened (frames, screenshots, the last camera)."""
-    import moderngl
-    import moderngl_window
-    from moderngl_window.conf import settings
-
-    gpu = getattr(scenes[start].options, "terrain_mode", "cpu") == "gpu"
-    settings.WINDOW["class"] = "moderngl_window.context.pyglet.Window"
-    settings.WINDOW["size"] = (camera.width, camera.height)
-    settings.WINDOW["title"] = title
-    settings.WINDOW["vsync"] = False
-    settings.WINDOW["resizable"] = True
-    settings.WINDOW["gl_version"] = (4, 1) if gpu else (3, 3)
-    try:
-        window = moderngl_window.create_window_from_settings()
-    except Exception as exc:  # pyglet raises its own classes per platform
-        if gpu:
-            settings.WINDOW["gl_version"] = (3, 3)
-            try:
-                window = moderngl_window.create_window_from_settings()
-            except Exception as exc2:
-                raise LodscapeError(f"cannot open a window: {exc2}") from None
-        else:
-            raise LodscapeError(f"cannot open a window: {exc}") from None
-    ctx: moderngl.Context = window.ctx
-    active = start
-    scene = scenes[active]
-    scene.use_context(ctx)
-    keys = window.keys
-    ground = scene.ground_height(camera.lon, camera.lat)
-    start_agl = camera.alt - (ground if ground is not None else 0.0)
-    st = _State(camera, speed=max(start_agl, 20.0))
-
-    hud_prog = ctx.program(vertex_shader=_HUD_VERTEX, fragment_shader=_HUD_FRAGMENT)
-    quad = ctx.buffer(np.array([0, 0, 1, 0, 0, 1, 1, 1], np.float32).tobytes())
-    hud_vao = ctx.vertex_array(hud_prog, [(quad, "2f", "in_pos")])
-    hud_tex: list[Any] = [None]
-    hud_text = [""]
-
-    def say(msg: str) -> None:
-        st.message, st.message_until = msg, time.perf_counter() + 2.5
-
-    def screenshot() -> Path:
-        rend = scene.renderer
-        fbo = rend.colour_framebuffer if rend is not None else None
-        if fbo is None:
-            raise LodscapeError("no frame yet")
-        w, h = fbo.size
-        rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
-        rgb = rgb.reshape(h, w, 3)[::-1]
-        from PIL import Image
-
-        screenshot_dir.mkdir(parents=True, exist_ok=True)
-        st.screenshots += 1
-        path = screenshot_dir / f"lodscape-{st.screenshots:04d}.png"
-        tmp = path.with_name(path.name + ".tmp.png")
-        Image.fromarray(np.ascontiguousarray(rgb)).save(tmp)
-        tmp.replace(path)
-        return path
-
-    def on_key(key: int, action: Any, modifiers: Any) -> None:
-        nonlocal scene, active
-        if action == keys.ACTION_PRESS:
-            st.keys.add(key)
-            rend = scene.renderer
-            if key == keys.ESCAPE:
-                window.close()
-            elif key == keys.P:
-                say(f"saved {screenshot().name}")
-            elif key == keys.K:
-                if camera_file is None:
-                    say("no --camera-file to save to")
-                else:
-                    save_camera(camera_file, st.camera)
-                    say(f"saved the camera to {camera_file.name}")
-            elif key == keys.T and rend is not None:
-                rend.wireframe = not rend.wireframe
-                say(f"wireframe {'on' if rend.wireframe else 'off'}")
-            elif key == keys.L and rend is not None:
-                rend.lod_colours = not rend.lod_colours
-                say(f"level colours {'on' if rend.lod_colours else 'off'}")
-            elif key == keys.C and hasattr(scene.options, "cull_backfacing"):
-                opts = scene.options
-                scene.options = replace(opts, cull_backfacing=not opts.cull_backfacing)
-                say(f"back-face culling {'on' if scene.options.cull_backfacing else 'off'}")
-            elif key == keys.G:
-                other = "detail" if active == "plain" else "plain"
-                made = scenes.get(other)
-                if made is None:
-                    say("fractal detail needs a raster source")
-                    return
-                if callable(made):
-                    try:
-                        made = made()
-                    except LodscapeError as exc:
-                        scenes.pop(other)
-                        say(str(exc))
-                        return
-                    made.use_context(ctx)
-                    scenes[other] = made
-                scene, active = made, other
-                say(f"fractal detail {'on' if active == 'detail' else 'off'}")
-        elif action == keys.ACTION_RELEASE:
-            st.keys.discard(key)
-
-    def on_drag(x: int, y: int, dx: int, dy: int) -> None:
-        c = st.camera
-        st.camera = c.moved(
-            heading=(c.heading + 0.25 * dx) % 360.0,
-            pitch=float(np.clip(c.pitch - 0.25 * dy, -89.0, 89.0)),
-        )
-
-    def on_scroll(x: float, y: float) -> None:
-        st.speed = float(np.clip(st.speed * 1.25**y, 0.5, 2e6))
-        say(f"speed {st.speed:,.0f} m/s")
-
-    window.key_event_func = on_key
-    window.mouse_drag_event_func = on_drag
-    window.mouse_scroll_event_func = on_scroll
-
-    def move(dt: float) -> None:
-        c = st.camera
-        k = st.keys
-        h, p = math.radians(c.heading), math.radians(c.pitch)
-        fwd = np.array([math.sin(h) * math.cos(p), math.cos(h) * math.cos(p), math.sin(p)])
-        right = np.array([math.cos(h), -math.sin(h), 0.0])
-        d = np.zeros(3)
-        d += fwd * ((keys.W in k) - (keys.S in k))
-        d += right * ((keys.D in k) - (keys.A in k))
-        d[2] += (keys.E in k) - (keys.Q in k)
-        turn = ((keys.RIGHT in k) - (keys.LEFT in k)) * 60.0 * dt
-        tilt = ((keys.UP in k) - (keys.DOWN in k)) * 40.0 * dt
-        step = d * st.speed * dt
-        # east/north metres to degrees at the camera
-        lat = c.lat + math.degrees(step[1] / 6_371_000.0)
-        lon = c.lon + math.degrees(
-            step[0] / (6_371_000.0 * max(math.cos(math.radians(c.lat)), 1e-6))
-        )
-        lat = float(np.clip(lat, -85.0, 85.0))
-        alt = c.alt + step[2]
-        g = scene.ground_height(lon, lat)
-        if g is not None:
-            alt = max(alt, g + 2.0)
-        st.camera = c.moved(
-            lon=(lon + 180.0) % 360.0 - 180.0,
-            lat=lat,
-            alt=alt,
-            heading=(c.heading + turn) % 360.0,
-            pitch=float(np.clip(c.pitch + tilt, -89.0, 89.0)),
-        )
-
-    def draw_hud(w: int, h: int) -> None:
-        if hasattr(scene, "stats"):
-            stats = scene.stats  # the globe
-        else:
-            last = scene.last
-            stats = last.as_dict() if last is not None else {}
-        text = (
-            f"{st.fps:5.1f} fps  tiles {stats.get('tiles', 0)}  "
-            f"triangles {int(stats.get('triangles', 0)):,}  "
-            f"resident {float(stats.get('resident_mb', 0.0)):.1f} MiB  "
-            f"max SSE {float(stats.get('max_sse_px', 0.0)):.2f} px  "
-            f"fallback {stats.get('fallback_max', 0)}  [{scene.terrain_mode}]"
-        )
-        if time.perf_counter() < st.message_until:
-            text += "\n" + st.message
-        if text != hud_text[0]:
-            hud_text[0] = text
-            from PIL import Image, ImageDraw
-
-            lines = text.split("\n")
-            img = Image.new(
-                "RGBA", (8 * max(len(s) for s in lines) + 8, 14 * len(lines) + 6), (0, 0, 0, 140)
-            )
-            dr = ImageDraw.Draw(img)
-            for i, line in enumerate(lines):
-                dr.text((4, 3 + 14 * i), line, fill=(255, 255, 255, 255))
-            if hud_tex[0] is not None:
-                hud_tex[0].release()
-            tex = ctx.texture(img.size, 4, img.tobytes())
-            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
-            hud_tex[0] = tex
-        tex = hud_tex[0]
-        tw, th = tex.size
-        rect: Any = hud_prog["u_rect"]
-        rect.value = (-1.0, 1.0 - 2.0 * th / h, 2.0 * tw / w, 2.0 * th / h)
-        ctx.enable_only(moderngl.BLEND)
-        ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
-        tex.use(0)
-        hud_vao.render(moderngl.TRIANGLE_STRIP)
-
+    """Open a window on ``scenes[start]`` (a ``Viewable``; the other of "plain" and "detail", a
+    viewable or a factory of one, is what the G key switches to) and fly until Esc, the window
+    closing, or ``exit_after`` seconds. Returns what happened (frames, screenshots, the last
+    camera)."""
+    window = _open_window(camera, title, scenes[start].terrain_mode == "gpu")
+    ctx = window.ctx
+    scenes[start].use_context(ctx)
+    control = _Controller(window, scenes, start, camera, screenshot_dir, camera_file)
+    st = control.st
+    hud = _Hud(ctx)
     started = last_t = time.perf_counter()
     fps_t, fps_n = started, 0
     error: BaseException | None = None
@@ -299,9 +366,10 @@ def view(
             dt, last_t = min(now - last_t, 0.25), now
             if exit_after is not None and now - started > exit_after:
                 break
-            move(dt)
+            control.move(dt)
             w, h = window.buffer_size
             cam = replace(st.camera, width=max(w, 1), height=max(h, 1))
+            scene = control.scene
             try:
                 scene.render(cam)
             except CameraError:
@@ -314,7 +382,7 @@ def view(
                 if colour is not None:
                     ctx.copy_framebuffer(window.fbo, colour)
             window.use()
-            draw_hud(w, h)
+            hud.draw(_hud_text(st, scene), w, h)
             window.swap_buffers()
             st.frames += 1
             fps_n += 1
