@@ -147,6 +147,11 @@ def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path
         time.sleep(0.3)
         _xdo(env, "mouseup", "1")
         time.sleep(0.5)
+        # each toggle twice (wireframe, level colours, culling, fractal detail): the picture
+        # ends as it began, and every key's path has run
+        for key in ("t", "t", "l", "l", "c", "c", "g", "g"):
+            _xdo(env, "key", key)
+            time.sleep(0.4)
         for key in ("p", "k", "Escape"):
             _xdo(env, "key", key)
             time.sleep(0.5)
