@@ -342,34 +342,30 @@ class Scene:
 
     def _renderer_for(self, camera: Camera) -> Renderer:
         if self._renderer is None:
-            mode = self.options.terrain_mode
+            opts = self._options
+            common: dict[str, Any] = {
+                "ctx": self._ctx,
+                "background": opts.background,
+                "anisotropy": opts.anisotropy,
+                "ground": self.ground,
+            }
             try:
                 self._renderer = Renderer(
                     camera.width,
                     camera.height,
-                    ctx=self._ctx,
-                    background=self.options.background,
-                    anisotropy=self.options.anisotropy,
-                    terrain_mode=mode,
-                    tess_px=self.options.tess_px,
-                    ground=self.ground,
+                    terrain_mode=opts.terrain_mode,
+                    tess_px=opts.tess_px,
+                    **common,
                 )
             except TessellationUnavailable as exc:
                 self.terrain_mode_note = f"{exc}; drawing in the CPU terrain mode"
-                self._renderer = Renderer(
-                    camera.width,
-                    camera.height,
-                    ctx=self._ctx,
-                    background=self.options.background,
-                    anisotropy=self.options.anisotropy,
-                    ground=self.ground,
-                )
+                self._renderer = Renderer(camera.width, camera.height, **common)
         return self._renderer
 
     @property
     def ground(self) -> str:
         """ "landcover" where the provider's textures are land-cover masks, else "imagery"."""
-        return "landcover" if getattr(self.provider, "landcover", None) is not None else "imagery"
+        return self.provider.textures
 
     def use_context(self, ctx: Any) -> None:
         """Draw in ``ctx`` (a window's OpenGL context) from the next frame on; frames then stay

@@ -34,6 +34,8 @@ class Provider(Protocol):
     tree: TileTree
     #: Footprint of the data in EPSG:3857 metres.
     bounds_merc: Bbox
+    #: What texture keys decode to: "imagery" (RGBA pixels) or "landcover" (class masks).
+    textures: str
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         """Terrain height at a point, or None outside the data."""
@@ -88,6 +90,8 @@ def texture_of(provider: Provider, key: int) -> NDArray[np.uint8]:
 
 class RasterProvider:
     """A height source meshed on the fly: regular grids per tile, tint + hillshade imagery."""
+
+    textures = "imagery"
 
     def __init__(self, source: HeightSource, tree: Any = None) -> None:
         self.source = source
@@ -180,6 +184,8 @@ class ImageryProvider:
     ``strict`` False (one-off renders) they fall back to the tint too. Both are counted.
     """
 
+    textures = "imagery"
+
     def __init__(self, base: Provider, imagery: ImageryFetcher, *, strict: bool = True) -> None:
         self.base = base
         self.imagery = imagery
@@ -252,6 +258,8 @@ class LandcoverProvider:
     """A provider whose textures are land-cover masks (``imagery.landcover``): per tile one byte
     per texel, the class to paint, and ``NODATA`` where the terrain has no data. The renderer's
     land-cover ground turns them into colour."""
+
+    textures = "landcover"
 
     def __init__(self, base: Provider, landcover: Any) -> None:
         self.base = base

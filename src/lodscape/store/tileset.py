@@ -273,6 +273,8 @@ _Mesh = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDA
 class TilesetProvider:
     """A tileset file as a Scene's provider: every tile is one indexed query away."""
 
+    textures = "imagery"
+
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self.name = str(path)
