@@ -89,6 +89,8 @@ class Rig:
             predict=lambda c: self.view.predict(self.fit(c)),
         )
         self.provider = provider
+        #: The last plan's loads.
+        self.wanted: set[int] = set()
 
     def fit(self, cam: Camera) -> Camera:
         return self.view.fit(cam, self.provider.ground_height(cam.lon, cam.lat))
@@ -96,12 +98,18 @@ class Rig:
     def step(
         self, cam: Camera, *, blocking: bool = False, dt: float = 1 / 30
     ) -> tuple[FramePlan, LoadReport]:
+        n = len(self.gpu.uploads)
+        if not blocking:
+            self.loader.begin()
+        # what the last frame wanted goes up, and prefetched resources only into free budget
+        extra = set(self.gpu.uploads[n:]) - self.wanted
+        assert not extra or self.loader.gpu.nbytes <= self.loader.gpu.budget_bytes
         plan = self.view.update(self.fit(cam), self.loader.resident(), blocking=blocking)
         n = len(self.gpu.uploads)
         report = self.loader.serve(plan, blocking=blocking)
-        # only what this frame wants goes up (prefetched resources wait in memory)
-        wanted = {int(k) for k in plan.loads} | set(plan.required)
-        assert set(self.gpu.uploads[n:]) <= wanted
+        # then only what the plan requires
+        assert set(self.gpu.uploads[n:]) <= set(plan.required)
+        self.wanted = {int(k) for k in plan.loads}
         # what the renderer would draw is on the GPU
         missing = plan.drawn - set(self.gpu.live)
         assert not missing, f"drawn but not uploaded: {sorted(missing)[:5]}"
@@ -239,18 +247,27 @@ def test_a_failing_source_is_retried_while_ancestors_stand_in(
 
 
 def test_prefetched_resources_wait_in_memory(provider: RasterProvider, cam: Camera) -> None:
-    """Flying north, the radii ahead fill the memory stage; none of it goes to the GPU before a
-    frame wants it (``step`` checks every upload against the frame's plan)."""
-    rig = Rig(provider, ahead=(1.0, 3.0))
+    """Flying north, the radii ahead fill the memory stage; with a full GPU none of it goes up
+    before a frame wants it (``step`` checks every upload against the frame's plan), with room
+    it does."""
+    path = [cam.moved(lat=cam.lat + 0.0005 * i) for i in range(30)]
+    full = Rig(provider, gpu_budget=1.0, ahead=(1.0, 3.0))
+    roomy = Rig(provider, ahead=(1.0, 3.0))
     try:
-        for i in range(30):
-            rig.step(cam.moved(lat=cam.lat + 0.0005 * i), dt=0.1)
-        assert rig.view.selections == 30
+        wanted: set[int] = set()
+        for c in path:
+            full.step(c, dt=0.1)
+            plan, _ = roomy.step(c, dt=0.1)
+            wanted |= {int(k) for k in plan.loads} | set(plan.required)
+        assert full.view.selections == 30
         # the memory radius holds decoded tiles the frames have not wanted yet
-        assert len(rig.loader.streamer.memory) > 0
-        assert not set(rig.loader.streamer.memory) & set(rig.gpu.live)
+        assert len(full.loader.streamer.memory) > 0
+        assert not set(full.loader.streamer.memory) & set(full.gpu.live)
+        # with room on the GPU, prefetched tiles went up before any frame asked for them
+        assert set(roomy.gpu.uploads) - wanted
     finally:
-        rig.close()
+        full.close()
+        roomy.close()
 
 
 def test_the_blocking_policy_loads_everything_in_one_frame(

@@ -210,6 +210,8 @@ class Scene:
         loader = self._loader_for(renderer)
         blocking = not self.streaming
         t0 = time.perf_counter()
+        if not blocking:
+            loader.begin()
         plan = self.view.update(cam, loader.resident(), blocking=blocking)
         report = loader.serve(plan, blocking=blocking)
         t2 = time.perf_counter()

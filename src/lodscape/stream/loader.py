@@ -3,13 +3,15 @@ prefetch along the camera's velocity, serving a ``FramePlan`` with one of two po
 
 - **blocking** (one-shot renders): every key the plan requires is fetched and decoded on the
   workers at once, then uploaded; nothing else is asked for.
-- **streaming** (flights, the viewer): what the plan requires (roots with nothing above them) is
-  taken at once and counted as a stall; its loads are requested up to the memory stage, the
-  prefetch asks for what the camera will want, and the loads that are decoded are uploaded within
-  a time slice, most urgent first. What goes up shows from the next frame on. Prefetched
-  resources wait decoded in the memory stage until a frame wants them: on the GPU, where only
-  what was drawn is safe from eviction, they would be freed before their turn (and were, once:
-  a flight fell back more than one level in 119 of 300 frames).
+- **streaming** (flights, the viewer): ``begin``, before the frame's one selection, uploads within
+  a time slice what the last frame asked for and has been decoded since, most urgent first, and
+  with what is left of the slice prefetched resources while the GPU budget has room for them;
+  the selection then draws them. ``serve`` takes what the plan requires (roots with nothing
+  above them) at once, counted as a stall, requests its loads up to the memory stage, and lets
+  the prefetch ask for what the camera will want. Prefetched
+  resources that do not fit wait decoded in the memory stage until a frame wants them: on a full
+  GPU, where only what was drawn is safe from eviction, they would be freed before their turn
+  (and were, once: a flight fell back more than one level in 119 of 300 frames).
 
 After the frame is drawn, ``finish`` marks what it drew and frees what the GPU budget cannot keep,
 never one of those.
@@ -77,6 +79,10 @@ class Loader:
         self._predicted_at = -math.inf
         self._predicted: Future[list[tuple[Stage, list[int]]]] | None = None
         self._before: StreamStats = self.streamer.stats.snapshot()
+        #: The last plan's loads (most urgent first): what ``begin`` uploads first.
+        self._wanted: list[int] = []
+        #: What ``begin`` uploaded and how long it took, for the frame's report.
+        self._begun: tuple[int, float] = (0, 0.0)
 
     @property
     def clock(self) -> Clock:
@@ -86,11 +92,32 @@ class Loader:
         """The keys on the GPU, sorted."""
         return self.gpu.keys()
 
-    def serve(self, plan: FramePlan, *, blocking: bool) -> LoadReport:
-        """Bring what ``plan`` requires onto the GPU, and (streaming) move the rest along."""
+    def begin(self) -> None:
+        """Before the frame's selection (streaming): move finished jobs into the stages and
+        upload, within the time slice, what the last frame asked for, then prefetched resources
+        while the GPU budget has room. The selection that follows sees them: what finished in
+        time is drawn this frame, with one selection."""
         t0 = time.perf_counter()
         self._before = self.streamer.stats.snapshot()
-        on_gpu = self.gpu.__contains__
+        s = self.streamer
+        s.collect()
+        slice_ms = self.options.upload_ms
+        n = self.gpu.upload_within(self._ready(self._wanted), slice_ms)
+        spent = (time.perf_counter() - t0) * 1e3
+        if spent < slice_ms:
+            n += self.gpu.upload_within(self._spare(), slice_ms - spent)
+        s.stats.upload_ms += (time.perf_counter() - t0) * 1e3
+        s.stats.uploaded += n
+        self._begun = (n, (time.perf_counter() - t0) * 1e3)
+
+    def serve(self, plan: FramePlan, *, blocking: bool) -> LoadReport:
+        """Bring what ``plan`` requires onto the GPU, and (streaming) ask for its loads and the
+        prefetch's; ``begin`` uploads them in the frames that follow."""
+        t0 = time.perf_counter()
+        if blocking:
+            self._before = self.streamer.stats.snapshot()
+        uploaded, begin_ms = self._begun
+        self._begun = (0, 0.0)
         taken = 0
         stall = 0.0
         if plan.required:
@@ -99,23 +126,30 @@ class Loader:
                 self.gpu.upload(key, m)
             taken = len(plan.required)
             stall = (time.perf_counter() - t0) * 1e3
-        uploaded = 0
+            self.streamer.stats.uploaded += taken
         if not blocking:
-            s = self.streamer
-            s.request((int(k) for k in plan.loads), "memory", on_gpu)
+            on_gpu = self.gpu.__contains__
+            self.streamer.request((int(k) for k in plan.loads), "memory", on_gpu)
             self._prefetch(plan.camera, on_gpu)
-            s.collect()
-            keys = [int(k) for k in plan.loads]
-            tu = time.perf_counter()
-            uploaded = self.gpu.upload_within(self._ready(keys), self.options.upload_ms)
-            s.stats.upload_ms += (time.perf_counter() - tu) * 1e3
-            s.stats.uploaded += uploaded
-        self.streamer.stats.uploaded += taken
-        return LoadReport(taken + uploaded, stall, (time.perf_counter() - t0) * 1e3)
+            self._wanted = [int(k) for k in plan.loads]
+        load_ms = begin_ms + (time.perf_counter() - t0) * 1e3
+        return LoadReport(taken + uploaded, stall, load_ms)
 
     def _ready(self, keys: list[int]) -> Iterator[tuple[int, Made]]:
         """(key, resource) for the ``keys`` in the memory stage, taken out as they are used."""
         for key in keys:
+            made = self.streamer.pop(key)
+            if made is not None:
+                yield key, made
+
+    def _spare(self) -> Iterator[tuple[int, Made]]:
+        """Prefetched resources from the memory stage, most recently asked for first, while the
+        GPU budget has room for them (what it has no room for waits in memory: uploaded, it
+        would be evicted before its turn)."""
+        memory = self.streamer.memory
+        for key in reversed(list(memory)):
+            if self.gpu.nbytes + memory.size(key) > self.gpu.budget_bytes:
+                return
             made = self.streamer.pop(key)
             if made is not None:
                 yield key, made
