@@ -659,11 +659,11 @@ def info(
             f"{'levels':>14}: {tree.zmin} .. {tree.zmax}, textures to {tree.texture_zmax}"
             + (f" (coarsened by {tree.coarsened})" if tree.coarsened else "")
         )
-        manifest = getattr(provider, "manifest", None)
+        manifest = getattr(provider, "manifest", None)  # a tileset's build record
         if manifest is None:
-            res = getattr(provider, "source", None)
+            res = provider.resolution_merc
             if res is not None:
-                line(f"{'resolution':>14}: {res.resolution_merc:.3f} m (Web Mercator)")
+                line(f"{'resolution':>14}: {res:.3f} m (Web Mercator)")
         else:
             size = os.path.getsize(source)
             line(f"{'tileset':>14}: {size / 2**20:.2f} MiB, schema {manifest['schema']}")

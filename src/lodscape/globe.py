@@ -178,10 +178,7 @@ class Globe:
 
     def _max_level(self) -> int:
         """No facet finer than the terrain's cells (or ``max_level``)."""
-        provider = getattr(self.terrain, "provider", None)
-        while provider is not None and not hasattr(provider, "resolution_merc"):
-            provider = getattr(provider, "base", None) or getattr(provider, "source", None)
-        res = getattr(provider, "resolution_merc", None)
+        res = None if self.terrain is None else self.terrain.provider.resolution_merc
         if not res:
             return self.options.max_level
         quarter = math.pi * WGS84_A / 2.0  # an octant's edge

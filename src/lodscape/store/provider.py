@@ -45,6 +45,11 @@ class Provider(Protocol):
         """Terrain heights at many points (degrees), NaN outside the data."""
         ...
 
+    @property
+    def resolution_merc(self) -> float | None:
+        """The data's cell size in EPSG:3857 metres (None: not known)."""
+        ...
+
     def city(self) -> Any:
         """The cities the source stores (a tileset's ``lodscape city add``) as one
         ``city.osm.City``, or None."""
@@ -112,6 +117,10 @@ class RasterProvider:
 
     def city(self) -> Any:
         return None
+
+    @property
+    def resolution_merc(self) -> float | None:
+        return float(self.source.resolution_merc)
 
     def fetch(self, key: int) -> bytes:
         """A mesh key's sampled heights (float32), or a texture key's RGBA pixels."""
@@ -205,6 +214,10 @@ class ImageryProvider:
     def city(self) -> Any:
         return self.base.city()
 
+    @property
+    def resolution_merc(self) -> float | None:
+        return self.base.resolution_merc
+
     def fetch(self, key: int) -> bytes:
         if not is_texture(key):
             return self.base.fetch(key)
@@ -276,6 +289,10 @@ class LandcoverProvider:
 
     def city(self) -> Any:
         return self.base.city()
+
+    @property
+    def resolution_merc(self) -> float | None:
+        return self.base.resolution_merc
 
     def fetch(self, key: int) -> bytes:
         if not is_texture(key):
