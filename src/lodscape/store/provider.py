@@ -184,26 +184,15 @@ class FractalProvider(RasterProvider):
         return build_mesh(key, t.z, t.x, t.y, heights, adaptive=self.detail_tree.adaptive(t.z, g))
 
 
-class ImageryProvider:
-    """A provider whose textures come from an imagery source (a tile server, an MBTiles file, a
-    folder); where the terrain has data (the textures' alpha) still comes from the terrain.
+class _Retextured:
+    """A provider over another whose textures it changes: heights, cities and the tree are the
+    base's."""
 
-    A tile the source does not have (404) is the terrain's own tint. Other failures raise, so a
-    streaming scene retries them with backoff and draws the ancestor's texture meanwhile; with
-    ``strict`` False (one-off renders) they fall back to the tint too. Both are counted.
-    """
-
-    textures = "imagery"
-
-    def __init__(self, base: Provider, imagery: ImageryFetcher, *, strict: bool = True) -> None:
+    def __init__(self, base: Provider) -> None:
         self.base = base
-        self.imagery = imagery
-        self.strict = strict
         self.name = base.name
         self.tree = base.tree
         self.bounds_merc = base.bounds_merc
-        self.fallbacks = 0
-        self._lock = threading.Lock()
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         return self.base.ground_height(lon, lat)
@@ -217,6 +206,28 @@ class ImageryProvider:
     @property
     def resolution_merc(self) -> float | None:
         return self.base.resolution_merc
+
+    def mesh(self, key: int) -> TileMesh:
+        return self.base.mesh(key)
+
+
+class ImageryProvider(_Retextured):
+    """A provider whose textures come from an imagery source (a tile server, an MBTiles file, a
+    folder); where the terrain has data (the textures' alpha) still comes from the terrain.
+
+    A tile the source does not have (404) is the terrain's own tint. Other failures raise, so a
+    streaming scene retries them with backoff and draws the ancestor's texture meanwhile; with
+    ``strict`` False (one-off renders) they fall back to the tint too. Both are counted.
+    """
+
+    textures = "imagery"
+
+    def __init__(self, base: Provider, imagery: ImageryFetcher, *, strict: bool = True) -> None:
+        super().__init__(base)
+        self.imagery = imagery
+        self.strict = strict
+        self.fallbacks = 0
+        self._lock = threading.Lock()
 
     def fetch(self, key: int) -> bytes:
         if not is_texture(key):
@@ -249,9 +260,6 @@ class ImageryProvider:
             pixels = np.asarray(rgb)
         return np.ascontiguousarray(np.dstack([pixels, tint[..., 3]]))
 
-    def mesh(self, key: int) -> TileMesh:
-        return self.base.mesh(key)
-
     def placeholder(self, key: int) -> TileMesh | NDArray[np.uint8]:
         """What stands in for a texture the source failed to give when a frame cannot wait:
         the terrain's own tint."""
@@ -267,7 +275,7 @@ class ImageryProvider:
         self.base.close()
 
 
-class LandcoverProvider:
+class LandcoverProvider(_Retextured):
     """A provider whose textures are land-cover masks (``imagery.landcover``): per tile one byte
     per texel, the class to paint, and ``NODATA`` where the terrain has no data. The renderer's
     land-cover ground turns them into colour."""
@@ -275,24 +283,8 @@ class LandcoverProvider:
     textures = "landcover"
 
     def __init__(self, base: Provider, landcover: Any) -> None:
-        self.base = base
+        super().__init__(base)
         self.landcover = landcover
-        self.name = base.name
-        self.tree = base.tree
-        self.bounds_merc = base.bounds_merc
-
-    def ground_height(self, lon: float, lat: float) -> float | None:
-        return self.base.ground_height(lon, lat)
-
-    def heights_at(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
-        return self.base.heights_at(lon, lat)
-
-    def city(self) -> Any:
-        return self.base.city()
-
-    @property
-    def resolution_merc(self) -> float | None:
-        return self.base.resolution_merc
 
     def fetch(self, key: int) -> bytes:
         if not is_texture(key):
@@ -310,9 +302,6 @@ class LandcoverProvider:
             return self.base.decode(key, data)
         n = math.isqrt(len(data))
         return np.frombuffer(data, dtype=np.uint8).reshape(n, n, 1).copy()
-
-    def mesh(self, key: int) -> TileMesh:
-        return self.base.mesh(key)
 
     def texture(self, key: int) -> NDArray[np.uint8]:
         return texture_of(self, key)
