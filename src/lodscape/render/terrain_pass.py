@@ -450,16 +450,6 @@ class Renderer:
             del self._indices[tile.segments]
             self._free(ibo)
 
-    def has(self, key: int) -> bool:
-        """Whether mesh or texture ``key`` is uploaded."""
-        return key in self._tiles or key in self._textures or key in self._gpu_tiles
-
-    def triangles(self, keys: Sequence[int]) -> int:
-        """Triangles (skirts included) of the uploaded meshes among ``keys``."""
-        if self._tess is not None:
-            return sum(self._gpu_tiles[k].triangles for k in keys if k in self._gpu_tiles)
-        return sum(self._tiles[k].triangles for k in keys if k in self._tiles)
-
     def resident(self) -> dict[int, int]:
         """GPU bytes of every uploaded mesh (its vertices) and texture (with its mips)."""
         out = {key: tile.nbytes for key, tile in self._tiles.items()}
