@@ -26,10 +26,8 @@ class FakeGpu:
         self.live: dict[int, int] = {}
         self.uploads: list[int] = []
         self.released: list[int] = []
-        self.prepared = 0
 
     def prepare(self, key: int, made: Made) -> Made:
-        self.prepared += 1
         return made
 
     def upload_resource(self, key: int, made: Made) -> int:

@@ -27,7 +27,7 @@ from lodscape.lod.view import TerrainView
 from lodscape.render import Renderer
 from lodscape.render.tess_pass import TessellationUnavailable
 from lodscape.store.provider import Provider, RasterProvider
-from lodscape.stream import RealClock, Streamer, StreamOptions
+from lodscape.stream import RealClock, StreamOptions
 from lodscape.stream.loader import Loader
 from lodscape.stream.streamer import Clock
 from lodscape.terrain.pyramid import TileTree
@@ -172,11 +172,6 @@ class Scene:
     def streaming(self) -> bool:
         """Whether frames stream (never waiting but for the roots) rather than load everything."""
         return self._options.stream is not None
-
-    @property
-    def streamer(self) -> Streamer | None:
-        """The loader's cache and memory stages (None before the first frame)."""
-        return None if self._loader is None else self._loader.streamer
 
     # --- geometry helpers ----------------------------------------------------------------
 

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import CameraError
+from lodscape.geo.cones import CONE_SIZE
 from lodscape.geo.frames import WGS84_A
 from lodscape.geo.keys import mesh_keys_zxy, texture_keys_zxy
 from lodscape.geo.tiles import Bbox, merc_to_lonlat
@@ -154,18 +155,19 @@ class TerrainView:
         t0 = time.perf_counter()
         if blocking:
             sel = select(self.options, camera, self.tree, self.previous)
-            loads = _absent(np.union1d(sel.keys, sel.texture_keys), resident)
         else:
             drawable = np.union1d(resident, self._roots)
             sel = select(self.options, camera, self.tree, self.previous, drawable)
-            loads = sel.loads
         self.selections += 1
         self.previous = sel
-        drawn = frozenset(int(k) for k in np.union1d(sel.keys, sel.texture_keys))
-        required = [int(k) for k in _absent(np.array(sorted(drawn), np.uint64), resident)]
+        drawn = np.union1d(sel.keys, sel.texture_keys)
+        absent = _absent(drawn, resident)
+        # blocking: what is drawn and absent is loaded now; streaming: the selection's loads
+        loads = absent if blocking else sel.loads
         items = draw_items(sel, self.options.max_sse)
         ms = (time.perf_counter() - t0) * 1e3
-        return FramePlan(camera, sel, items, required, loads, drawn, ms)
+        required = [int(k) for k in absent]
+        return FramePlan(camera, sel, items, required, loads, frozenset(drawn.tolist()), ms)
 
     def predict(self, camera: Camera) -> list[int]:
         """Every key a selection from ``camera`` (fitted) would draw, textures first (what a
@@ -226,8 +228,6 @@ def _absent(keys: U64, resident: U64) -> U64:
 def _cones(infos: list[MeshInfo | None]) -> tuple[F64, F64, NDArray[np.int64]]:
     """Every patch of the drawn meshes: its cone (NaN rows where it has none), its mesh's
     centre and the index of its mesh."""
-    from lodscape.geo.cones import CONE_SIZE
-
     cones, centres, owner = [], [], []
     for i, info in enumerate(infos):
         if info is None or info.cone is None:

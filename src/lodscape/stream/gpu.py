@@ -46,13 +46,12 @@ class GpuStage:
     def __init__(self, gpu: GpuResources, budget_bytes: float) -> None:
         self.gpu = gpu
         self.budget_bytes = budget_bytes
-        self._lru: ByteLRU[int, MeshInfo | None] = ByteLRU()
+        #: Resident keys and their GPU bytes, least recently drawn first.
+        self._lru: ByteLRU[int, None] = ByteLRU()
         self._meshes: dict[int, MeshInfo] = {}
         self._keys: NDArray[np.uint64] | None = None
         #: Uploaded since the last eviction: not drawn yet, wanted by the next frame.
         self._fresh: set[int] = set()
-        self.uploaded = 0
-        self.released = 0
 
     def __contains__(self, key: object) -> bool:
         return key in self._lru
@@ -75,18 +74,15 @@ class GpuStage:
         if key in self._lru:
             return
         nbytes = self.gpu.upload_resource(key, made)
-        info = None
         if not is_texture(key) and isinstance(made, TileMesh):
-            info = MeshInfo(
+            self._meshes[key] = MeshInfo(
                 np.asarray(made.center, np.float64),
                 None if made.cone is None else np.asarray(made.cone, np.float64),
                 int(made.triangles),
             )
-            self._meshes[key] = info
-        self._lru.put(key, info, nbytes)
+        self._lru.put(key, None, nbytes)
         self._keys = None
         self._fresh.add(key)
-        self.uploaded += 1
 
     def upload_within(self, items: Iterable[tuple[int, Made]], budget_ms: float) -> int:
         """Upload (key, resource) pairs in order until ``budget_ms`` of this thread's time is
@@ -118,7 +114,6 @@ class GpuStage:
             self.gpu.release(key)
         if gone:
             self._keys = None
-            self.released += len(gone)
         return len(gone)
 
     def clear(self) -> None:
