@@ -191,7 +191,8 @@ def test_what_the_last_frame_drew_is_never_evicted(provider: RasterProvider, cam
         cams = [cam.moved(lon=cam.lon + 0.01 * i) for i in range(6)]
         for c in cams:
             n = len(rig.gpu.uploads)
-            plan, _ = rig.step(c)
+            # a simulated second a frame: the loads finish however slow this machine is
+            plan, _ = rig.step(c, dt=1.0)
             fresh = set(rig.gpu.uploads[n:])
             # a budget of one byte keeps exactly what this frame drew, and what it uploaded for
             # the next (it is not drawn yet: freeing it would only load it again)

@@ -48,3 +48,22 @@ def test_bad_grid_and_texture_as_mesh_are_refused() -> None:
         keys.mesh_key(5, keys.MAX_GRIDS)
     with pytest.raises(ValueError, match="texture key"):
         keys.grid_of(keys.texture_key(5))
+
+
+@given(tiles(), st.integers(0, keys.MAX_LAYERS))
+def test_layer_keys_round_trip(t: Tile, layer: int) -> None:
+    k = keys.tile_texture_key(t, layer)
+    assert keys.is_texture(k) and keys.layer_of(k) == layer and keys.tile_of(k) == t
+    arr = keys.texture_keys_zxy([t.z], [t.x], [t.y], layer)
+    assert int(arr[0]) == k
+    assert int(keys.layer_of_array(arr)[0]) == layer
+    # layers never share keys with each other nor with meshes
+    others = {keys.tile_texture_key(t, j) for j in range(keys.MAX_LAYERS + 1) if j != layer}
+    assert k not in others | {keys.tile_mesh_key(t, g) for g in range(keys.MAX_GRIDS)}
+
+
+def test_bad_layers_are_refused() -> None:
+    with pytest.raises(ValueError, match="layer"):
+        keys.texture_key(5, keys.MAX_LAYERS + 1)
+    with pytest.raises(ValueError, match="mesh key"):
+        keys.layer_of(keys.mesh_key(5, 0))

@@ -1,9 +1,11 @@
 """Resource keys: one integer names each thing a tile streams (a mesh at one of its grids, its
-texture), so caches, the GPU stage and the selection share one key space.
+texture, an imagery layer's tile), so caches, the GPU stage and the selection share one key space.
 
-A key is ``tile_id << 3 | slot``: slots ``0 .. len(grids) - 1`` are the tile's mesh grids
-(coarsest first), slot 7 (``TEXTURE``) its texture. The GPU terrain mode's height texture is
-made from a mesh and lives under that mesh's key. Scalar functions take and return ``int``; the
+A key is ``tile_id << 4 | slot``: slots ``0 .. len(grids) - 1`` are the tile's mesh grids
+(coarsest first), slot 8 (``TEXTURE``) the terrain's own texture (its tint, or a tileset's
+stored imagery) and slots 9..15 the tiles of imagery layers 1..7 (``texture_key(tid, layer)``),
+which come from the user's imagery at the imagery's own levels. The GPU terrain mode's height
+texture is made from a mesh and lives under that mesh's key. Scalar functions take and return ``int``; the
 ``*_array`` versions take and return numpy arrays of ``uint64``.
 """
 
@@ -16,11 +18,14 @@ from lodscape.geo.tiles import Tile, tile_from_id, tile_id, tile_id_array
 
 __all__ = [
     "MAX_GRIDS",
+    "MAX_LAYERS",
     "TEXTURE",
     "grid_of",
     "grid_of_array",
     "is_texture",
     "is_texture_array",
+    "layer_of",
+    "layer_of_array",
     "mesh_key",
     "mesh_key_array",
     "mesh_keys_zxy",
@@ -34,13 +39,17 @@ __all__ = [
     "tile_texture_key",
 ]
 
-#: The slot of a tile's texture; slots below it are the tile's mesh grids.
-TEXTURE = 7
+#: The slot of a tile's own texture (layer 0); slots below it are the tile's mesh grids, the
+#: slots above it imagery layers 1..``MAX_LAYERS``.
+TEXTURE = 8
 #: How many mesh grids a tile can have (the slots below ``TEXTURE``).
 MAX_GRIDS = TEXTURE
-_BITS = 3
+#: How many imagery layers keys can name above the terrain's own texture.
+MAX_LAYERS = 7
+_BITS = 4
 _SHIFT = np.uint64(_BITS)
-_SLOT = np.uint64(TEXTURE)
+_MASK = np.uint64((1 << _BITS) - 1)
+_TEX = np.uint64(TEXTURE)
 
 
 def mesh_key(tid: int, grid: int) -> int:
@@ -50,9 +59,19 @@ def mesh_key(tid: int, grid: int) -> int:
     return (tid << _BITS) | grid
 
 
-def texture_key(tid: int) -> int:
-    """The key of tile ``tid``'s texture."""
-    return (tid << _BITS) | TEXTURE
+def texture_key(tid: int, layer: int = 0) -> int:
+    """The key of tile ``tid``'s texture: the terrain's own (layer 0) or imagery layer
+    ``layer``'s tile (1..``MAX_LAYERS``)."""
+    if not 0 <= layer <= MAX_LAYERS:
+        raise ValueError(f"Expected a layer in 0..{MAX_LAYERS}, got {layer}")
+    return (tid << _BITS) | (TEXTURE + layer)
+
+
+def layer_of(key: int) -> int:
+    """A texture key's layer (0: the terrain's own texture)."""
+    if not is_texture(key):
+        raise ValueError(f"key {key} is a mesh key, not a texture key")
+    return (key & int(_MASK)) - TEXTURE
 
 
 def tile_id_of(key: int) -> int:
@@ -73,15 +92,17 @@ def grid_of(key: int) -> int:
     """A mesh key's grid index."""
     if is_texture(key):
         raise ValueError(f"key {key} is a texture key, not a mesh key")
-    return key & TEXTURE
+    return key & int(_MASK)
 
 
 def mesh_key_array(ids: ArrayLike, grids: ArrayLike) -> NDArray[np.uint64]:
     return (np.asarray(ids, dtype=np.uint64) << _SHIFT) | np.asarray(grids).astype(np.uint64)
 
 
-def texture_key_array(ids: ArrayLike) -> NDArray[np.uint64]:
-    return (np.asarray(ids, dtype=np.uint64) << _SHIFT) | _SLOT
+def texture_key_array(ids: ArrayLike, layer: int = 0) -> NDArray[np.uint64]:
+    if not 0 <= layer <= MAX_LAYERS:
+        raise ValueError(f"Expected a layer in 0..{MAX_LAYERS}, got {layer}")
+    return (np.asarray(ids, dtype=np.uint64) << _SHIFT) | np.uint64(TEXTURE + layer)
 
 
 def tile_id_of_array(keys: ArrayLike) -> NDArray[np.uint64]:
@@ -89,13 +110,18 @@ def tile_id_of_array(keys: ArrayLike) -> NDArray[np.uint64]:
 
 
 def is_texture_array(keys: ArrayLike) -> NDArray[np.bool_]:
-    out: NDArray[np.bool_] = (np.asarray(keys, dtype=np.uint64) & _SLOT) == _SLOT
+    out: NDArray[np.bool_] = (np.asarray(keys, dtype=np.uint64) & _TEX) == _TEX
     return out
 
 
+def layer_of_array(keys: ArrayLike) -> NDArray[np.int64]:
+    """Layers of texture keys (negative for mesh keys: mask them with ``is_texture_array``)."""
+    return (np.asarray(keys, dtype=np.uint64) & _MASK).astype(np.int64) - TEXTURE
+
+
 def grid_of_array(keys: ArrayLike) -> NDArray[np.int64]:
-    """Slots of mesh keys (7 for texture keys: mask them with ``is_texture_array``)."""
-    return (np.asarray(keys, dtype=np.uint64) & _SLOT).astype(np.int64)
+    """Slots of mesh keys (8 or more for texture keys: mask them with ``is_texture_array``)."""
+    return (np.asarray(keys, dtype=np.uint64) & _MASK).astype(np.int64)
 
 
 def tile_mesh_key(t: Tile, grid: int) -> int:
@@ -103,14 +129,16 @@ def tile_mesh_key(t: Tile, grid: int) -> int:
     return mesh_key(tile_id(t), grid)
 
 
-def tile_texture_key(t: Tile) -> int:
-    """The key of tile ``t``'s texture."""
-    return texture_key(tile_id(t))
+def tile_texture_key(t: Tile, layer: int = 0) -> int:
+    """The key of tile ``t``'s texture in ``layer``."""
+    return texture_key(tile_id(t), layer)
 
 
-def texture_keys_zxy(z: ArrayLike, x: ArrayLike, y: ArrayLike) -> NDArray[np.uint64]:
-    """Texture keys of tiles (z, x, y)."""
-    return texture_key_array(tile_id_array(z, x, y))
+def texture_keys_zxy(
+    z: ArrayLike, x: ArrayLike, y: ArrayLike, layer: int = 0
+) -> NDArray[np.uint64]:
+    """Texture keys of tiles (z, x, y) in ``layer``."""
+    return texture_key_array(tile_id_array(z, x, y), layer)
 
 
 def mesh_keys_zxy(z: ArrayLike, x: ArrayLike, y: ArrayLike, grids: ArrayLike) -> NDArray[np.uint64]:
