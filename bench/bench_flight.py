@@ -39,7 +39,8 @@ from lodscape.build import build
 from lodscape.flight import fly
 from lodscape.geo.tiles import lonlat_to_merc, merc_to_lonlat
 from lodscape.imagery.sources import HttpSource
-from lodscape.store.provider import ImageryProvider, Provider
+from lodscape.imagery.layers import ImageryLayer
+from lodscape.store.provider import LayeredProvider, Provider
 from lodscape.store.tileset import TilesetProvider
 from lodscape.stream import SimClock, StreamOptions
 from lodscape.terrain.source import RasterSource
@@ -82,7 +83,8 @@ def run(
     clock = SimClock()
     provider: Provider = TilesetProvider(tileset)
     if imagery is not None:
-        provider = ImageryProvider(provider, HttpSource(imagery, max_connections=16))
+        layer = ImageryLayer(HttpSource(imagery, max_connections=16), index=1)
+        provider = LayeredProvider(provider, [layer])
     with lodscape.Scene(provider, opts, owns=True, clock=clock) as scene:
         if stream is not None:
             rows = fly(scene, iter(cams), FPS)

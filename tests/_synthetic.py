@@ -169,3 +169,38 @@ def spine_views(scene: Any, width: int, height: int) -> dict[str, Any]:
         "low": Camera(lon - 0.01, lat - 0.015, hi + 150.0, heading=35, pitch=-12, **size),
         "steep-near": Camera(lon, lat, g + 300.0, heading=200, pitch=-55, **size),
     }
+
+
+def write_ortho(
+    path: str,
+    rgb: NDArray[np.uint8],
+    *,
+    crs: str,
+    west: float,
+    north: float,
+    res: float,
+    alpha: NDArray[np.uint8] | None = None,
+) -> str:
+    """An orthophoto GeoTIFF (RGB, or RGBA with ``alpha``) on disk through rasterio."""
+    import rasterio
+    from rasterio.enums import ColorInterp
+    from rasterio.transform import Affine
+
+    bands = [rgb[..., 0], rgb[..., 1], rgb[..., 2]] + ([alpha] if alpha is not None else [])
+    profile = {
+        "driver": "GTiff",
+        "height": rgb.shape[0],
+        "width": rgb.shape[1],
+        "count": len(bands),
+        "dtype": "uint8",
+        "crs": crs,
+        "transform": Affine(res, 0.0, west, 0.0, -res, north),
+        "photometric": "RGB",
+        "tiled": True,
+    }
+    with rasterio.open(path, "w", **profile) as dst:
+        for i, band in enumerate(bands):
+            dst.write(band, i + 1)
+        interp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue]
+        dst.colorinterp = interp + ([ColorInterp.alpha] if alpha is not None else [])
+    return path

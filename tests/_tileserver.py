@@ -3,7 +3,8 @@
 Each tile is a flat colour made from z/x/y (so a picture shows which tile it came from). Faults
 are set per tile with ``server.faults[(z, x, y)] = [...]`` (consumed one per request) or for every
 tile with ``server.default_fault``: "404", "500", "slow" (sleeps ``server.delay`` seconds),
-"truncated" (promises more bytes than it sends), "garbage" (200 with a body that is no image).
+"truncated" (promises more bytes than it sends), "truncated-png" (a whole answer holding half
+a PNG), "garbage" (200 with a body that is no image).
 Responses carry an ETag and Cache-Control: max-age=``server.max_age``; If-None-Match gets 304.
 """
 
@@ -81,6 +82,9 @@ class TileServer:
                 self.send_header("Content-Type", "image/png")
                 self.send_header("ETag", etag)
                 self.send_header("Cache-Control", f"max-age={server.max_age}")
+                if fault == "truncated-png":
+                    # a whole HTTP answer whose PNG stops half way
+                    body = body[: len(body) // 2]
                 if fault == "truncated":
                     self.send_header("Content-Length", str(len(body)))
                     self.end_headers()

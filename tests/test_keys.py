@@ -53,7 +53,9 @@ def test_bad_grid_and_texture_as_mesh_are_refused() -> None:
 @given(tiles(), st.integers(0, keys.MAX_LAYERS))
 def test_layer_keys_round_trip(t: Tile, layer: int) -> None:
     k = keys.tile_texture_key(t, layer)
-    assert keys.is_texture(k) and keys.layer_of(k) == layer and keys.tile_of(k) == t
+    assert keys.is_texture(k)
+    assert keys.layer_of(k) == layer
+    assert keys.tile_of(k) == t
     arr = keys.texture_keys_zxy([t.z], [t.x], [t.y], layer)
     assert int(arr[0]) == k
     assert int(keys.layer_of_array(arr)[0]) == layer

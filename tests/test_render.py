@@ -230,8 +230,9 @@ def test_a_thousand_draws_leak_no_gl_objects(gl_ctx: Any) -> None:
         if i % 4 == 3:
             counts.append(r.live_objects())
     assert gl_ctx.error == "GL_NO_ERROR"
-    # program + two index buffers + two tiles x (VBO, VAO, texture) + FBO with three attachments
-    assert counts == [1 + 2 + 2 * 3 + 4] * 250
+    # program + the clear layer texture + two index buffers + two tiles x (VBO, VAO, texture) +
+    # FBO with three attachments
+    assert counts == [1 + 1 + 2 + 2 * 3 + 4] * 250
     r.close()
     assert r.live_objects() == 0
     r.close()  # idempotent

@@ -96,10 +96,36 @@ TerrainModeOpt = Annotated[
     ),
 ]
 ImageryOpt = Annotated[
-    str | None,
+    list[str] | None,
     typer.Option(
-        help="Imagery: an XYZ URL template (https://{s}.host/{z}/{x}/{y}.png), an .mbtiles "
-        "file or a folder of z/x/y tiles. Default: the terrain's own tint and hillshade."
+        help="An imagery layer, drawn at its own resolution over the terrain's tint: an XYZ URL "
+        "template (https://{s}.host/{z}/{x}/{y}.png), an .mbtiles file, a folder of z/x/y "
+        "tiles, or a georeferenced raster (a GeoTIFF orthophoto, any CRS). Repeat it for "
+        "layers drawn bottom to top with their transparency."
+    ),
+]
+MaxZoomOpt = Annotated[
+    int | None,
+    typer.Option(
+        "--imagery-maxzoom",
+        min=0,
+        max=24,
+        help="The finest level to ask imagery for (URL templates: default 19; files: their own).",
+    ),
+]
+ImageryTimeoutOpt = Annotated[
+    float,
+    typer.Option(
+        "--imagery-timeout",
+        min=0.0,
+        help="Seconds a render waits for imagery, all tiles together; what has not come by "
+        "then is drawn without (said on stderr). Flights never wait.",
+    ),
+]
+ImageryStrictOpt = Annotated[
+    bool,
+    typer.Option(
+        "--imagery-strict", help="Any imagery failure (404, error, timeout…) is an error (exit 2)."
     ),
 ]
 CacheOpt = Annotated[
@@ -175,8 +201,11 @@ class TerrainFlags:
     ground: str = "tint"
     landcover: Path | None = None
     anisotropy: float = 16.0
-    imagery: str | None = None
+    imagery: list[str] | None = None
     imagery_cache: Path | None = None
+    imagery_maxzoom: int | None = None
+    imagery_timeout: float = 10.0
+    imagery_strict: bool = False
     detail: str = "none"
     hurst: float | None = None
     sigma: float | None = None
@@ -192,6 +221,8 @@ class TerrainFlags:
             anisotropy=self.anisotropy,
             terrain_mode=self.terrain_mode,
             budget_mb=budget_mb,
+            imagery_timeout=self.imagery_timeout,
+            imagery_strict=self.imagery_strict,
         )
 
     def open(
@@ -200,12 +231,11 @@ class TerrainFlags:
         options: SceneOptions,
         *,
         clock: Clock | None = None,
-        strict: bool = True,
         detail: Fractal | bool | None = True,
     ) -> Scene:
         """The scene the flags ask for (``detail`` True: the flags' own fractal detail)."""
         cover = _landcover(self.ground, self.landcover, self.city)
-        if self.imagery is not None and cover is not None:
+        if self.imagery and cover is not None:
             raise LodscapeError("--imagery and --ground landcover both colour the ground: pick one")
         if parse_source(source).text == "flat" and self.city is None:
             raise LodscapeError("SOURCE flat (level ground) needs --city to know where")
@@ -215,20 +245,15 @@ class TerrainFlags:
             clock=clock,
             detail=self.fractal(source) if detail is True else detail or None,
             landcover=cover,
-            imagery=self.imagery,
+            imagery=self.imagery or None,
             imagery_cache=self.imagery_cache,
-            strict_imagery=strict,
+            imagery_maxzoom=self.imagery_maxzoom,
             city=self.city,
         )
 
     def refuse_for_globe(self) -> None:
         """--globe draws the QTM globe with its own image: refuse what it would ignore."""
-        if (
-            self.city is not None
-            or self.imagery is not None
-            or self.ground != "tint"
-            or self.detail != "none"
-        ):
+        if self.city is not None or self.imagery or self.ground != "tint" or self.detail != "none":
             raise LodscapeError(
                 "--globe draws the QTM globe with its own image: no --city, --imagery, "
                 "--ground or --detail"
@@ -245,6 +270,9 @@ _TERRAIN_FLAGS = [
         ("anisotropy", AnisotropyOpt, 16.0),
         ("imagery", ImageryOpt, None),
         ("imagery_cache", CacheOpt, None),
+        ("imagery_maxzoom", MaxZoomOpt, None),
+        ("imagery_timeout", ImageryTimeoutOpt, 10.0),
+        ("imagery_strict", ImageryStrictOpt, False),
         ("detail", DetailOpt, "none"),
         ("hurst", HurstOpt, None),
         ("sigma", SigmaOpt, None),
@@ -271,7 +299,13 @@ def _terrain_flags(command: Callable[..., None]) -> Callable[..., None]:
 
 
 def _scene_options(
-    *, max_sse: float, anisotropy: float, terrain_mode: str, budget_mb: float | None = None
+    *,
+    max_sse: float,
+    anisotropy: float,
+    terrain_mode: str,
+    budget_mb: float | None = None,
+    imagery_timeout: float = 10.0,
+    imagery_strict: bool = False,
 ) -> SceneOptions:
     """Scene options from flags; a value the engine refuses is a one-line usage error. With
     ``budget_mb``, a streaming scene with that many MiB each of GPU, memory and cache."""
@@ -288,6 +322,8 @@ def _scene_options(
             select=SelectOptions(max_sse=max_sse),
             anisotropy=anisotropy,
             terrain_mode=terrain_mode,
+            imagery_timeout=imagery_timeout,
+            imagery_strict=imagery_strict,
             **streaming,
         )
     except ValueError as exc:
@@ -450,7 +486,7 @@ def render(
             lambda terrain: _globe_camera(terrain, camera_file, pose, w, h, fov),
         )
         return
-    with terrain.open(source, terrain.options(), strict=False) as scene:
+    with terrain.open(source, terrain.options()) as scene:
         if camera_file is not None:
             if lon is not None or lat is not None or alt is not None:
                 raise LodscapeError("give --camera or --lon/--lat/--alt, not both")

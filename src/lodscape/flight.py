@@ -227,6 +227,9 @@ STAT_COLUMNS = (
     "cache_hits",
     "memory_hits",
     "in_flight",
+    # imagery layers: tiles drawn with an ancestor's layer tile or none, failed layer tiles
+    "layer_fallbacks",
+    "imagery_failed",
 )
 
 #: The columns of ``fly --globe --stats``.

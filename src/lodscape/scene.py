@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import CameraError
+from lodscape.geo.keys import is_overlay
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 from lodscape.lod.view import TerrainView
@@ -64,6 +65,11 @@ class SceneOptions:
     #: The GPU terrain mode's pixel rule: a patch edge gets a segment per this many pixels of
     #: its length on screen (more where its error table asks for them).
     tess_px: float = 4.0
+    #: Seconds one-shot renders may wait for imagery layers, all frames together: past it they
+    #: are drawn with what came (said on stderr). Flights never wait for imagery.
+    imagery_timeout: float = 10.0
+    #: Any imagery failure ends the frame with ``ImageryError`` instead of being drawn around.
+    imagery_strict: bool = False
 
     def __post_init__(self) -> None:
         if not self.gpu_budget_mb > 0.0:
@@ -74,6 +80,8 @@ class SceneOptions:
             raise ValueError(f"Expected anisotropy >= 1, got {self.anisotropy}")
         if not self.tess_px > 0.0:
             raise ValueError(f"Expected a positive tess_px, got {self.tess_px}")
+        if not self.imagery_timeout >= 0.0:
+            raise ValueError(f"Expected imagery_timeout >= 0, got {self.imagery_timeout}")
         if self.terrain_mode not in ("cpu", "gpu"):
             raise ValueError(f"Expected terrain_mode cpu or gpu, got {self.terrain_mode!r}")
 
@@ -101,6 +109,9 @@ class FrameStats:
     #: Milliseconds the CPU spent issuing the terrain's draws (in ``draw_ms``, no GPU wait).
     submit_ms: float = 0.0
     terrain_mode: str = "cpu"
+    #: Imagery layers' failed tiles by kind since the scene opened (``imagery_<kind>``), and
+    #: tiles one-shot frames drew without their layer tile (``imagery_missed``).
+    imagery: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, float | int]:
         return {
@@ -117,6 +128,7 @@ class FrameStats:
             "backfacing_triangles": self.backfacing_triangles,
             **self.stream,
             **self.city,
+            **self.imagery,
         }
 
 
@@ -143,7 +155,10 @@ class Scene:
         self._options = options or SceneOptions()
         self.tree = self.provider.tree
         self.view = TerrainView(
-            self.tree, self._options.select, cull_backfacing=self._options.cull_backfacing
+            self.tree,
+            self._options.select,
+            cull_backfacing=self._options.cull_backfacing,
+            texture_levels=self.provider.texture_levels,
         )
         self.clock: Clock = clock or RealClock()
         self._renderer: Renderer | None = None
@@ -156,6 +171,7 @@ class Scene:
         self.city_options: Any = None
         self._city_pass: Any = None
         self.last: FrameStats | None = None
+        self._said_late = False
 
     @property
     def options(self) -> SceneOptions:
@@ -208,7 +224,17 @@ class Scene:
         if not blocking:
             loader.begin()
         plan = self.view.update(cam, loader.resident(), blocking=blocking)
+        late = loader.late
         report = loader.serve(plan, blocking=blocking)
+        if loader.late > late and not self._said_late:
+            from lodscape.imagery.layers import warn_stderr
+
+            self._said_late = True
+            warn_stderr(
+                f"imagery: {loader.late - late} tiles had not come after the "
+                f"{self._options.imagery_timeout:g} s imagery timeout; drawn without them "
+                "(--imagery-timeout)"
+            )
         t2 = time.perf_counter()
         items, culled, culled_tris = self.view.facing(
             plan, loader.gpu.meshes, whole_tiles=renderer.terrain_mode == "gpu"
@@ -240,8 +266,43 @@ class Scene:
             self._city_stats(),
             renderer.last_stats.submit_ms,
             renderer.terrain_mode,
+            self._imagery_stats(loader),
         )
+        if self._options.imagery_strict:
+            self._strict_imagery()
         return rgb, depth
+
+    def imagery_failures(self) -> dict[str, int]:
+        """Failed imagery tiles by kind, all layers together, since the scene opened."""
+        out: dict[str, int] = {}
+        for layer in self.provider.layers:
+            for kind, n in layer.failures.items():
+                out[kind] = out.get(kind, 0) + n
+        return out
+
+    def _imagery_stats(self, loader: Loader) -> dict[str, int]:
+        if not self.provider.layers:
+            return {}
+        fails = self.imagery_failures()
+        out = {"imagery_failed": sum(fails.values()), "imagery_missed": loader.missed}
+        out.update((f"imagery_{k.replace('-', '_')}", n) for k, n in sorted(fails.items()))
+        return out
+
+    def _strict_imagery(self) -> None:
+        from lodscape.imagery.sources import ImageryError
+
+        for layer in self.provider.layers:
+            if layer.failed:
+                kinds = ", ".join(f"{n} {k}" for k, n in sorted(layer.failures.items()))
+                raise ImageryError(
+                    f"imagery layer {layer.index} ({layer.name}) failed ({kinds}) and "
+                    "--imagery-strict was given"
+                )
+        if self._loader is not None and self._loader.missed:
+            raise ImageryError(
+                f"{self._loader.missed} imagery tiles did not come within the imagery timeout "
+                "and --imagery-strict was given"
+            )
 
     def _loader_for(self, renderer: Renderer) -> Loader:
         if self._loader is None:
@@ -255,6 +316,8 @@ class Scene:
                 self.clock,
                 gpu_budget_bytes=opts.gpu_budget_mb * 2**20,
                 predict=self._predict,
+                optional=is_overlay if self.provider.layers else None,
+                imagery_wait=opts.imagery_timeout,
             )
         return self._loader
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
@@ -81,9 +82,9 @@ def open(
     clock: Clock | None = None,
     detail: Fractal | None = None,
     landcover: Any = None,
-    imagery: str | None = None,
+    imagery: str | PathLike[str] | Sequence[str | PathLike[str]] | None = None,
     imagery_cache: str | PathLike[str] | None = None,
-    strict_imagery: bool = True,
+    imagery_maxzoom: int | None = None,
     city: Any = None,
     **array_kwargs: Any,
 ) -> Scene:
@@ -94,13 +95,19 @@ def open(
 
     - ``detail`` adds fractal detail below a raster's resolution (paper 003);
     - ``landcover`` (an ``imagery.landcover.Landcover``) colours the ground from its class masks;
-    - ``imagery`` (an XYZ URL template, an .mbtiles file or a folder of z/x/y tiles) textures
-      it, cached under ``imagery_cache``; with ``strict_imagery`` False a failed tile is the
-      tint at once instead of retried;
+    - ``imagery``: one imagery layer or a list of them, bottom to top, drawn over the terrain's
+      own colours at their own resolution: XYZ URL templates (cached under ``imagery_cache``,
+      levels up to ``imagery_maxzoom``, default 19), .mbtiles files, folders of z/x/y tiles, or
+      georeferenced rasters (a GeoTIFF orthophoto in any CRS). Where a layer is finer than a
+      raster DEM the tile tree goes on below the DEM with its surface refined, no heights made
+      up. Failures are counted (``Scene.imagery_failures``) and said once on stderr;
+      ``options.imagery_timeout`` bounds a render's wait and ``options.imagery_strict`` makes
+      any failure an error;
     - ``city`` (an OSM file or a ``City``) is draped on it, with the cities a tileset stores.
 
     A scene opened from a path or an array closes what it opened when it closes."""
-    if landcover is not None and imagery is not None:
+    specs = _imagery_specs(imagery)
+    if landcover is not None and specs:
         raise LodscapeError("imagery and a land cover both colour the ground: pick one")
     town = _read_city(city)
     spec = None if not isinstance(source, str | PathLike) else parse_source(source)
@@ -114,15 +121,24 @@ def open(
         # a mask is worth metres, not the DEM's resolution: the tree goes on below the data
         # with heights interpolated (fractal detail of no amplitude), and its masks with it
         detail = Fractal(0.7, 0.0, 0)
-    provider, owns = _terrain(source, spec, detail, array_kwargs)
+    timeout = (options or SceneOptions()).imagery_timeout
+    layers = _open_layers(specs, imagery_cache, imagery_maxzoom, timeout)
+    try:
+        provider, owns = _terrain(source, spec, detail, array_kwargs)
+    except BaseException:
+        for layer in layers:
+            layer.close()
+        raise
     try:
         if landcover is not None:
             from lodscape.store.provider import LandcoverProvider
 
             provider = LandcoverProvider(provider, landcover)
-        elif imagery is not None:
-            provider = _with_imagery(provider, imagery, imagery_cache, strict_imagery)
+        elif layers:
+            provider = _with_layers(provider, layers, owns)
     except BaseException:
+        for layer in layers:
+            layer.close()
         if owns:
             provider.close()
         raise
@@ -191,17 +207,66 @@ def _lattice(src: HeightSource, detail: Fractal | None) -> Provider:
         raise
 
 
-def _with_imagery(
-    provider: Provider, imagery: str, cache: str | PathLike[str] | None, strict: bool
-) -> Provider:
-    from lodscape.imagery.sources import imagery_source
-    from lodscape.store.provider import ImageryProvider
+def _imagery_specs(imagery: Any) -> list[str]:
+    if imagery is None:
+        return []
+    if isinstance(imagery, str | PathLike):
+        return [os.fspath(imagery)]
+    return [os.fspath(i) for i in imagery]
 
+
+def _open_layers(
+    specs: list[str], cache: str | PathLike[str] | None, max_zoom: int | None, timeout: float
+) -> list[Any]:
+    """The imagery layers, bottom to top; none half-opened on an error."""
+    if not specs:
+        return []
+    from lodscape.imagery.layers import MAX_OVERLAYS, open_layer
+
+    if len(specs) > MAX_OVERLAYS:
+        raise LodscapeError(f"at most {MAX_OVERLAYS} imagery layers, got {len(specs)}")
     if cache is None:
         base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
         cache = Path(base) / "lodscape"
-    fetcher = imagery_source(imagery, cache_dir=Path(cache))
-    return ImageryProvider(provider, fetcher, strict=strict)
+    layers: list[Any] = []
+    try:
+        for i, text in enumerate(specs):
+            layers.append(
+                open_layer(
+                    text,
+                    i + 1,
+                    cache_dir=Path(cache),
+                    max_zoom=max_zoom,
+                    timeout=max(timeout, 0.5),
+                )
+            )
+    except BaseException:
+        for layer in layers:
+            layer.close()
+        raise
+    return layers
+
+
+def _with_layers(provider: Provider, layers: list[Any], owns: bool) -> Provider:
+    """The layers over the terrain. Where one is finer than a raster DEM's tree goes, the tree
+    goes on below it with the DEM's surface refined (fractal detail of no amplitude: heights
+    interpolated, none made up), and the terrain's own texture stops at the DEM's level."""
+    from lodscape.imagery.layers import warn_stderr
+    from lodscape.store.provider import LayeredProvider
+
+    finest = max(int(layer.max_zoom) for layer in layers)
+    own = provider.texture_levels[0]
+    if finest > provider.tree.zmax:
+        if type(provider) is RasterProvider and owns:
+            tree = DetailTree.over(provider.tree, Fractal(0.7, 0.0, 0))
+            provider = FractalProvider(DetailHeights(provider.source, tree), tree)
+        elif not isinstance(provider, FractalProvider):
+            warn_stderr(
+                f"{provider.name}: imagery goes to level {finest} but this terrain's tiles stop "
+                f"at level {provider.tree.zmax} (a tileset keeps no lattice to refine); the "
+                "imagery is drawn magnified below it"
+            )
+    return LayeredProvider(provider, layers, own_zmax=own)
 
 
 def flat_source(spec: str) -> ArraySource:

@@ -1,12 +1,13 @@
 """Resource keys: one integer names each thing a tile streams (a mesh at one of its grids, its
-texture, an imagery layer's tile), so caches, the GPU stage and the selection share one key space.
+texture, an imagery layer's tile), so caches, the GPU stage and the selection share one key
+space.
 
 A key is ``tile_id << 4 | slot``: slots ``0 .. len(grids) - 1`` are the tile's mesh grids
 (coarsest first), slot 8 (``TEXTURE``) the terrain's own texture (its tint, or a tileset's
 stored imagery) and slots 9..15 the tiles of imagery layers 1..7 (``texture_key(tid, layer)``),
 which come from the user's imagery at the imagery's own levels. The GPU terrain mode's height
-texture is made from a mesh and lives under that mesh's key. Scalar functions take and return ``int``; the
-``*_array`` versions take and return numpy arrays of ``uint64``.
+texture is made from a mesh and lives under that mesh's key. Scalar functions take and return
+``int``; the ``*_array`` versions take and return numpy arrays of ``uint64``.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ __all__ = [
     "TEXTURE",
     "grid_of",
     "grid_of_array",
+    "is_overlay",
     "is_texture",
     "is_texture_array",
     "layer_of",
@@ -65,6 +67,11 @@ def texture_key(tid: int, layer: int = 0) -> int:
     if not 0 <= layer <= MAX_LAYERS:
         raise ValueError(f"Expected a layer in 0..{MAX_LAYERS}, got {layer}")
     return (tid << _BITS) | (TEXTURE + layer)
+
+
+def is_overlay(key: int) -> bool:
+    """Whether a key is an imagery layer's tile (layer 1 or above)."""
+    return key & 15 > TEXTURE
 
 
 def layer_of(key: int) -> int:

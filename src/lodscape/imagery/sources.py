@@ -23,6 +23,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Protocol
 
+import numpy as np
+from numpy.typing import NDArray
+
 from lodscape.errors import LodscapeError
 
 __all__ = [
@@ -40,18 +43,37 @@ USER_AGENT = "lodscape/0.1 (terrain engine; +https://pypi.org/project/lodscape/)
 
 
 class ImageryError(LodscapeError):
-    """An imagery tile that could not be had (after retries) or is not an image."""
+    """An imagery tile that could not be had (after retries) or is not an image. ``kind`` names
+    the failure for the counts and the warnings: "missing" (404, no row, no file), "http" (an
+    error status), "not-image" (HTML, garbage, a truncated image), "cut-short" (the connection
+    closed mid-body), "unreachable" (nothing listens), "timeout" (no answer in time)."""
+
+    def __init__(self, message: str, kind: str = "error") -> None:
+        super().__init__(message)
+        self.kind = kind
 
 
 class TileMissing(ImageryError):
     """The source has no tile there (HTTP 404, no row, no file)."""
 
+    def __init__(self, message: str) -> None:
+        super().__init__(message, "missing")
+
 
 class ImageryFetcher(Protocol):
     #: For messages: the template, file or folder.
     name: str
+    #: The levels the source has tiles at.
+    min_zoom: int
+    max_zoom: int
 
-    def fetch(self, z: int, x: int, y: int) -> bytes: ...
+    def fetch(self, z: int, x: int, y: int) -> bytes:
+        """The tile's stored bytes; b"" where the source has no data (transparent)."""
+        ...
+
+    def decode(self, data: bytes, size: int) -> NDArray[np.uint8]:
+        """What ``fetch`` gave as (size, size, 4) RGBA."""
+        ...
 
     def close(self) -> None: ...
 
@@ -64,8 +86,22 @@ def _check_image(data: bytes, what: str) -> bytes:
         with Image.open(io.BytesIO(data)) as im:
             im.load()
     except Exception as exc:  # Pillow raises several unrelated classes on bad data
-        raise ImageryError(f"{what}: not an image ({type(exc).__name__}: {exc})") from None
+        raise ImageryError(
+            f"{what}: not an image ({type(exc).__name__}: {exc})", "not-image"
+        ) from None
     return data
+
+
+def decode_image(data: bytes, size: int) -> NDArray[np.uint8]:
+    """An encoded tile (PNG, JPEG, WebP; RGB, RGBA, grey or palette) as (size, size, 4) RGBA,
+    its transparency kept; resampled with a Lanczos filter when its size differs."""
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as im:
+        rgba = im.convert("RGBA")
+        if rgba.size != (size, size):
+            rgba = rgba.resize((size, size), Image.Resampling.LANCZOS)
+        return np.ascontiguousarray(np.asarray(rgba, dtype=np.uint8))
 
 
 class TileCache:
@@ -135,6 +171,9 @@ class HttpSource:
         max_connections: int = 8,
         cache: TileCache | None = None,
         default_max_age: float = 86400.0,
+        min_zoom: int = 0,
+        max_zoom: int = 19,
+        deadline: float | None = None,
     ) -> None:
         import httpx
 
@@ -142,6 +181,12 @@ class HttpSource:
             if field not in template:
                 raise ImageryError(f"imagery URL {template!r} lacks {field}")
         self.name = template
+        self.min_zoom = min_zoom
+        self.max_zoom = max_zoom
+        self.timeout = timeout
+        #: Seconds one tile may take, retries included (None: no bound): with it, a server that
+        #: never answers costs a tile one request's timeout, not one per retry.
+        self.deadline = deadline
         self.template = template
         self.subdomains = subdomains or "a"
         self.retries = retries
@@ -149,7 +194,7 @@ class HttpSource:
         self.cache = cache
         self.default_max_age = default_max_age
         self._client = httpx.Client(
-            timeout=httpx.Timeout(timeout),
+            timeout=httpx.Timeout(timeout, connect=min(timeout, 5.0)),
             limits=httpx.Limits(max_connections=max_connections),
             headers={"User-Agent": USER_AGENT},
             follow_redirects=True,
@@ -175,24 +220,32 @@ class HttpSource:
                 headers["If-None-Match"] = cached[1]
             if cached[2]:
                 headers["If-Modified-Since"] = cached[2]
-        last = ""
+        last, kind = "", "error"
+        start = time.monotonic()
+        tries = 0
         for attempt in range(self.retries + 1):
             if attempt:
-                self.retried += 1
                 # exponential backoff with jitter, so many tiles do not retry in step
-                time.sleep(self.backoff * 2 ** (attempt - 1) * (0.5 + random.random()))
+                pause = self.backoff * 2 ** (attempt - 1) * (0.5 + random.random())
+                if self.deadline is not None and (
+                    time.monotonic() - start + pause >= self.deadline
+                ):
+                    break  # the tile's time is up
+                self.retried += 1
+                time.sleep(pause)
             self.requests += 1
+            tries += 1
             try:
                 r = self._client.get(url, headers=headers)
             except httpx.TimeoutException:
-                last = "timed out"
+                last, kind = f"no answer in {self.timeout:g} s", "timeout"
                 continue
             except httpx.RemoteProtocolError as exc:
                 # the server closed the connection before the whole body came
-                last = f"body cut short ({exc})"
+                last, kind = f"body cut short ({exc})", "cut-short"
                 continue
             except httpx.TransportError as exc:
-                last = f"connection failed ({exc})"
+                last, kind = f"connection failed ({exc})", "unreachable"
                 continue
             if r.status_code == 304 and cached is not None:
                 expires = _expires(r.headers, time.time(), self.default_max_age)
@@ -202,19 +255,19 @@ class HttpSource:
             if r.status_code == 404:
                 raise TileMissing(f"{url}: no tile (404)")
             if r.status_code >= 500 or r.status_code == 429:
-                last = f"HTTP {r.status_code}"
+                last, kind = f"HTTP {r.status_code}", "http"
                 continue
             if r.status_code != 200:
-                raise ImageryError(f"{url}: HTTP {r.status_code}")
+                raise ImageryError(f"{url}: HTTP {r.status_code}", "http")
             try:
                 data = bytes(r.content)
             except httpx.HTTPError as exc:
-                last = f"body cut short ({exc})"
+                last, kind = f"body cut short ({exc})", "cut-short"
                 continue
             try:
                 _check_image(data, url)
             except ImageryError as exc:
-                last = str(exc).split(": ", 1)[-1]
+                last, kind = str(exc).split(": ", 1)[-1], exc.kind
                 continue
             if self.cache is not None:
                 self.cache.put(
@@ -225,7 +278,11 @@ class HttpSource:
                     _expires(r.headers, time.time(), self.default_max_age),
                 )
             return data
-        raise ImageryError(f"{url}: {last} after {self.retries + 1} tries")
+        tried = "after 1 try" if tries == 1 else f"after {tries} tries"
+        raise ImageryError(f"{url}: {last} {tried}", kind)
+
+    def decode(self, data: bytes, size: int) -> NDArray[np.uint8]:
+        return decode_image(data, size)
 
     def close(self) -> None:
         self._client.close()
@@ -241,6 +298,15 @@ class MBTilesSource:
         if not os.path.exists(self.name):
             raise ImageryError(f"{self.name}: no such file")
         self._local = threading.local()
+        uri = f"file:{Path(self.name).resolve().as_posix()}?mode=ro"
+        try:
+            with sqlite3.connect(uri, uri=True) as db:
+                lo, hi = db.execute("SELECT MIN(zoom_level), MAX(zoom_level) FROM tiles").fetchone()
+        except sqlite3.Error as exc:
+            raise ImageryError(f"{self.name}: not an MBTiles file ({exc})") from None
+        if hi is None:
+            raise ImageryError(f"{self.name}: an MBTiles file with no tiles")
+        self.min_zoom, self.max_zoom = int(lo), int(hi)
 
     def fetch(self, z: int, x: int, y: int) -> bytes:
         db = getattr(self._local, "db", None)
@@ -265,6 +331,9 @@ class MBTilesSource:
             raise TileMissing(f"{self.name}: no tile {z}/{x}/{y}")
         return _check_image(bytes(row[0]), f"{self.name} {z}/{x}/{y}")
 
+    def decode(self, data: bytes, size: int) -> NDArray[np.uint8]:
+        return decode_image(data, size)
+
     def close(self) -> None:
         pass
 
@@ -276,6 +345,10 @@ class DirectorySource:
         self.name = os.fspath(root)
         if not os.path.isdir(self.name):
             raise ImageryError(f"{self.name}: no such folder")
+        levels = [int(p.name) for p in Path(self.name).iterdir() if p.name.isdigit()]
+        if not levels:
+            raise ImageryError(f"{self.name}: no z/x/y tile folders in it")
+        self.min_zoom, self.max_zoom = min(levels), max(levels)
 
     def fetch(self, z: int, x: int, y: int) -> bytes:
         for ext in ("png", "jpg", "jpeg", "webp"):
@@ -283,6 +356,9 @@ class DirectorySource:
             if p.exists():
                 return _check_image(p.read_bytes(), str(p))
         raise TileMissing(f"{self.name}: no tile {z}/{x}/{y}")
+
+    def decode(self, data: bytes, size: int) -> NDArray[np.uint8]:
+        return decode_image(data, size)
 
     def close(self) -> None:
         pass

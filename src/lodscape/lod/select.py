@@ -18,8 +18,13 @@ tile that had to split) takes the texture of the ancestor k levels up for the sm
 H·2^k >= merge·T: it covers the tile with T/2^k texels, so every drawn texture stays inside the
 band (paper 000's 128..384 px for 256 px tiles) instead of being minified.
 
+Imagery layers (the user's orthophotos and tile servers) are chosen the same way, each capped by
+its own finest level rather than the terrain's: a tile keeps splitting for its texture down to
+the finest level of any layer (below the terrain's own levels its mesh is its parent's surface
+refined), and a layer with no tile that fine lends the tile a window of its finest ancestor.
+
 Resources are keyed as ``lodscape.geo.keys`` says: a mesh key per tile and grid, a texture key
-per tile.
+per tile and layer.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from lodscape.geo.frames import WGS84_A, enu_basis, geodetic_to_ecef
 from lodscape.geo.keys import (
     grid_of_array,
     is_texture_array,
+    layer_of_array,
     mesh_keys_zxy,
     texture_keys_zxy,
     tile_id_of_array,
@@ -64,6 +70,8 @@ U64 = NDArray[np.uint64]
 F64 = NDArray[np.float64]
 
 _EMPTY_U = np.zeros(0, dtype=np.uint64)
+#: An imagery layer's key where a tile has none of its tiles to draw (``Selection.layer_keys``).
+NO_TEXTURE = np.uint64(0xFFFF_FFFF_FFFF_FFFF)
 #: Slack around each tile's box, as a share of its side.
 _MARGIN = 1e-3
 #: Fewer children than this go straight to their bounds (the region test would cost more).
@@ -191,6 +199,14 @@ class Selection:
     magnified: int = 0
     texture_size: int = 256
     grids: tuple[int, ...] = field(default=(16, 32, 64, 128, 256))
+    #: Levels up each tile's texture would be for the pixel band alone, uncapped (hysteresis).
+    band_up: I64 | None = None
+    #: (L, N) keys of each imagery layer's tile each drawn tile wears (``NO_TEXTURE``: none
+    #: resident yet), and how many levels above the tile it is.
+    layer_keys: U64 = field(default_factory=lambda: np.zeros((0, 0), np.uint64))
+    layer_up: I64 = field(default_factory=lambda: np.zeros((0, 0), np.int64))
+    #: (tile, layer) pairs drawn with an ancestor's imagery tile or none, for want of theirs.
+    layer_fallbacks: int = 0
 
     @property
     def count(self) -> int:
@@ -221,6 +237,13 @@ class Selection:
         r = self.px_per_texel
         return float(r.min()), float(r.max())
 
+    def layer_px_per_texel(self, layer: int) -> F64:
+        """Screen pixels per texel of imagery layer ``layer`` (1..) on each drawn tile (NaN where
+        the tile has none of its tiles)."""
+        up = self.layer_up[layer - 1]
+        r = self.screen_px * np.exp2(up) / self.texture_size
+        return np.where(self.layer_keys[layer - 1] == NO_TEXTURE, np.nan, r)
+
     def stats(self) -> dict[str, float | int]:
         lo, hi = self.px_per_texel_range
         return {
@@ -236,6 +259,8 @@ class Selection:
             "magnified": self.magnified,
             "triangles": self.triangles,
             "textures": int(np.unique(self.texture_keys).size),
+            "layer_tiles": int(np.unique(self.layer_keys[self.layer_keys != NO_TEXTURE]).size),
+            "layer_fallbacks": self.layer_fallbacks,
             "loads": int(self.loads.size),
             "fallback_max": int(self.fallback.max()) if self.fallback.size else 0,
         }
@@ -337,20 +362,24 @@ def select(
     tree: TreeLike,
     previous: Selection | None = None,
     resident: U64 | None = None,
+    texture_levels: tuple[int, ...] | None = None,
 ) -> Selection:
     """The tiles to draw for ``camera``.
 
     ``previous`` is last frame's selection (hysteresis). ``resident`` (sorted keys) lists the
     meshes and textures that can be drawn now; None means everything can. Wanted resources that
     are not resident come back as ``loads``, and are drawn meanwhile from their nearest resident
-    ancestor, so no hole opens.
+    ancestor, so no hole opens. ``texture_levels`` gives the finest level of the terrain's own
+    texture, then of each imagery layer (None: the tree's textures alone).
     """
     if camera.near is None or camera.far is None:
         raise ValueError("select needs a camera with near/far set (Camera.with_clip)")
     tsize = tree.tile_size
     zmax = tree.zmax if options.max_level is None else min(tree.zmax, options.max_level)
-    # below the finest texture level a tile splits for its geometric error alone
-    ztex = tree.zmax if tree.texture_zmax is None else tree.texture_zmax
+    own = tree.zmax if tree.texture_zmax is None else tree.texture_zmax
+    levels = (own,) if texture_levels is None else tuple(int(v) for v in texture_levels)
+    # below the finest level of every texture a tile splits for its geometric error alone
+    ztex = min(max(levels), zmax)
     prev = previous.refined if previous is not None else _EMPTY_U
     drawn: list[tuple[NDArray[np.generic], ...]] = []
     refined_ids: list[U64] = []
@@ -422,15 +451,31 @@ def select(
     floats = [a.astype(np.float64) for a in cols[4:]]
     i, f = ints, floats
     t = _Drawn(i[0], i[1], i[2], i[3], f[0], f[1], f[2], f[3], f[4], np.zeros_like(i[0]))
-    tex_up = _texture_levels(options, tree, t, previous)
+    band = _band_levels(options, tree, t, previous)
+    tex_up = _capped(band, t, levels[0], tree.zmin)
+    layer_up = [_capped(band, t, zl, tree.zmin) for zl in levels[1:]]
+    layer_keys = [
+        texture_keys_zxy(t.z - up, t.x >> up, t.y >> up, j + 1) for j, up in enumerate(layer_up)
+    ]
     loads = _EMPTY_U
+    layer_fallbacks = 0
     if resident is not None:
         # what the wanted tiles need; then what stands in for it while it loads
+        wanted = [k[~_member(k, resident)] for k in layer_keys]
         loads = _missing(resident, t, tex_up)
         t = _fall_back(camera, tree, resident, t)
-        tex_up = _texture_levels(options, tree, t, previous)
-        tex_up, unresolved = _texture_fall_back(tree, resident, t, tex_up)
-        loads = _order_loads(np.concatenate([loads, unresolved[~_member(unresolved, loads)]]))
+        band = _band_levels(options, tree, t, previous)
+        own_up = _capped(band, t, levels[0], tree.zmin)
+        tex_up, unresolved = _texture_fall_back(tree, resident, t, own_up)
+        layer_up, layer_keys = [], []
+        for j, zl in enumerate(levels[1:]):
+            want_up = _capped(band, t, zl, tree.zmin)
+            got_up, got = _layer_fall_back(tree, resident, t, want_up, j + 1)
+            layer_up.append(got_up)
+            layer_keys.append(got)
+            layer_fallbacks += int(((got_up > want_up) | (got == NO_TEXTURE)).sum())
+        extra = np.concatenate([unresolved, *wanted])
+        loads = _order_loads(np.concatenate([loads, extra[~_member(extra, loads)]]))
     magnified = int((t.px * np.exp2(tex_up) > options.split * tsize).sum())
     # a neighbour's edge may sit up to its own error away: at most max_sse pixels seen from
     # no farther than our far side, or a fallback tile's whole error
@@ -458,6 +503,10 @@ def select(
         magnified=magnified,
         texture_size=tsize,
         grids=tuple(tree.grids),
+        band_up=band,
+        layer_keys=np.array(layer_keys, np.uint64).reshape(len(levels) - 1, t.z.size),
+        layer_up=np.array(layer_up, np.int64).reshape(len(levels) - 1, t.z.size),
+        layer_fallbacks=layer_fallbacks,
     )
 
 
@@ -487,31 +536,37 @@ class _Drawn:
 _DRAWN_FIELDS = tuple(_Drawn.__dataclass_fields__)
 
 
-def _texture_levels(
+def _band_levels(
     options: SelectOptions, tree: TreeLike, t: _Drawn, previous: Selection | None
 ) -> I64:
-    """Levels up to each tile's texture: the fewest that bring it to merge·T pixels or more.
+    """Levels up to each tile's texture for the pixel band: the fewest that bring it to merge·T
+    pixels or more, before any texture's finest level caps them.
 
     Last frame's choice stands while it is still inside the band, so textures do not flicker.
     """
     low = options.merge * tree.tile_size
     # smallest k >= 0 with px·2^k >= low (px is positive for every drawn tile)
-    k = np.ceil(np.log2(low / np.maximum(t.px, 1e-300))).clip(min=0.0).astype(np.int64)
-    ztex = tree.zmax if tree.texture_zmax is None else tree.texture_zmax
-    # no texture below the finest texture level; none above the roots
-    up = np.minimum(np.maximum(k, t.z - ztex), t.z - tree.zmin)
-    if previous is None or previous.count == 0:
+    up = np.ceil(np.log2(low / np.maximum(t.px, 1e-300))).clip(min=0.0).astype(np.int64)
+    if previous is None or previous.count == 0 or previous.band_up is None:
         return up
     pid = tile_id_array(previous.z, previous.x, previous.y)
     order = np.argsort(pid)
-    pid, pup = pid[order], previous.texture_up[order]
+    pid, pup = pid[order], previous.band_up[order]
     ids = tile_id_array(t.z, t.x, t.y)
     pos = np.clip(np.searchsorted(pid, ids), 0, pid.size - 1)
     hit = pid[pos] == ids
     before = pup[pos]
     ratio = t.px * np.exp2(before)
     stays = hit & (ratio >= low) & (ratio <= options.split * tree.tile_size)
-    return np.where(stays, np.minimum(before, t.z - tree.zmin), up)
+    out: I64 = np.where(stays, before, up)
+    return out
+
+
+def _capped(band: I64, t: _Drawn, finest: int, zmin: int) -> I64:
+    """The band's levels up for a texture whose finest level is ``finest``: none below it, none
+    above the roots."""
+    out: I64 = np.minimum(np.maximum(band, t.z - finest), t.z - zmin)
+    return out
 
 
 def _keep_finer_grid(ids: U64, k: I64, prev_keys: U64) -> I64:
@@ -636,12 +691,39 @@ def _texture_fall_back(tree: TreeLike, resident: U64, t: _Drawn, up: I64) -> tup
     m = ~_member(want, resident)
     if not m.any():
         return up, _EMPTY_U
-    tex_ids = np.sort(tile_id_of_array(resident[is_texture_array(resident)]))
+    own = is_texture_array(resident)
+    own[own] = layer_of_array(resident[own]) == 0
+    tex_ids = np.sort(tile_id_of_array(resident[own]))
     # only from the wanted level up: a texture finer than the band asks for is not used
     found, steps = _nearest_resident(t.z[m], t.x[m], t.y[m], tex_ids, tree.zmin, up[m])
     new = up.copy()
     new[np.nonzero(m)[0][found]] = steps[found]
     return new, np.unique(want[m][~found])
+
+
+def _layer_fall_back(
+    tree: TreeLike, resident: U64, t: _Drawn, up: I64, layer: int
+) -> tuple[I64, U64]:
+    """Each drawn tile's nearest resident tile of imagery ``layer`` at or above the level it
+    wants: (levels up, keys), ``NO_TEXTURE`` where none is resident (the layer is not drawn
+    there until its tile comes; a frame never waits for imagery)."""
+    want = texture_keys_zxy(t.z - up, t.x >> up, t.y >> up, layer)
+    m = ~_member(want, resident)
+    if not m.any():
+        return up, want
+    mine = resident[is_texture_array(resident)]
+    ids = np.sort(tile_id_of_array(mine[layer_of_array(mine) == layer]))
+    found, steps = _nearest_resident(t.z[m], t.x[m], t.y[m], ids, 0, up[m])
+    new_up = up.copy()
+    keys = want.copy()
+    i = np.nonzero(m)[0]
+    new_up[i[found]] = steps[found]
+    s = steps[found]
+    keys[i[found]] = texture_keys_zxy(
+        t.z[i[found]] - s, t.x[i[found]] >> s, t.y[i[found]] >> s, layer
+    )
+    keys[i[~found]] = NO_TEXTURE
+    return new_up, keys
 
 
 def _order_loads(keys: U64, dist: F64 | None = None) -> U64:

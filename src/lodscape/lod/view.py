@@ -34,7 +34,14 @@ from lodscape.geo.keys import mesh_keys_zxy, texture_keys_zxy
 from lodscape.geo.tiles import Bbox, merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.cull import backfacing
-from lodscape.lod.select import Selection, SelectOptions, TreeLike, select, tile_boxes
+from lodscape.lod.select import (
+    NO_TEXTURE,
+    Selection,
+    SelectOptions,
+    TreeLike,
+    select,
+    tile_boxes,
+)
 
 __all__ = ["DrawItem", "FramePlan", "MeshInfo", "TerrainView", "draw_items"]
 
@@ -57,6 +64,9 @@ class DrawItem:
     runs: tuple[tuple[int, int], ...] | None = None
     #: Screen-space error (pixels) the GPU terrain mode's tessellation may add to this tile's.
     sse_budget: float = 1.0
+    #: Per imagery layer, bottom to top: the key of its tile the tile wears (-1: none) and the
+    #: window of it the tile covers, as ``uv``.
+    layers: tuple[tuple[int, tuple[float, float, float]], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,11 +102,18 @@ class TerrainView:
     last selection, for hysteresis)."""
 
     def __init__(
-        self, tree: TreeLike, options: SelectOptions | None = None, *, cull_backfacing: bool = True
+        self,
+        tree: TreeLike,
+        options: SelectOptions | None = None,
+        *,
+        cull_backfacing: bool = True,
+        texture_levels: tuple[int, ...] | None = None,
     ) -> None:
         self.tree = tree
         self.options = options or SelectOptions()
         self.cull_backfacing = cull_backfacing
+        #: The finest level of the terrain's own texture, then of each imagery layer.
+        self.texture_levels = texture_levels
         #: Last frame's selection (hysteresis), None before the first.
         self.previous: Selection | None = None
         #: Selections made by ``update`` so far (one per frame).
@@ -153,14 +170,16 @@ class TerrainView:
         """This frame's plan for a fitted ``camera`` (``fit``) given the sorted ``resident`` keys:
         one selection. Remembered as the previous frame's."""
         t0 = time.perf_counter()
+        levels = self.texture_levels
         if blocking:
-            sel = select(self.options, camera, self.tree, self.previous)
+            sel = select(self.options, camera, self.tree, self.previous, texture_levels=levels)
         else:
             drawable = np.union1d(resident, self._roots)
-            sel = select(self.options, camera, self.tree, self.previous, drawable)
+            sel = select(self.options, camera, self.tree, self.previous, drawable, levels)
         self.selections += 1
         self.previous = sel
-        drawn = np.union1d(sel.keys, sel.texture_keys)
+        worn = sel.layer_keys[sel.layer_keys != NO_TEXTURE]
+        drawn = np.union1d(np.union1d(sel.keys, sel.texture_keys), worn)
         absent = _absent(drawn, resident)
         # blocking: what is drawn and absent is loaded now; streaming: the selection's loads
         loads = absent if blocking else sel.loads
@@ -172,8 +191,10 @@ class TerrainView:
     def predict(self, camera: Camera) -> list[int]:
         """Every key a selection from ``camera`` (fitted) would draw, textures first (what a
         prefetch asks for); not remembered, so it leaves the next frame's hysteresis alone."""
-        sel = select(self.options, camera, self.tree)
-        return [int(k) for k in np.concatenate([sel.texture_keys, sel.keys])]
+        sel = select(self.options, camera, self.tree, texture_levels=self.texture_levels)
+        return [
+            int(k) for k in np.concatenate([sel.texture_keys, sel.layer_keys.ravel(), sel.keys])
+        ]
 
     def facing(
         self,
@@ -274,7 +295,20 @@ def draw_items(sel: Selection, max_sse: float = 2.0) -> list[DrawItem]:
     v = (sel.y & ((1 << up) - 1)) * scale
     budget = np.maximum(max_sse - sel.sse, 0.1 * max_sse)
     cols = zip(sel.keys, sel.texture_keys, sel.skirt, u, v, scale, budget, strict=True)
-    return [
+    items = [
         DrawItem(int(k), int(t), float(sk), (float(a), float(b), float(c)), sse_budget=float(e))
         for k, t, sk, a, b, c, e in cols
+    ]
+    if not sel.layer_keys.size:
+        return items
+    # per layer: its key (-1 for none) and its window, as for the terrain's own texture
+    lup = sel.layer_up
+    lscale = np.exp2(-lup.astype(np.float64))
+    lu = (sel.x & ((1 << lup) - 1)) * lscale
+    lv = (sel.y & ((1 << lup) - 1)) * lscale
+    lkeys = np.where(sel.layer_keys == NO_TEXTURE, -1, sel.layer_keys.astype(np.int64))
+    per_tile = zip(lkeys.T.tolist(), lu.T.tolist(), lv.T.tolist(), lscale.T.tolist(), strict=True)
+    return [
+        replace(item, layers=tuple(zip(k, zip(a, b, c, strict=True), strict=True)))
+        for item, (k, a, b, c) in zip(items, per_tile, strict=True)
     ]

@@ -28,7 +28,7 @@ from lodscape.geo.tiles import bounds_array, tile_from_id_array
 from lodscape.lod.camera import Camera
 from lodscape.lod.view import DrawItem
 from lodscape.render._context import create_context, is_software, make_current
-from lodscape.render.tess_pass import TessTerrain
+from lodscape.render.tess_pass import LAYER_UNIT, MAX_OVERLAYS, TessTerrain, bind_layers
 from lodscape.terrain.heightmap import height_tile
 from lodscape.terrain.mesh import TileMesh, grid_indices
 
@@ -56,6 +56,7 @@ in vec3 in_pos;
 in vec2 in_uv;
 in float in_skirt;
 out vec2 v_uv;
+out vec2 v_tuv;
 out float v_dist;
 out vec2 v_ground;
 out vec3 v_view;
@@ -63,6 +64,7 @@ void main() {
     vec3 p = in_pos - in_skirt * u_skirt * u_up;
     gl_Position = u_mvp * vec4(p, 1.0);
     v_uv = u_uv.xy + u_uv.z * in_uv;
+    v_tuv = in_uv;
     v_ground = vec2(u_ground.x + in_uv.x * u_ground.z, u_ground.y - in_uv.y * u_ground.z);
     v_view = u_offset + u_rot * p;
     // linear in view space, so perspective-correct interpolation keeps it exact per fragment
@@ -74,10 +76,22 @@ _FRAGMENT_SHADER = """
 #version 330
 uniform sampler2D u_tex;
 uniform vec4 u_tint;     // the viewer's LOD colouring: a colour and how much of it
+// imagery layers over the terrain's own texture, bottom to top, each with its own window
+uniform sampler2D u_layer0;
+uniform sampler2D u_layer1;
+uniform sampler2D u_layer2;
+uniform sampler2D u_layer3;
+uniform vec3 u_layer_uv[4];
+uniform int u_layers;
 in vec2 v_uv;
+in vec2 v_tuv;           // where in the tile (0..1), for the layers' windows
 in float v_dist;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
+vec3 over(vec3 c, sampler2D s, vec3 w) {
+    vec4 t = texture(s, w.xy + w.z * v_tuv);
+    return mix(c, t.rgb, t.a);
+}
 void main() {
     // the imagery already carries its shading: no lighting here
     // alpha marks where the data covers the tile: the terrain ends at the data's edge. It is
@@ -87,7 +101,12 @@ void main() {
     ivec2 size = textureSize(u_tex, 0);
     ivec2 texel = clamp(ivec2(floor(v_uv * vec2(size))), ivec2(0), size - 1);
     if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
-    f_color = vec4(mix(texture(u_tex, v_uv).rgb, u_tint.rgb, u_tint.a), 1.0);
+    vec3 c = texture(u_tex, v_uv).rgb;
+    if (u_layers > 0) c = over(c, u_layer0, u_layer_uv[0]);
+    if (u_layers > 1) c = over(c, u_layer1, u_layer_uv[1]);
+    if (u_layers > 2) c = over(c, u_layer2, u_layer_uv[2]);
+    if (u_layers > 3) c = over(c, u_layer3, u_layer_uv[3]);
+    f_color = vec4(mix(c, u_tint.rgb, u_tint.a), 1.0);
     f_dist = v_dist;
 }
 """
@@ -248,6 +267,12 @@ class Renderer:
         self._u_skirt = self._uniform("u_skirt")
         self._u_uv = self._uniform("u_uv")
         self._uniform("u_tex").value = 0
+        for i in range(MAX_OVERLAYS):
+            u = self._program.get(f"u_layer{i}", None)
+            if isinstance(u, moderngl.Uniform):
+                u.value = LAYER_UNIT + i
+        # what an imagery layer shows where it has no tile (yet): nothing
+        self._clear = self._track(self.ctx.texture((1, 1), 4, bytes(4)))
         self._materials: moderngl.TextureArray | None = None
         if ground == "landcover":
             from lodscape.imagery.landcover import ground_layers
@@ -488,6 +513,7 @@ class Renderer:
                 raise KeyError(f"{what} is not uploaded to this renderer (upload it first)")
             tiles.append(tile)
             textures.append(texture[0])
+        layers = [self._layers(item) for item in items]
         rot = camera.rotation
         target = self._target_for(camera.width, camera.height)
         bg = self.background if background is None else _rgb(background)
@@ -518,8 +544,10 @@ class Renderer:
             calls, triangles, submit_s = self._tess.draw(
                 camera,
                 [
-                    (it.key, tex, it.skirt, it.uv, it.sse_budget, g, tint)
-                    for it, tex, g, tint in zip(items, textures, ground, tints, strict=True)
+                    (it.key, tex, it.skirt, it.uv, it.sse_budget, g, tint, lay)
+                    for it, tex, g, tint, lay in zip(
+                        items, textures, ground, tints, layers, strict=True
+                    )
                 ],
             )
             self.last_stats = DrawStats(calls, triangles, submit_s * 1e3)
@@ -530,9 +558,14 @@ class Renderer:
         view_projections = [camera.view_projection(tile.center) for tile in cpu_tiles]
         u_ground = self._program.get("u_ground", None)
         u_tint = self._program.get("u_tint", None)
-        for item, ct, tex, mvp, g, tint in zip(
-            items, cpu_tiles, textures, view_projections, ground, tints, strict=True
+        u_layers = self._program.get("u_layers", None)
+        uniforms = {"u_layer_uv": self._program.get("u_layer_uv", None)}
+        if isinstance(u_layers, moderngl.Uniform):
+            u_layers.value = len(layers[0]) if layers else 0
+        for item, ct, tex, mvp, g, tint, lay in zip(
+            items, cpu_tiles, textures, view_projections, ground, tints, layers, strict=True
         ):
+            bind_layers(uniforms, lay)
             if isinstance(u_ground, moderngl.Uniform):
                 u_ground.value = g
             if isinstance(u_tint, moderngl.Uniform):
@@ -555,6 +588,17 @@ class Renderer:
                 calls += 1
         self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
         return self._finish(camera, fbo, after)
+
+    def _layers(self, item: DrawItem) -> list[tuple[moderngl.Texture, tuple[float, float, float]]]:
+        """A tile's imagery layers as textures: a layer tile not uploaded (failed, or not in
+        yet) is transparent, so the layer below shows."""
+        if len(item.layers) > MAX_OVERLAYS:
+            raise ValueError(f"at most {MAX_OVERLAYS} imagery layers, got {len(item.layers)}")
+        out = []
+        for key, window in item.layers:
+            entry = self._textures.get(key) if key >= 0 else None
+            out.append((self._clear if entry is None else entry[0], window))
+        return out
 
     def _finish(
         self,
@@ -597,6 +641,7 @@ class Renderer:
         if self._tess is not None:
             self._tess.close()
             self._tess = None
+        self._free(self._clear)
         self._free(self._program)
         self._closed = True
         if self._owns_ctx:

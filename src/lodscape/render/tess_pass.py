@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import moderngl
 import numpy as np
@@ -142,6 +144,7 @@ uniform float u_cells;
 uniform vec3 u_uv;         // texture window: offset (u, v) and scale (an ancestor's texture)
 uniform vec3 u_ground;     // the tile's west and north edges (metres, modulo) and its size
 out vec2 v_uv;
+out vec2 v_tuv;            // where in the tile (0..1), for the imagery layers' windows
 out float v_dist;
 out vec2 v_ground;
 out vec3 v_view;
@@ -159,6 +162,7 @@ void main() {
     vec3 p = surface(q.xy) - q.z * u_skirt * u_up;
     gl_Position = u_mvp * vec4(p, 1.0);
     v_uv = u_uv.xy + u_uv.z * q.xy;
+    v_tuv = q.xy;
     v_ground = vec2(u_ground.x + q.x * u_ground.z, u_ground.y - q.y * u_ground.z);
     v_view = u_offset + u_rot * p;
     v_dist = -v_view.z;
@@ -169,6 +173,28 @@ void main() {
     v_normal = u_rot * normalize(cross(east, north));
 }
 """
+
+
+#: Texture units of the imagery layers (the terrain's own texture is 0, the GPU mode's tables
+#: 1..3, the land-cover materials 4).
+LAYER_UNIT = 5
+#: Imagery layers the terrain shaders blend over the terrain's own texture.
+MAX_OVERLAYS = 4
+#: Per imagery layer, the texture a tile wears and its window (offset u, v, scale).
+Layers = Sequence[tuple[moderngl.Texture, tuple[float, float, float]]]
+
+
+def bind_layers(uniforms: Mapping[str, Any], layers: Layers) -> None:
+    """Bind a tile's imagery layers to their units and write their windows."""
+    u = uniforms.get("u_layer_uv")
+    if u is None or not layers:
+        return
+    uv = np.zeros((MAX_OVERLAYS, 3), np.float32)
+    uv[:, 2] = 1.0
+    for i, (tex, window) in enumerate(layers):
+        tex.use(LAYER_UNIT + i)
+        uv[i] = window
+    u.write(uv.tobytes())
 
 
 class TessellationUnavailable(LodscapeError):
@@ -243,6 +269,7 @@ class TessTerrain:
             (2, "u_height"),
             (3, "u_errors"),
             (4, "u_ground_materials"),
+            *((LAYER_UNIT + i, f"u_layer{i}") for i in range(MAX_OVERLAYS)),
         ):
             if name in self._p:
                 self._p[name].value = unit
@@ -345,12 +372,13 @@ class TessTerrain:
                 float,
                 tuple[float, float, float],
                 tuple[float, float, float, float],
+                Layers,
             ]
         ],
     ) -> tuple[int, int, float]:
-        """Draw (key, texture, skirt, uv window, error budget px, ground window, tint) items into
-        the bound framebuffer; returns (draw calls, triangles the tessellator made, seconds
-        spent issuing them)."""
+        """Draw (key, texture, skirt, uv window, error budget px, ground window, tint, imagery
+        layers) items into the bound framebuffer; returns (draw calls, triangles the
+        tessellator made, seconds spent issuing them)."""
         t0 = time.perf_counter()
         ctx = self.ctx
         p = self._p
@@ -363,7 +391,10 @@ class TessTerrain:
         with self._query:
             u_ground = p.get("u_ground")
             u_tint = p.get("u_tint")
-            for key, tex, skirt, uv, budget, ground, tint in items:
+            if "u_layers" in p:
+                p["u_layers"].value = len(items[0][7]) if items else 0
+            for key, tex, skirt, uv, budget, ground, tint, layers in items:
+                bind_layers(p, layers)
                 if u_ground is not None:
                     u_ground.value = ground
                 if u_tint is not None:

@@ -6,24 +6,23 @@ Every method but ``close`` is safe to call from worker threads; none touches the
 
 from __future__ import annotations
 
-import io
 import math
-import threading
+from collections.abc import Sequence
 from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.keys import grid_of, is_texture, texture_key, tile_id_of, tile_of
+from lodscape.geo.keys import MAX_LAYERS, grid_of, is_texture, layer_of, tile_of
 from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, tile_size
 from lodscape.imagery import TintImagery
-from lodscape.imagery.sources import ImageryError, ImageryFetcher, TileMissing
+from lodscape.imagery.sources import ImageryError
 from lodscape.terrain.fractal import MAX_LEVEL
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import TileTree, build_tree
 from lodscape.terrain.source import HeightSource
 
-__all__ = ["FractalProvider", "ImageryProvider", "LandcoverProvider", "Provider", "RasterProvider"]
+__all__ = ["FractalProvider", "LandcoverProvider", "LayeredProvider", "Provider", "RasterProvider"]
 
 
 class Provider(Protocol):
@@ -36,6 +35,14 @@ class Provider(Protocol):
     bounds_merc: Bbox
     #: What texture keys decode to: "imagery" (RGBA pixels) or "landcover" (class masks).
     textures: str
+    #: Imagery layers over the terrain's own texture (``imagery.layers.ImageryLayer``), bottom
+    #: to top; their tiles are texture keys of layers 1.. (``geo.keys``).
+    layers: tuple[Any, ...]
+
+    @property
+    def texture_levels(self) -> tuple[int, ...]:
+        """The finest level of the terrain's own texture, then of each imagery layer."""
+        ...
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         """Terrain height at a point, or None outside the data."""
@@ -86,8 +93,9 @@ def mesh_of(provider: Provider, key: int) -> TileMesh:
 
 def texture_of(provider: Provider, key: int) -> NDArray[np.uint8]:
     """fetch then decode a texture key."""
-    tex = texture_key(tile_id_of(key))
-    made = provider.decode(tex, provider.fetch(tex))
+    if not is_texture(key):
+        raise TypeError(f"key {key} is not a texture key")
+    made = provider.decode(key, provider.fetch(key))
     if isinstance(made, TileMesh):
         raise TypeError(f"key {key} is not a texture key")
     return made
@@ -97,6 +105,7 @@ class RasterProvider:
     """A height source meshed on the fly: regular grids per tile, tint + hillshade imagery."""
 
     textures = "imagery"
+    layers: tuple[Any, ...] = ()
 
     def __init__(self, source: HeightSource, tree: Any = None) -> None:
         self.source = source
@@ -121,6 +130,11 @@ class RasterProvider:
     @property
     def resolution_merc(self) -> float | None:
         return float(self.source.resolution_merc)
+
+    @property
+    def texture_levels(self) -> tuple[int, ...]:
+        z = self.tree.texture_zmax
+        return (int(self.tree.zmax if z is None else z),)
 
     def fetch(self, key: int) -> bytes:
         """A mesh key's sampled heights (float32), or a texture key's RGBA pixels."""
@@ -193,6 +207,11 @@ class _Retextured:
         self.name = base.name
         self.tree = base.tree
         self.bounds_merc = base.bounds_merc
+        self.layers: tuple[Any, ...] = tuple(base.layers)
+
+    @property
+    def texture_levels(self) -> tuple[int, ...]:
+        return self.base.texture_levels
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         return self.base.ground_height(lon, lat)
@@ -211,68 +230,56 @@ class _Retextured:
         return self.base.mesh(key)
 
 
-class ImageryProvider(_Retextured):
-    """A provider whose textures come from an imagery source (a tile server, an MBTiles file, a
-    folder); where the terrain has data (the textures' alpha) still comes from the terrain.
+class LayeredProvider(_Retextured):
+    """A provider with imagery layers over the terrain's own texture: the user's tile servers,
+    MBTiles, folders and orthophotos (``imagery.layers.ImageryLayer``), bottom to top, each
+    keyed apart (``geo.keys`` layers 1..) and fetched at its own levels, not the terrain's.
 
-    A tile the source does not have (404) is the terrain's own tint. Other failures raise, so a
-    streaming scene retries them with backoff and draws the ancestor's texture meanwhile; with
-    ``strict`` False (one-off renders) they fall back to the tint too. Both are counted.
+    The terrain's texture (layer 0) stays underneath: its alpha says where the terrain has data,
+    and it shows wherever the layers above are transparent or failed. A layer tile that cannot
+    be had raises (counted and said once by its layer); the frame draws an ancestor's or nothing
+    of that layer there.
     """
 
     textures = "imagery"
 
-    def __init__(self, base: Provider, imagery: ImageryFetcher, *, strict: bool = True) -> None:
+    def __init__(
+        self, base: Provider, layers: Sequence[Any], *, own_zmax: int | None = None
+    ) -> None:
         super().__init__(base)
-        self.imagery = imagery
-        self.strict = strict
-        self.fallbacks = 0
-        self._lock = threading.Lock()
+        if not layers:
+            raise ValueError("LayeredProvider needs at least one imagery layer")
+        if len(layers) > MAX_LAYERS:
+            raise ImageryError(f"at most {MAX_LAYERS} imagery layers, got {len(layers)}")
+        self.layers: tuple[Any, ...] = tuple(layers)
+        self._own = own_zmax
+
+    @property
+    def texture_levels(self) -> tuple[int, ...]:
+        own = self._own if self._own is not None else self.base.texture_levels[0]
+        return (int(own), *(int(layer.max_zoom) for layer in self.layers))
 
     def fetch(self, key: int) -> bytes:
-        if not is_texture(key):
+        if not is_texture(key) or layer_of(key) == 0:
             return self.base.fetch(key)
         t = tile_of(key)
-        try:
-            return self.imagery.fetch(t.z, t.x, t.y)
-        except TileMissing:
-            return b""
-        except ImageryError:
-            if self.strict:
-                raise
-            return b""
+        return bytes(self.layers[layer_of(key) - 1].fetch(t.z, t.x, t.y))
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
-        if not is_texture(key):
+        if not is_texture(key) or layer_of(key) == 0:
             return self.base.decode(key, data)
-        tint = self.base.texture(key)
-        if not data:
-            with self._lock:
-                self.fallbacks += 1
-            return tint
-        from PIL import Image
-
-        n = tint.shape[0]
-        with Image.open(io.BytesIO(data)) as im:
-            rgb = im.convert("RGB")
-            if rgb.size != (n, n):
-                rgb = rgb.resize((n, n), Image.Resampling.BILINEAR)
-            pixels = np.asarray(rgb)
-        return np.ascontiguousarray(np.dstack([pixels, tint[..., 3]]))
-
-    def placeholder(self, key: int) -> TileMesh | NDArray[np.uint8]:
-        """What stands in for a texture the source failed to give when a frame cannot wait:
-        the terrain's own tint."""
-        with self._lock:
-            self.fallbacks += 1
-        return self.base.texture(key)
+        out: NDArray[np.uint8] = self.layers[layer_of(key) - 1].decode(data, self.tree.tile_size)
+        return out
 
     def texture(self, key: int) -> NDArray[np.uint8]:
-        return texture_of(self, key)
+        return self.base.texture(key) if layer_of(key) == 0 else texture_of(self, key)
 
     def close(self) -> None:
-        self.imagery.close()
-        self.base.close()
+        try:
+            for layer in self.layers:
+                layer.close()
+        finally:
+            self.base.close()
 
 
 class LandcoverProvider(_Retextured):

@@ -274,6 +274,7 @@ class TilesetProvider:
     """A tileset file as a Scene's provider: every tile is one indexed query away."""
 
     textures = "imagery"
+    layers: tuple[Any, ...] = ()
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
@@ -381,6 +382,12 @@ class TilesetProvider:
         from lodscape.store.provider import texture_of
 
         return texture_of(self, key)
+
+    @property
+    def texture_levels(self) -> tuple[int, ...]:
+        """The finest level of the stored imagery."""
+        z = self.tree.texture_zmax
+        return (int(self.tree.zmax if z is None else z),)
 
     @property
     def resolution_merc(self) -> float | None:

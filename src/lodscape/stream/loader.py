@@ -2,7 +2,9 @@
 prefetch along the camera's velocity, serving a ``FramePlan`` with one of two policies.
 
 - **blocking** (one-shot renders): every key the plan requires is fetched and decoded on the
-  workers at once, then uploaded; nothing else is asked for.
+  workers at once, then uploaded; nothing else is asked for. Imagery (``optional`` keys) is
+  waited for at most ``imagery_wait`` seconds over the loader's whole life: a server that never
+  answers costs a render that long once, and the frame is drawn with what came.
 - **streaming** (flights, the viewer): ``begin``, before the frame's one selection, uploads within
   a time slice what the last frame asked for and has been decoded since, most urgent first, and
   with what is left of the slice prefetched resources while the GPU budget has room for them;
@@ -70,9 +72,18 @@ class Loader:
         *,
         gpu_budget_bytes: float,
         predict: Predict | None = None,
+        optional: Callable[[int], bool] | None = None,
+        imagery_wait: float = 10.0,
     ) -> None:
         self.options = options
-        self.streamer = Streamer(source, options, clock, prepare=gpu.prepare)
+        self.streamer = Streamer(source, options, clock, prepare=gpu.prepare, remote=optional)
+        self._optional = optional
+        #: Seconds blocking frames may still wait for optional keys (imagery), all together.
+        self.imagery_wait = imagery_wait
+        #: Optional keys blocking frames were drawn without (failed, or not there in time), and
+        #: of those the ones still on their way when the wait was up.
+        self.missed = 0
+        self.late = 0
         self.gpu = GpuStage(gpu, gpu_budget_bytes)
         self._predict = predict
         self._motion: tuple[float, NDArray[np.float64]] | None = None
@@ -121,10 +132,24 @@ class Loader:
         taken = 0
         stall = 0.0
         if plan.required:
-            made = self.streamer.take_many(plan.required)
-            for key, m in zip(plan.required, made, strict=True):
+            opt = self._optional
+            must = [k for k in plan.required if opt is None or not opt(k)]
+            extra = [k for k in plan.required if opt is not None and opt(k)]
+            made = self.streamer.take_many(must)
+            for key, m in zip(must, made, strict=True):
                 self.gpu.upload(key, m)
-            taken = len(plan.required)
+            taken = len(must)
+            if extra:
+                t1 = time.perf_counter()
+                got = self.streamer.take_within(extra, self.imagery_wait)
+                self.imagery_wait = max(0.0, self.imagery_wait - (time.perf_counter() - t1))
+                for key, g in zip(extra, got, strict=True):
+                    if g is None:
+                        self.missed += 1
+                        self.late += self.streamer.running(key)
+                        continue
+                    self.gpu.upload(key, g)
+                    taken += 1
             stall = (time.perf_counter() - t0) * 1e3
             self.streamer.stats.uploaded += taken
         if not blocking:

@@ -134,6 +134,9 @@ class Streamer:
     #: What a worker does to a decoded resource before it goes to the memory stage (the GPU
     #: terrain mode makes height textures there, off the GL thread); None: nothing.
     prepare: Callable[[int, Made], Made] | None = None
+    #: Which keys come over the network (imagery layers): they get their own threads, so a slow
+    #: server never holds the workers that mesh the terrain; None: none do.
+    remote: Callable[[int], bool] | None = None
 
     def __post_init__(self) -> None:
         self.cache: ByteLRU[int, bytes] = ByteLRU()
@@ -143,6 +146,9 @@ class Streamer:
         self._failures: dict[int, _Failure] = {}
         self._slots = [-math.inf] * self.options.workers
         self._pool = ThreadPoolExecutor(self.options.workers, thread_name_prefix="lodscape-io")
+        self._net: ThreadPoolExecutor | None = None
+        if self.remote is not None:
+            self._net = ThreadPoolExecutor(8, thread_name_prefix="lodscape-net")
         self._pinned: set[int] = set()
 
     # --- requests ----------------------------------------------------------------------------
@@ -172,8 +178,13 @@ class Streamer:
                 self.stats.retried += 1
             self.stats.requested += 1
             decode = stage == "memory"
-            future = self._pool.submit(self._work, key, cached, decode)
+            future = self._pool_for(key).submit(self._work, key, cached, decode)
             self._jobs[key] = _Job(key, decode, now, future)
+
+    def _pool_for(self, key: int) -> ThreadPoolExecutor:
+        if self._net is not None and self.remote is not None and self.remote(key):
+            return self._net
+        return self._pool
 
     def _work(
         self, key: int, cached: bytes | None, decode: bool
@@ -257,7 +268,8 @@ class Streamer:
         todo = [i for i, m in enumerate(out) if m is None]
         cached = [self.cache.get(keys[i]) for i in todo]
         work = [
-            self._pool.submit(self._take, keys[i], c) for i, c in zip(todo, cached, strict=True)
+            self._pool_for(keys[i]).submit(self._take, keys[i], c)
+            for i, c in zip(todo, cached, strict=True)
         ]
         for i, c, job in zip(todo, cached, work, strict=True):
             data, made = job.result()
@@ -274,16 +286,54 @@ class Streamer:
         """On a worker: what ``take_many`` needs of one key."""
         if cached is not None:
             return cached, self._decode(key, cached)
-        try:
-            data = self.source.fetch(key)
-        except LodscapeError as exc:
-            # a frame cannot wait for retries: a source that has a stand-in gives it
-            placeholder = getattr(self.source, "placeholder", None)
-            if placeholder is None:
-                raise
-            self._fail(key, exc, self.clock.now())
-            return None, placeholder(key)  # type: ignore[no-any-return]
+        data = self.source.fetch(key)
         return data, self._decode(key, data)
+
+    def take_within(self, keys: Sequence[int], seconds: float) -> list[Made | None]:
+        """Resources a frame would like but can be drawn without (imagery): what arrives within
+        ``seconds``, None for the rest. A failure is recorded (and retried later, with backoff);
+        a job still running at the deadline goes on, and ``collect`` keeps what it brings."""
+        from concurrent.futures import wait
+
+        out: list[Made | None] = [self.memory.pop(k) for k in keys]
+        self.stats.memory_hits += sum(m is not None for m in out)
+        now = self.clock.now()
+        jobs: dict[int, Future[tuple[bytes | None, Made | None, float]]] = {}
+        for i, key in enumerate(keys):
+            if out[i] is not None:
+                continue
+            job = self._jobs.get(key)
+            if job is not None and job.decode:
+                jobs[i] = job.future
+                continue
+            failure = self._failures.get(key)
+            if failure is not None and now < failure.retry_at:
+                continue
+            cached = self.cache.get(key)
+            self.stats.requested += 1
+            jobs[i] = self._pool_for(key).submit(self._work, key, cached, True)
+        if jobs:
+            wait(list(jobs.values()), timeout=max(seconds, 0.0))
+        for i, future in jobs.items():
+            key = keys[i]
+            if not future.done():
+                # the frame goes on without it; a later frame collects it
+                if key not in self._jobs:
+                    self._jobs[key] = _Job(key, True, now, future)
+                continue
+            self._jobs.pop(key, None)
+            exc = future.exception()
+            if exc is not None:
+                self._fail(key, exc, now)
+                continue
+            data, made, _ = future.result()
+            self._failures.pop(key, None)
+            if data is not None:
+                self.stats.fetched += 1
+                self._put_cache(key, data)
+            self.stats.decoded += 1
+            out[i] = made
+        return out
 
     # --- budgets -----------------------------------------------------------------------------
 
@@ -314,12 +364,19 @@ class Streamer:
     def in_flight(self) -> int:
         return len(self._jobs)
 
+    def running(self, key: int) -> bool:
+        """Whether a job for ``key`` is on its way."""
+        return key in self._jobs
+
     def drain(self, timeout: float = 30.0) -> None:
         """Wait for every job in flight (tests, and the end of a flight)."""
         for job in list(self._jobs.values()):
             job.future.exception(timeout=timeout)
 
     def close(self) -> None:
+        if self._net is not None:
+            # a server that never answers must not hold the close: its requests time out alone
+            self._net.shutdown(wait=False, cancel_futures=True)
         self._pool.shutdown(wait=True, cancel_futures=True)
         self._jobs.clear()
 

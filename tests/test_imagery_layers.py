@@ -1,0 +1,284 @@
+"""Imagery layers apart from the terrain: a local orthophoto finer than its DEM drawn at its own
+level, layers composited bottom to top with their alpha, an orthophoto in another CRS landing
+where its georeference says, and every failure of a real loopback tile server said on stderr,
+counted, bounded in time, and an error with --imagery-strict."""
+
+from __future__ import annotations
+
+import math
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+import lodscape
+from _synthetic import fbm_heights, run_cli, write_dem, write_ortho
+from _tileserver import TileServer
+from lodscape import Camera
+from lodscape.geo.tiles import merc_to_lonlat
+
+pytestmark = pytest.mark.gl
+
+#: The DEM: 65² cells of 90 m in UTM 16N; the orthophoto 8× finer.
+DEM_RES = 90.0
+WEST, NORTH = 500_000.0, 4_000_000.0
+N = 65
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    d = tmp_path_factory.mktemp("site")
+    dem = write_dem(
+        str(d / "dem.tif"),
+        fbm_heights(N, seed=5, relief=150.0),
+        crs="EPSG:32616",
+        west=WEST,
+        north=NORTH,
+        res=DEM_RES,
+    )
+    n = N * 8
+    yy, xx = np.mgrid[0:n, 0:n]
+    # a checkerboard of two orthophoto pixels: only drawn near its own level does it show
+    fine = ((xx // 2 + yy // 2) % 2).astype(bool)
+    rgb = np.zeros((n, n, 3), np.uint8)
+    rgb[fine] = (250, 250, 250)
+    ortho = write_ortho(
+        str(d / "ortho.tif"),
+        rgb,
+        crs="EPSG:32616",
+        west=WEST - DEM_RES / 2,
+        north=NORTH + DEM_RES / 2,
+        res=DEM_RES / 8,
+    )
+    red = np.zeros((n, n, 3), np.uint8)
+    red[..., 0] = 255
+    base = write_ortho(
+        str(d / "red.tif"), red, crs="EPSG:32616", west=WEST, north=NORTH, res=DEM_RES / 8
+    )
+    # blue over the east half, transparent over the west half
+    blue = np.zeros((n, n, 3), np.uint8)
+    blue[..., 2] = 255
+    alpha = np.where(xx >= n // 2, 255, 0).astype(np.uint8)
+    top = write_ortho(
+        str(d / "blue.tif"),
+        blue,
+        crs="EPSG:32616",
+        west=WEST,
+        north=NORTH,
+        res=DEM_RES / 8,
+        alpha=alpha,
+    )
+    return {"dem": dem, "ortho": ortho, "red": base, "blue": top, "dir": str(d)}
+
+
+def _centre(scene: lodscape.Scene) -> tuple[float, float]:
+    b = scene.provider.bounds_merc
+    lon, lat = merc_to_lonlat((b.left + b.right) / 2, (b.top + b.bottom) / 2)
+    return float(lon), float(lat)
+
+
+def _down(scene: lodscape.Scene, lon: float, lat: float, above: float, w: int = 96) -> Camera:
+    g = scene.ground_height(lon, lat)
+    assert g is not None
+    return Camera(lon, lat, g + above, pitch=-90, width=w, height=w)
+
+
+def _contrast(rgb: NDArray[np.uint8]) -> float:
+    """Mean absolute difference between horizontal neighbours (a checkerboard drawn texel for
+    texel is all edges; averaged away it is none)."""
+    g = rgb.astype(np.float64).mean(axis=2)
+    return float(np.abs(np.diff(g, axis=1)).mean())
+
+
+def test_an_orthophoto_finer_than_its_dem_is_drawn_at_its_own_level(site: dict[str, str]) -> None:
+    from lodscape.imagery.raster import RasterImagery
+
+    ortho = RasterImagery(site["ortho"])
+    with lodscape.open(site["dem"]) as plain:
+        dem_level = plain.provider.texture_levels[0]
+        dem_zmax = plain.tree.zmax
+    # 8× finer is three levels finer, beyond the DEM tree's geometry levels too
+    assert ortho.max_zoom == dem_level + 3
+    assert ortho.max_zoom > dem_zmax
+    with lodscape.open(site["dem"], imagery=[site["ortho"]]) as scene:
+        assert scene.provider.texture_levels == (dem_level, ortho.max_zoom)
+        assert scene.tree.zmax >= ortho.max_zoom
+        lon, lat = _centre(scene)
+        # top down from where a pixel is 0.8 of a texel of the orthophoto's finest level: the
+        # band keeps every drawn layer tile inside it, at that level
+        texel_m = 2 * 20037508.342789244 / 256 / 2**ortho.max_zoom * math.cos(math.radians(lat))
+        above = 0.8 * 96 * texel_m / 2 / math.tan(math.radians(30))
+        rgb, _ = scene.render(_down(scene, lon, lat, above))
+        sel = scene.view.previous
+        assert sel is not None
+        density = sel.layer_px_per_texel(1)
+        assert np.isfinite(density).all()
+        assert 0.5 <= float(density.min()) and float(density.max()) <= 1.5, density
+        assert int((sel.z - sel.layer_up[0]).max()) == ortho.max_zoom
+        # the geometry there is the DEM's surface refined: the same heights, none made up
+        assert scene.ground_height(lon, lat) == pytest.approx(plain_height(site, lon, lat))
+        sharp = _contrast(rgb)
+    # the same view with the imagery cut at the DEM's texture level: the checkerboard is gone
+    with lodscape.open(site["dem"], imagery=[site["ortho"]], imagery_maxzoom=dem_level) as capped:
+        blurred = _contrast(capped.render(_down(capped, lon, lat, above))[0])
+    assert sharp > 30.0, (sharp, blurred, scene.imagery_failures())
+    assert blurred < 0.25 * sharp, (sharp, blurred)
+
+
+def plain_height(site: dict[str, str], lon: float, lat: float) -> float:
+    with lodscape.open(site["dem"]) as scene:
+        h = scene.ground_height(lon, lat)
+    assert h is not None
+    return h
+
+
+def test_layers_composite_bottom_to_top_with_their_alpha(site: dict[str, str]) -> None:
+    with lodscape.open(site["dem"], imagery=[site["red"], site["blue"]]) as scene:
+        lon, lat = _centre(scene)
+        rgb, _ = scene.render(_down(scene, lon, lat, 3000.0, 64))
+        west, east = rgb[:, :24].reshape(-1, 3).mean(0), rgb[:, 40:].reshape(-1, 3).mean(0)
+        # red shows through the blue layer's transparent west half; the east half is blue
+        assert west[0] > 200 and west[2] < 40, west
+        assert east[2] > 200 and east[0] < 40, east
+    with lodscape.open(site["dem"], imagery=[site["blue"], site["red"]]) as scene:
+        rgb, _ = scene.render(_down(scene, lon, lat, 3000.0, 64))
+        # the opaque red on top hides the blue everywhere
+        assert (rgb[..., 0] > 200).mean() > 0.95
+
+
+def test_an_orthophoto_in_another_crs_lands_where_its_georeference_says(
+    site: dict[str, str], tmp_path: Path
+) -> None:
+    with lodscape.open(site["dem"]) as scene:
+        lon, lat = _centre(scene)
+    # a geographic orthophoto whose white west half ends exactly at the camera's longitude
+    res = 1e-4
+    n = 400
+    west = lon - n / 2 * res
+    rgb = np.zeros((n, n, 3), np.uint8)
+    rgb[:, : n // 2] = 255
+    path = write_ortho(
+        str(tmp_path / "geo.tif"), rgb, crs="EPSG:4326", west=west, north=lat + n / 2 * res, res=res
+    )
+    with lodscape.open(site["dem"], imagery=[path]) as scene:
+        rgb_out, _ = scene.render(_down(scene, lon, lat, 400.0, 128))
+        sel = scene.view.previous
+        assert sel is not None
+        px_per_texel = float(np.nanmax(sel.layer_px_per_texel(1)))
+    row = rgb_out[64].astype(float).mean(axis=1)
+    edge = int(np.argmax(row < 128))  # the first dark pixel from the west
+    assert row[:edge].min() > 128
+    # the camera's longitude is the picture's middle (between columns 63 and 64)
+    assert abs(edge - 64) <= max(1.0, px_per_texel) + 0.5, (edge, px_per_texel)
+
+
+# --- failures ----------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def server() -> Iterator[TileServer]:
+    s = TileServer()
+    yield s
+    s.close()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+FAULTS = {
+    "404": ("404", "missing"),
+    "500": ("500", "error answers"),
+    "html": ("garbage", "not images"),
+    "truncated png": ("truncated-png", "not images"),
+    "cut short": ("truncated", "cut short"),
+    "never answers": ("slow", "no answer in time"),
+}
+
+
+@pytest.mark.parametrize("name", [*FAULTS, "nothing listening"])
+def test_each_imagery_failure_is_said_counted_bounded_and_strict(
+    name: str,
+    server: TileServer,
+    site: dict[str, str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    if name == "nothing listening":
+        template = f"http://127.0.0.1:{_free_port()}/{{z}}/{{x}}/{{y}}.png"
+        said = "cannot connect"
+    else:
+        fault, said = FAULTS[name]
+        server.default_fault = fault
+        server.delay = 60.0  # "never answers": longer than anything here waits
+        template = server.template
+    out = tmp_path / "v.png"
+    argv = [
+        "render",
+        site["dem"],
+        "--size",
+        "64x48",
+        "-o",
+        str(out),
+        "--imagery",
+        template,
+        "--imagery-cache",
+        str(tmp_path),
+        "--imagery-timeout",
+        "2",
+    ]
+    t = time.perf_counter()
+    code, stdout, err = run_cli(argv, capsys)
+    took = time.perf_counter() - t
+    assert code == 0, err
+    assert out.exists()
+    # said once on stderr, naming the layer and the kind; counted in the stats
+    warnings = [line for line in err.splitlines() if "imagery layer 1" in line]
+    assert len(warnings) == 1, err
+    assert said in warnings[0]
+    assert "imagery_failed" in stdout
+    failed = int(stdout.split("imagery_failed:")[1].split()[0])
+    assert failed > 0 or "had not come" in err
+    # a server that never answers costs the render its imagery timeout, not one per tile
+    assert took < 20.0, took
+    out.unlink()
+    code, _, err = run_cli([*argv, "--imagery-strict"], capsys)
+    assert code == 2
+    assert "imagery" in err.splitlines()[-1]
+    assert not out.exists()
+
+
+def test_a_flight_never_waits_for_a_server_that_never_answers(
+    server: TileServer, site: dict[str, str]
+) -> None:
+    from lodscape.flight import fly
+    from lodscape.scene import SceneOptions
+    from lodscape.stream import SimClock, StreamOptions
+
+    server.default_fault = "slow"
+    server.delay = 60.0
+    opts = SceneOptions(stream=StreamOptions(in_flight=8), imagery_timeout=1.0)
+    messages: list[str] = []
+    with lodscape.open(site["dem"], opts, clock=SimClock(), imagery=[server.template]) as scene:
+        scene.provider.layers[0].warn = messages.append
+        lon, lat = _centre(scene)
+        cams = [_down(scene, lon + 1e-4 * i, lat, 1500.0, 64) for i in range(30)]
+        t = time.perf_counter()
+        rows = fly(scene, iter(cams), 30.0)
+        took = time.perf_counter() - t
+        # the requests time out on their own threads, after the frames that asked went on
+        deadline = time.monotonic() + 10.0
+        while not messages and time.monotonic() < deadline:
+            time.sleep(0.05)
+    assert len(rows) == 30
+    assert all(r["stall_ms"] == 0 for r in rows[1:])
+    # the terrain's own texture stands in for the layer, counted as a fallback every frame
+    assert all(r["layer_fallbacks"] > 0 for r in rows)
+    assert took < 30.0, took
+    assert any("no answer in time" in m for m in messages)
