@@ -38,8 +38,8 @@ from lodscape import Camera, SceneOptions
 from lodscape.build import build
 from lodscape.flight import fly
 from lodscape.geo.tiles import lonlat_to_merc, merc_to_lonlat
-from lodscape.imagery.sources import HttpSource
 from lodscape.imagery.layers import ImageryLayer
+from lodscape.imagery.sources import HttpSource
 from lodscape.store.provider import LayeredProvider, Provider
 from lodscape.store.tileset import TilesetProvider
 from lodscape.stream import SimClock, StreamOptions

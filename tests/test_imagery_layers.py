@@ -117,7 +117,8 @@ def test_an_orthophoto_finer_than_its_dem_is_drawn_at_its_own_level(site: dict[s
         assert sel is not None
         density = sel.layer_px_per_texel(1)
         assert np.isfinite(density).all()
-        assert 0.5 <= float(density.min()) and float(density.max()) <= 1.5, density
+        assert float(density.min()) >= 0.5, density
+        assert float(density.max()) <= 1.5, density
         assert int((sel.z - sel.layer_up[0]).max()) == ortho.max_zoom
         # the geometry there is the DEM's surface refined: the same heights, none made up
         assert scene.ground_height(lon, lat) == pytest.approx(plain_height(site, lon, lat))
@@ -142,8 +143,10 @@ def test_layers_composite_bottom_to_top_with_their_alpha(site: dict[str, str]) -
         rgb, _ = scene.render(_down(scene, lon, lat, 3000.0, 64))
         west, east = rgb[:, :24].reshape(-1, 3).mean(0), rgb[:, 40:].reshape(-1, 3).mean(0)
         # red shows through the blue layer's transparent west half; the east half is blue
-        assert west[0] > 200 and west[2] < 40, west
-        assert east[2] > 200 and east[0] < 40, east
+        assert west[0] > 200, west
+        assert west[2] < 40, west
+        assert east[2] > 200, east
+        assert east[0] < 40, east
     with lodscape.open(site["dem"], imagery=[site["blue"], site["red"]]) as scene:
         rgb, _ = scene.render(_down(scene, lon, lat, 3000.0, 64))
         # the opaque red on top hides the blue everywhere

@@ -16,6 +16,7 @@ import lodscape
 from _synthetic import fbm_heights, run_cli, write_dem
 from _tileserver import TileServer, tile_colour
 from lodscape import Camera, SceneOptions
+from lodscape.imagery.layers import ImageryLayer
 from lodscape.imagery.sources import (
     DirectorySource,
     HttpSource,
@@ -24,7 +25,6 @@ from lodscape.imagery.sources import (
     TileCache,
     TileMissing,
 )
-from lodscape.imagery.layers import ImageryLayer
 from lodscape.store.provider import LayeredProvider, RasterProvider
 from lodscape.stream import SimClock, StreamOptions
 from lodscape.terrain.source import RasterSource

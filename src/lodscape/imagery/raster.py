@@ -3,8 +3,9 @@ cut into Web Mercator z/x/y tiles on demand.
 
 Each tile reads only the window of the raster under it, decimated by GDAL with an averaging
 filter (a COG's overviews serve the coarse levels), then sampled bilinearly at the tile's Web
-Mercator texel centres (pyproj, vectorised; colours premultiplied by coverage). The raster's mask (nodata, an alpha band, a per-dataset mask) becomes
-the tile's alpha, as does everything outside the raster. RGB(A) rasters keep their bands; a
+Mercator texel centres (pyproj, vectorised; colours premultiplied by coverage). The raster's
+mask (nodata, an alpha band, a per-dataset mask) becomes the tile's alpha, as does everything
+outside the raster. RGB(A) rasters keep their bands; a
 palette raster is expanded through its colour table before it is filtered; a single band is grey.
 Bands that are not bytes are stretched between the 2nd and 98th percentiles of a coarse read.
 
