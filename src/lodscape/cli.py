@@ -680,9 +680,15 @@ def info(
 ) -> None:
     """Print a source's footprint, resolution, heights and tile levels (and for a tileset, its
     size and provenance)."""
+    from lodscape.store.provider import RefinedProvider
+
     with open_scene(source) as scene:
-        tree = scene.tree
         provider = scene.provider
+        imagery_zmax = provider.texture_levels[0]
+        if isinstance(provider, RefinedProvider):
+            # a tileset whose baked imagery is finer than its terrain: report the terrain's own
+            provider = provider.base
+        tree = provider.tree
         b = provider.bounds_merc
         (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
         line = typer.echo
@@ -695,6 +701,8 @@ def info(
             f"{'levels':>14}: {tree.zmin} .. {tree.zmax}, textures to {tree.texture_zmax}"
             + (f" (coarsened by {tree.coarsened})" if tree.coarsened else "")
         )
+        if imagery_zmax != tree.texture_zmax:
+            line(f"{'imagery':>14}: levels {tree.zmin} .. {imagery_zmax} (baked at its own)")
         manifest = getattr(provider, "manifest", None)  # a tileset's build record
         if manifest is None:
             res = provider.resolution_merc
@@ -747,6 +755,13 @@ def build(
     allow_mixed_crs: Annotated[
         bool, typer.Option(help="Mosaic rasters in different CRSs, reprojecting each.")
     ] = False,
+    imagery: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Imagery to bake over the terrain's tint at its own levels (repeatable, bottom "
+            "to top): a georeferenced raster (an orthophoto), an .mbtiles file or a folder."
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Build a tileset from INPUTS once, to render, fly or serve it anywhere. Run it again after
@@ -769,6 +784,7 @@ def build(
             crs=crs,
             resolution=resolution,
             allow_mixed_crs=allow_mixed_crs,
+            imagery=tuple(imagery or ()),
         )
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None
@@ -805,6 +821,7 @@ def build(
             f"{what} {output}: {report.planned} tiles ({report.built} made now) in "
             f"{report.seconds:.1f} s on {report.executor}; levels {report.levels[0]}.."
             f"{report.levels[2]}, textures to {report.levels[1]}"
+            + (f", imagery to {report.imagery_zmax}" if report.imagery_zmax else "")
         )
 
 

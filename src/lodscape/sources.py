@@ -192,7 +192,14 @@ def _terrain(
                 f"{spec.text}: fractal detail needs a raster source; a tileset keeps no lattice "
                 "of the data to add it to"
             )
-        return TilesetProvider(spec.text), True
+        tileset = TilesetProvider(spec.text)
+        finest = tileset.texture_levels[0]
+        if finest > tileset.tree.zmax:
+            # imagery baked finer than the terrain: its stored surface, cut finer to wear it
+            from lodscape.store.provider import RefinedProvider
+
+            return RefinedProvider(tileset, finest), True
+        return tileset, True
     src = flat_source(spec.text) if spec.kind == "flat" else RasterSource(spec.text)
     return _lattice(src, detail), True
 
@@ -251,8 +258,7 @@ def _with_layers(provider: Provider, layers: list[Any], owns: bool) -> Provider:
     """The layers over the terrain. Where one is finer than a raster DEM's tree goes, the tree
     goes on below it with the DEM's surface refined (fractal detail of no amplitude: heights
     interpolated, none made up), and the terrain's own texture stops at the DEM's level."""
-    from lodscape.imagery.layers import warn_stderr
-    from lodscape.store.provider import LayeredProvider
+    from lodscape.store.provider import LayeredProvider, RefinedProvider
 
     finest = max(int(layer.max_zoom) for layer in layers)
     own = provider.texture_levels[0]
@@ -261,11 +267,8 @@ def _with_layers(provider: Provider, layers: list[Any], owns: bool) -> Provider:
             tree = DetailTree.over(provider.tree, Fractal(0.7, 0.0, 0))
             provider = FractalProvider(DetailHeights(provider.source, tree), tree)
         elif not isinstance(provider, FractalProvider):
-            warn_stderr(
-                f"{provider.name}: imagery goes to level {finest} but this terrain's tiles stop "
-                f"at level {provider.tree.zmax} (a tileset keeps no lattice to refine); the "
-                "imagery is drawn magnified below it"
-            )
+            # no lattice to refine (a tileset): its finest stored surface, sampled finer
+            provider = RefinedProvider(provider, finest)
     return LayeredProvider(provider, layers, own_zmax=own)
 
 

@@ -53,6 +53,10 @@ class BuildOptions:
     allow_mixed_crs: bool = False
     #: Finished tiles written per transaction.
     batch: int = 16
+    #: Imagery layers baked over the terrain's tint, bottom to top: local orthophotos (any
+    #: GDAL raster), MBTiles files or folders of z/x/y tiles. The tileset's imagery then goes
+    #: down to the finest layer's own level, below the terrain's if it is finer.
+    imagery: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.error_texels) and self.error_texels >= 0.0):
@@ -61,6 +65,12 @@ class BuildOptions:
             raise ValueError(f"Expected a positive resolution, got {self.resolution}")
         if self.batch < 1:
             raise ValueError(f"Expected a batch of at least 1, got {self.batch}")
+        for spec in self.imagery:
+            if spec.startswith(("http://", "https://")):
+                raise ValueError(
+                    f"--imagery {spec}: a build bakes local imagery (a raster, .mbtiles or "
+                    "folder); give a tile server to render, fly or view instead"
+                )
 
 
 @dataclass(frozen=True)
@@ -73,6 +83,8 @@ class BuildReport:
     seconds: float
     executor: str
     levels: tuple[int, int, int]
+    #: The finest level of baked imagery, where imagery was baked (None: the tint alone).
+    imagery_zmax: int | None = None
 
 
 def build(
@@ -98,6 +110,7 @@ def build(
             max_samples=None,
         )
         height_range = _height_range(source)
+        imagery_zmax = _imagery_zmax(options.imagery, span.texture_zmax)
         job = Job(
             tuple(os.path.abspath(p) for p in rasters),
             options.allow_mixed_crs,
@@ -106,9 +119,12 @@ def build(
             span.texture_zmax,
             height_range,
             source.resolution_merc,
+            span.zmax,
+            tuple(os.path.abspath(p) for p in options.imagery),
+            imagery_zmax,
         )
-        plan = _plan(source, span.zmin, span.zmax)
-        manifest = _manifest(source, options, inputs, span, height_range)
+        plan = _plan(source, span.zmin, max(span.zmax, imagery_zmax))
+        manifest = _manifest(source, options, inputs, span, height_range, imagery_zmax)
     finally:
         source.close()
     writer = TilesetWriter(out, manifest)
@@ -163,7 +179,24 @@ def build(
         time.perf_counter() - t0,
         label,
         (span.zmin, span.texture_zmax, span.zmax),
+        imagery_zmax if options.imagery else None,
     )
+
+
+def _imagery_zmax(imagery: Sequence[str], texture_zmax: int) -> int:
+    """The finest level the tileset's imagery goes to: the tint's, or the finest layer's."""
+    if not imagery:
+        return texture_zmax
+    from lodscape.imagery.layers import open_layer
+
+    finest = texture_zmax
+    for i, spec in enumerate(imagery):
+        layer = open_layer(spec, i + 1)
+        try:
+            finest = max(finest, int(layer.max_zoom))
+        finally:
+            layer.close()
+    return finest
 
 
 def _bad_input() -> bool:
@@ -253,6 +286,7 @@ def _manifest(
     inputs: Sequence[str | os.PathLike[str]],
     span: LevelSpan,
     height_range: tuple[float, float],
+    imagery_zmax: int,
 ) -> dict[str, object]:
     provenance = []
     for p in inputs:
@@ -262,6 +296,7 @@ def _manifest(
         )
     opts = asdict(options)
     opts.pop("batch")
+    opts["imagery"] = [os.path.abspath(p) for p in options.imagery]
     return {
         "schema": SCHEMA_VERSION,
         "tile_size": options.tile_size,
@@ -269,6 +304,8 @@ def _manifest(
             "zmin": span.zmin,
             "texture_zmax": span.texture_zmax,
             "zmax": span.zmax,
+            # the stored imagery's finest level: the tint's, or a baked layer's own
+            "imagery_zmax": imagery_zmax,
         },
         "crs": source.crs_wkt,
         "bounds_merc": list(source.bounds_merc),
@@ -289,14 +326,19 @@ def _mbtiles(manifest: dict[str, object], out: Path) -> dict[str, str]:
     b = manifest["bounds_merc"]
     w, s, e, n = lonlat_bounds(Bbox(*b))  # type: ignore[misc]
     levels = manifest["levels"]
-    lo, hi = levels["zmin"], levels["texture_zmax"]  # type: ignore[index]
+    lo, hi = levels["zmin"], levels["imagery_zmax"]  # type: ignore[index]
+    layers = manifest["options"]["imagery"]  # type: ignore[index]
+    described = "hypsometric tint with hillshade, made by lodscape"
+    if layers:
+        names = ", ".join(os.path.basename(str(p)) for p in layers)
+        described = f"{names} over the terrain's {described}"
     return {
         "name": out.stem,
         "format": "png",
         "type": "baselayer",
         "version": "1",
-        "description": "hypsometric tint with hillshade, made by lodscape",
-        "attribution": "terrain: see the lodscape metadata's provenance",
+        "description": described,
+        "attribution": "terrain and imagery: see the lodscape metadata's provenance",
         "bounds": f"{w:.7f},{s:.7f},{e:.7f},{n:.7f}",
         "center": f"{(w + e) / 2:.7f},{(s + n) / 2:.7f},{lo}",
         "minzoom": str(lo),

@@ -10,6 +10,7 @@ import io
 import math
 import threading
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
@@ -18,6 +19,7 @@ from numpy.typing import NDArray
 from lodscape.geo.frames import WGS84_A, geodetic_to_ecef
 from lodscape.geo.tiles import ORIGIN, Bbox, Tile, bounds, merc_to_lonlat, xy_bounds
 from lodscape.imagery import TintImagery
+from lodscape.imagery.sources import ImageryError
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, encode, quantize
 from lodscape.store.tileset import TIN_GRID, TileRecord
 from lodscape.terrain.mesh import grid_coordinates
@@ -40,9 +42,15 @@ class Job:
     height_range: tuple[float, float]
     #: The source's own sample spacing (EPSG:3857 metres): the truth errors are measured on.
     resolution: float
+    #: The finest terrain level; tiles below it (down to ``imagery_zmax``) hold imagery alone.
+    zmax: int = 64
+    #: Imagery layers baked over the tint, bottom to top, and the finest imagery level.
+    imagery: tuple[str, ...] = ()
+    imagery_zmax: int = -1
 
 
 _sources: dict[tuple[tuple[str, ...], bool], HeightSource] = {}
+_imagery: dict[tuple[str, ...], list[Any]] = {}
 _sources_lock = threading.Lock()
 
 
@@ -69,8 +77,46 @@ def make_tiles(job: Job, tiles: list[tuple[int, int, int]]) -> list[TileRecord]:
     return [make_tile(job, z, x, y) for z, x, y in tiles]
 
 
+def _layers(job: Job) -> list[Any]:
+    """The job's imagery layers, opened once per process (failures raise: a build does not
+    bake a hole silently)."""
+    key = job.imagery
+    with _sources_lock:
+        layers = _imagery.get(key)
+        if layers is None:
+            from lodscape.imagery.layers import open_layer
+
+            layers = _imagery[key] = [open_layer(p, i + 1) for i, p in enumerate(key)]
+        return layers
+
+
+def _texture(job: Job, src: HeightSource, z: int, x: int, y: int) -> bytes:
+    """The tile's PNG: the tint (its alpha: where the terrain has data) under the layers."""
+    rgba = TintImagery(src, job.height_range, tile_size=job.tile_size).texture(z, x, y)
+    if job.imagery and z <= job.imagery_zmax:
+        rgb = rgba[..., :3].astype(np.float32)
+        for layer in _layers(job):
+            if z > layer.max_zoom:
+                continue
+            try:
+                img = layer.decode(layer.fetch(z, x, y), job.tile_size)
+            except ImageryError as exc:
+                if exc.kind != "missing":
+                    raise
+                continue
+            if img.shape[0] != job.tile_size:
+                continue  # nothing of the layer here
+            a = img[..., 3:4].astype(np.float32) / 255.0
+            rgb = rgb * (1.0 - a) + img[..., :3].astype(np.float32) * a
+        rgba = np.dstack([np.clip(rgb + 0.5, 0, 255).astype(np.uint8), rgba[..., 3]])
+    return _png(rgba)
+
+
 def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
     src = _source(job)
+    if z > job.zmax:
+        # below the terrain's finest level: the imagery alone
+        return TileRecord(z, x, y, imagery=_texture(job, src, z, x, y))
     t = Tile(x, y, z)
     xs, ys = grid_coordinates(z, x, y, TIN_GRID)
     side = xs[-1] - xs[0]
@@ -104,9 +150,8 @@ def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
         error = max(error, _sample_error(rtin.errors, budget, qlon, qlat, qh, plon, plat, ph))
     error += _sag(tris, verts, side, b)
     imagery = None
-    if z <= job.texture_zmax:
-        rgba = TintImagery(src, job.height_range, tile_size=job.tile_size).texture(z, x, y)
-        imagery = _png(rgba)
+    if z <= max(job.texture_zmax, job.imagery_zmax):
+        imagery = _texture(job, src, z, x, y)
     return TileRecord(z, x, y, error, hmin, hmax, stored, imagery)
 
 

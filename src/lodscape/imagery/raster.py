@@ -165,9 +165,7 @@ class RasterImagery:
             @ Affine.scale(win.width / out_w, win.height / out_h)
         )
         # every texel centre of the tile, in the raster's CRS, then in the read's pixels
-        centres = (np.arange(TILE) + 0.5) * texel
-        mx, my = np.meshgrid(left + centres, top - centres)
-        sx, sy = self._to_source().transform(mx, my)
+        sx, sy = self._texel_centres(z, left, top, texel)
         inv = ~t
         cols = inv.a * sx + inv.b * sy + inv.c - 0.5
         rows = inv.d * sx + inv.e * sy + inv.f - 0.5
@@ -184,6 +182,33 @@ class RasterImagery:
         rgba[..., :3] = np.clip(np.moveaxis(colour, 0, -1) + 0.5, 0, 255)
         rgba[..., 3] = np.clip(alpha * 255.0 + 0.5, 0, 255)
         return rgba
+
+    def _texel_centres(
+        self, z: int, left: float, top: float, texel: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The tile's texel centres in the raster's CRS. From level 8 on, a 17² lattice of them
+        is transformed and the rest interpolated (as GDAL's approximate transformer does): over
+        a tile that small a projection bends far less than a texel, and pyproj does 256 times
+        less work."""
+        from scipy.ndimage import map_coordinates
+
+        tf = self._to_source()
+        if z < 8:
+            c = (np.arange(TILE) + 0.5) * texel
+            mx, my = np.meshgrid(left + c, top - c)
+            sx, sy = tf.transform(mx, my)
+            return np.asarray(sx), np.asarray(sy)
+        k = 17
+        c = np.linspace(0.5, TILE - 0.5, k) * texel
+        mx, my = np.meshgrid(left + c, top - c)
+        lx, ly = (np.asarray(v, np.float64) for v in tf.transform(mx, my))
+        f = np.arange(TILE) * ((k - 1) / (TILE - 1))
+        rows, cols = np.meshgrid(f, f, indexing="ij")
+        at = np.stack([rows, cols])
+        return (
+            map_coordinates(lx, at, order=1, mode="nearest"),
+            map_coordinates(ly, at, order=1, mode="nearest"),
+        )
 
     def _to_source(self) -> Any:
         """This thread's transformer from Web Mercator to the raster's CRS."""

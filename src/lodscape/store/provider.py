@@ -8,21 +8,28 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.geo.keys import MAX_LAYERS, grid_of, is_texture, layer_of, tile_of
-from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, tile_size
+from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, merc_to_lonlat, tile_size
 from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError
 from lodscape.terrain.fractal import MAX_LEVEL
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
-from lodscape.terrain.pyramid import TileTree, build_tree
+from lodscape.terrain.pyramid import RefinedTree, TileTree, build_tree
 from lodscape.terrain.source import HeightSource
 
-__all__ = ["FractalProvider", "LandcoverProvider", "LayeredProvider", "Provider", "RasterProvider"]
+__all__ = [
+    "FractalProvider",
+    "LandcoverProvider",
+    "LayeredProvider",
+    "Provider",
+    "RasterProvider",
+    "RefinedProvider",
+]
 
 
 class Provider(Protocol):
@@ -228,6 +235,50 @@ class _Retextured:
 
     def mesh(self, key: int) -> TileMesh:
         return self.base.mesh(key)
+
+
+class RefinedProvider(_Retextured):
+    """A terrain carried on below its finest level (``terrain.pyramid.RefinedTree``), for
+    imagery finer than it: a mesh below the finest level samples the finest stored surface
+    (``heights_at``) on its grid. No heights are made up; the data's surface is only cut
+    finer, so the imagery can be drawn at its own level."""
+
+    def __init__(self, base: Provider, zmax: int) -> None:
+        super().__init__(base)
+        self.textures = base.textures
+        self.tree = cast(Any, RefinedTree(base.tree, max(int(zmax), int(base.tree.zmax))))
+        self._finest = int(base.tree.zmax)
+
+    def fetch(self, key: int) -> bytes:
+        t = tile_of(key)
+        if is_texture(key) or t.z <= self._finest:
+            return self.base.fetch(key)
+        xs, ys = grid_coordinates(t.z, t.x, t.y, self.tree.grids[grid_of(key)])
+        xx, yy = np.meshgrid(xs, ys)
+        lon, lat = merc_to_lonlat(xx, yy)
+        h = self.base.heights_at(lon, lat)
+        if np.isnan(h).all():
+            h = np.full(h.shape, self.tree.height_range[0])
+        else:
+            # past the data's edge a skirt-like flat fill at the nearest known height
+            h = np.where(np.isnan(h), np.nanmin(h), h)
+        return np.asarray(h, np.float32).tobytes()
+
+    def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
+        t = tile_of(key)
+        if is_texture(key) or t.z <= self._finest:
+            return self.base.decode(key, data)
+        s = self.tree.grids[grid_of(key)] + 1
+        return build_mesh(key, t.z, t.x, t.y, np.frombuffer(data, np.float32).reshape(s, s))
+
+    def mesh(self, key: int) -> TileMesh:
+        return mesh_of(self, key)
+
+    def texture(self, key: int) -> NDArray[np.uint8]:
+        return self.base.texture(key)
+
+    def close(self) -> None:
+        self.base.close()
 
 
 class LayeredProvider(_Retextured):

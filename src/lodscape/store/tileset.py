@@ -385,8 +385,10 @@ class TilesetProvider:
 
     @property
     def texture_levels(self) -> tuple[int, ...]:
-        """The finest level of the stored imagery."""
-        z = self.tree.texture_zmax
+        """The finest level of the stored imagery (a baked orthophoto's own, which may be
+        below the terrain's finest level)."""
+        levels = self.manifest.get("levels", {})
+        z = levels.get("imagery_zmax", self.tree.texture_zmax)
         return (int(self.tree.zmax if z is None else z),)
 
     @property

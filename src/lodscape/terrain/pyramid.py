@@ -12,8 +12,8 @@ of its level z+k descendants, so its error is their largest 16-segment error.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Protocol
+from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -24,7 +24,15 @@ from lodscape.geo.frames import WGS84_A
 from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, merc_to_lonlat, tiles_array
 from lodscape.terrain.mesh import GRIDS
 
-__all__ = ["Level", "SampleSource", "TileStats", "TileTree", "build_tree", "level_range"]
+__all__ = [
+    "Level",
+    "RefinedTree",
+    "SampleSource",
+    "TileStats",
+    "TileTree",
+    "build_tree",
+    "level_range",
+]
 
 _BASE = GRIDS[0]
 #: Samples of the deepest level above which on-the-fly rendering coarsens the data (a build keeps
@@ -340,3 +348,80 @@ def sag(z: int, segments: int, y: NDArray[np.int64]) -> NDArray[np.float64]:
     ground = step * np.cos(np.radians(lat)) * math.sqrt(2.0)
     out: NDArray[np.float64] = ground**2 / (8.0 * WGS84_A)
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class _RefinedLevel:
+    """A level below a tree's finest: each tile's bounds are its ancestor's at the finest level;
+    its meshes sample the finest stored surface, so their error against it is the straight
+    edges' sag alone (what the data says below its finest level is not known, and not
+    invented)."""
+
+    z: int
+    base: Any
+
+    def stats(self, x: NDArray[np.int64], y: NDArray[np.int64]) -> TileStats:
+        k = self.z - self.base.zmax
+        st = self.base.level(self.base.zmax).stats(x >> k, y >> k)
+        errs = np.stack([sag(self.z, g, y).astype(np.float32) for g in self.base.grids])
+        return TileStats(st.exists, st.min_h, st.max_h, errs)
+
+
+@dataclass(frozen=True, eq=False)
+class RefinedTree:
+    """A tile tree carried on below its finest level down to ``zmax`` (for imagery finer than
+    the terrain), the levels below being its finest surface refined."""
+
+    base: Any
+    zmax: int
+    _levels: dict[int, Any] = field(default_factory=dict, repr=False)
+
+    @property
+    def grids(self) -> tuple[int, ...]:
+        return tuple(self.base.grids)
+
+    @property
+    def tile_size(self) -> int:
+        return int(self.base.tile_size)
+
+    @property
+    def zmin(self) -> int:
+        return int(self.base.zmin)
+
+    @property
+    def texture_zmax(self) -> int | None:
+        z = self.base.texture_zmax
+        return None if z is None else int(z)
+
+    @property
+    def height_range(self) -> tuple[float, float]:
+        lo, hi = self.base.height_range
+        return (float(lo), float(hi))
+
+    @property
+    def coarsened(self) -> int:
+        return int(self.base.coarsened)
+
+    @property
+    def twist(self) -> Any:
+        return self.base.twist
+
+    @property
+    def roughness(self) -> Any:
+        return self.base.roughness
+
+    @property
+    def levels(self) -> tuple[Any, ...]:
+        return tuple(self.level(z) for z in range(self.zmin, self.zmax + 1))
+
+    def level(self, z: int) -> Any:
+        if z <= self.base.zmax:
+            return self.base.level(z)
+        lv = self._levels.get(z)
+        if lv is None:
+            lv = self._levels[z] = _RefinedLevel(z, self.base)
+        return lv
+
+    def roots(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        r: tuple[NDArray[np.int64], NDArray[np.int64]] = self.base.roots()
+        return r
