@@ -285,3 +285,77 @@ def test_a_flight_never_waits_for_a_server_that_never_answers(
     assert all(r["layer_fallbacks"] > 0 for r in rows)
     assert took < 30.0, took
     assert any("no answer in time" in m for m in messages)
+
+
+# --- tilesets -----------------------------------------------------------------------------------
+
+
+def _close_view(scene: lodscape.Scene, zoom: int) -> Camera:
+    """Top down, a pixel 0.8 of a texel of level ``zoom``, 96 px square."""
+    lon, lat = _centre(scene)
+    texel_m = 2 * 20037508.342789244 / 256 / 2**zoom * math.cos(math.radians(lat))
+    return _down(scene, lon, lat, 0.8 * 96 * texel_m / 2 / math.tan(math.radians(30)))
+
+
+def test_a_tileset_wears_imagery_finer_than_its_terrain(
+    site: dict[str, str], tmp_path: Path
+) -> None:
+    from lodscape.build import build
+    from lodscape.imagery.raster import RasterImagery
+
+    lods = tmp_path / "site.lods"
+    build([site["dem"]], lods)
+    finest = RasterImagery(site["ortho"]).max_zoom
+    with lodscape.open(lods) as plain:
+        stored = plain.tree.zmax
+        h = plain.ground_height(*_centre(plain))
+    assert finest > stored
+    with lodscape.open(lods, imagery=[site["ortho"]]) as scene:
+        # the tileset's stored surface, cut finer down to the imagery's level: the same ground
+        assert scene.tree.zmax == finest
+        assert scene.ground_height(*_centre(scene)) == pytest.approx(h)
+        rgb, _ = scene.render(_close_view(scene, finest))
+        sel = scene.view.previous
+        assert sel is not None
+        assert int((sel.z - sel.layer_up[0]).max()) == finest
+        assert _contrast(rgb) > 30.0
+
+
+def test_build_bakes_imagery_at_its_own_levels(
+    site: dict[str, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import sqlite3
+    from contextlib import closing
+
+    from lodscape.imagery.raster import RasterImagery
+
+    lods = tmp_path / "baked.lods"
+    code, _, err = run_cli(
+        ["build", site["dem"], "-o", str(lods), "--imagery", site["ortho"], "-q"], capsys
+    )
+    assert code == 0, err
+    finest = RasterImagery(site["ortho"]).max_zoom
+    with closing(sqlite3.connect(lods)) as db:
+        levels = dict(db.execute("SELECT zoom_level, COUNT(*) FROM tiles GROUP BY 1").fetchall())
+        meta = dict(db.execute("SELECT name, value FROM metadata").fetchall())
+    assert max(levels) == finest
+    assert meta["maxzoom"] == str(finest)
+    assert "ortho.tif" in meta["description"]
+    code, out, _ = run_cli(["info", str(lods)], capsys)
+    assert code == 0
+    assert f"imagery: levels {min(levels)} .. {finest}" in out
+    with lodscape.open(lods) as scene:
+        assert scene.provider.texture_levels == (finest,)
+        rgb, _ = scene.render(_close_view(scene, finest))
+        sel = scene.view.previous
+        assert sel is not None
+        assert int((sel.z - sel.texture_up).max()) == finest
+        assert _contrast(rgb) > 30.0
+    # a build bakes local imagery only
+    code, _, err = run_cli(
+        ["build", site["dem"], "-o", str(tmp_path / "x.lods"), "--imagery", "http://h/{z}/{x}/{y}"],
+        capsys,
+    )
+    assert code == 2
+    assert "bakes local imagery" in err
+    assert not (tmp_path / "x.lods").exists()
