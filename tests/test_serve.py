@@ -7,11 +7,14 @@ import asyncio
 import gzip
 import json
 import socket
+import sqlite3
 import struct
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import closing
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -135,6 +138,40 @@ def test_imagery_tiles(server: str, site: Path) -> None:
         assert r.headers["content-type"] == "image/png"
         assert Image.open(BytesIO(r.content)).size == (256, 256)
         assert c.get(f"/imagery/{z}/{x}/{(y + 9) % (1 << z)}.png").status_code == 404
+
+
+def test_imagery_tilejson(server: str, site: Path) -> None:
+    with httpx.Client(base_url=server) as c:
+        tj = c.get("/imagery.json").json()
+        assert tj["tilejson"] == "3.0.0"
+        with closing(sqlite3.connect(site)) as db:
+            lo, hi = db.execute("SELECT MIN(zoom_level), MAX(zoom_level) FROM tiles").fetchone()
+        assert (tj["minzoom"], tj["maxzoom"]) == (lo, hi)
+        assert tj["attribution"]
+        z, x, y = _some_tile(site, "tiles")
+        url = tj["tiles"][0].format(z=z, x=x, y=y)
+        assert url.startswith(server)
+        assert c.get(url).status_code == 200
+        assert c.get("/").json()["imagery_tilejson"] == "imagery.json"
+
+
+def test_export_writes_the_stored_city_as_3d_tiles(site: Path, tmp_path: Path) -> None:
+    from lodscape.store.export import export_cesium
+
+    export_cesium(site, tmp_path / "out")
+    tileset = json.loads((tmp_path / "out" / "3dtiles" / "tileset.json").read_text())
+    uris = []
+
+    def walk(tile: dict[str, Any]) -> None:
+        if "content" in tile:
+            uris.append(tile["content"]["uri"])
+        for child in tile.get("children", []):
+            walk(child)
+
+    walk(tileset["root"])
+    assert uris
+    for uri in uris:
+        assert (tmp_path / "out" / "3dtiles" / uri).read_bytes()[:4] == b"glTF"
 
 
 def test_buildings_as_3d_tiles(server: str) -> None:

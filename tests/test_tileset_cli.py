@@ -73,6 +73,18 @@ def test_info_render_and_export(
         (imagery,) = db.execute("SELECT COUNT(*) FROM tiles").fetchone()
     assert files >= terrain
     assert len(list((folder / "imagery").rglob("*.png"))) == imagery
+    # the imagery's TileJSON: its levels are the stored ones, its tiles the exported files
+    tj = json.loads((folder / "imagery.json").read_text())
+    with closing(sqlite3.connect(built)) as db:
+        lo, hi = db.execute("SELECT MIN(zoom_level), MAX(zoom_level) FROM tiles").fetchone()
+    assert (tj["tilejson"], tj["minzoom"], tj["maxzoom"]) == ("3.0.0", lo, hi)
+    w, s, e, n = tj["bounds"]
+    assert w < e
+    assert s < n
+    z, x, y = hi, *_any_tile(folder / "imagery" / str(hi))
+    assert (folder / tj["tiles"][0].format(z=z, x=x, y=y)).exists()
+    # a tileset without a city has no 3D Tiles to export
+    assert not (folder / "3dtiles").exists()
     code, _, err = _run(["export", str(built), "--cesium", str(folder)], capsys)
     assert code == 2
     assert "not an empty folder" in err
@@ -105,3 +117,9 @@ def test_a_tileset_that_is_not_one_fails_in_one_line(
     assert "not a lodscape tileset" in err
     assert err.count("\n") == 1
     assert not (tmp_path / "x.png").exists()
+
+
+def _any_tile(level: Path) -> tuple[int, int]:
+    """(x, y) of some exported imagery file of a level folder."""
+    f = next(level.rglob("*.png"))
+    return int(f.parent.name), int(f.stem)

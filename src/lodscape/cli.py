@@ -832,12 +832,14 @@ def export(
         Path, typer.Option("--cesium", help="Folder to write a Cesium terrain layer into.")
     ],
 ) -> None:
-    """Write a tileset as files a Cesium client streams: layer.json, {z}/{x}/{y}.terrain, and
-    the imagery as imagery/{z}/{x}/{y}.png."""
+    """Write a tileset as files a Cesium client streams: layer.json, {z}/{x}/{y}.terrain, the
+    imagery as imagery/{z}/{x}/{y}.png with its TileJSON (imagery.json), and a stored city's
+    buildings as 3D Tiles (3dtiles/tileset.json)."""
     from lodscape.store.export import export_cesium
 
     n = export_cesium(tileset, cesium)
-    typer.echo(f"wrote {n} terrain tiles and layer.json to {cesium}")
+    city = " and 3dtiles/" if (cesium / "3dtiles").exists() else ""
+    typer.echo(f"wrote {n} terrain tiles, layer.json, imagery.json{city} to {cesium}")
 
 
 @app.command()

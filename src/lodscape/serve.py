@@ -4,7 +4,8 @@ Routes:
 - ``/layer.json``: the Cesium terrain layer (TMS rows, as ``lodscape export --cesium``);
 - ``/{z}/{x}/{y}.terrain``: quantized-mesh-1.0 with octvertexnormals, gzipped where the client
   accepts it (as stored), plain otherwise; flat tiles above the tileset's roots;
-- ``/imagery/{z}/{x}/{y}.png``: the imagery (OSM rows);
+- ``/imagery/{z}/{x}/{y}.png``: the imagery (OSM rows), and ``/imagery.json`` its TileJSON
+  (levels, bounds, attribution; for MapLibre, Leaflet or any XYZ client);
 - ``/3dtiles/tileset.json`` and ``/3dtiles/{i}.glb``: the stored cities' buildings as 3D Tiles
   1.1, when the tileset holds a city (made at the first request, then kept): groups of box
   models, each replaced by its full buildings up close.
@@ -90,31 +91,25 @@ class TileService:
             ).fetchone()
         return None if row is None else bytes(row[0])
 
+    def tilejson(self, base: str) -> dict[str, object]:
+        """The imagery's TileJSON, its tiles under ``base`` (scheme and host)."""
+        from lodscape.store.export import imagery_tilejson
+
+        with self._lock:
+            return imagery_tilejson(self._db, self.path.stem, base + "/imagery/{z}/{x}/{y}.png")
+
     def tiles3d(self) -> tuple[bytes, list[bytes]] | None:
         """(tileset.json, glb contents) of the stored cities, or None without a city."""
         if not self.has_city:
             return None
         with self._lock:
             if self._tiles3d is None:
-                import numpy as np
+                from lodscape.store.export import city_3dtiles
 
-                from lodscape.city.model import build_city
-                from lodscape.store.tiles3d import city_tileset
-
-                city = self._provider.city()
-                provider = self._provider
-
-                def ground(lon: Any, lat: Any) -> Any:
-                    flat = [
-                        provider.ground_height(float(a), float(b))
-                        for a, b in zip(np.ravel(lon), np.ravel(lat), strict=True)
-                    ]
-                    out = np.array([np.nan if v is None else v for v in flat], np.float64)
-                    return out.reshape(np.shape(lon))
-
-                model = build_city(city, ground)
-                tileset, contents = city_tileset(model)
-                self._tiles3d = (json.dumps(tileset).encode(), contents)
+                made = city_3dtiles(self._provider)
+                if made is None:
+                    return None
+                self._tiles3d = (json.dumps(made[0]).encode(), made[1])
             return self._tiles3d
 
 
@@ -172,6 +167,7 @@ def make_app(service: TileService) -> Any:
                 "name": service.path.stem,
                 "terrain": "layer.json",
                 "imagery": "imagery/{z}/{x}/{y}.png",
+                "imagery_tilejson": "imagery.json",
                 "buildings": "3dtiles/tileset.json" if service.has_city else None,
             }
         ).encode()
@@ -194,6 +190,10 @@ def make_app(service: TileService) -> Any:
             raise web.HTTPNotFound()
         return reply(request, data, "image/png")
 
+    async def tilejson(request: web.Request) -> web.Response:
+        body = json.dumps(service.tilejson(f"{request.scheme}://{request.host}")).encode()
+        return reply(request, body, "application/json", compress=True)
+
     async def tileset(request: web.Request) -> web.Response:
         made = await asyncio.get_running_loop().run_in_executor(None, service.tiles3d)
         if made is None:
@@ -213,6 +213,7 @@ def make_app(service: TileService) -> Any:
     app.router.add_get("/layer.json", layer)
     app.router.add_get(f"/{num % 'z'}/{num % 'x'}/{num % 'y'}.terrain", terrain)
     app.router.add_get(f"/imagery/{num % 'z'}/{num % 'x'}/{num % 'y'}.png", imagery)
+    app.router.add_get("/imagery.json", tilejson)
     app.router.add_get("/3dtiles/tileset.json", tileset)
     app.router.add_get(f"/3dtiles/{num % 'i'}.glb", content)
     return app

@@ -1,5 +1,7 @@
 """A tileset as a folder a Cesium client streams: ``layer.json``, ``{z}/{x}/{y}.terrain`` (TMS rows,
-the layer's default scheme) and the imagery as ``imagery/{z}/{x}/{y}.png`` (OSM rows).
+the layer's default scheme), the imagery as ``imagery/{z}/{x}/{y}.png`` (OSM rows) with its
+TileJSON (``imagery.json``: levels, bounds, attribution), and the stored cities' buildings as
+3D Tiles (``3dtiles/tileset.json``, ``3dtiles/{i}.glb``).
 
 Cesium starts from the tiling scheme's level 0, so the levels above the tileset's roots get
 flat tiles (at the data's lowest height) over the roots' ancestors; from the roots down every
@@ -23,7 +25,7 @@ from lodscape.geo.tiles import Bbox, Tile, bounds
 from lodscape.store.quantized_mesh import encode, ungzip
 from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
 
-__all__ = ["cesium_layer", "export_cesium"]
+__all__ = ["cesium_layer", "city_3dtiles", "export_cesium", "imagery_tilejson"]
 
 
 def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str]) -> int:
@@ -56,6 +58,18 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
         ):
             _write(tmp / "imagery" / str(z) / str(x) / f"{(1 << z) - 1 - row}.png", bytes(data))
         (tmp / "layer.json").write_text(json.dumps(layer, indent=1))
+        tilejson = imagery_tilejson(db, Path(tileset).stem, "imagery/{z}/{x}/{y}.png")
+        (tmp / "imagery.json").write_text(json.dumps(tilejson, indent=1))
+        provider = TilesetProvider(tileset)
+        try:
+            made = city_3dtiles(provider)
+        finally:
+            provider.close()
+        if made is not None:
+            (tmp / "3dtiles").mkdir()
+            (tmp / "3dtiles" / "tileset.json").write_text(json.dumps(made[0]))
+            for i, glb in enumerate(made[1]):
+                (tmp / "3dtiles" / f"{i}.glb").write_bytes(glb)
         if target.exists():
             target.rmdir()
         os.replace(tmp, target)
@@ -65,6 +79,50 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
         db.close()
         shutil.rmtree(tmp, ignore_errors=True)
     return count
+
+
+def imagery_tilejson(db: sqlite3.Connection, name: str, tiles: str) -> dict[str, object]:
+    """TileJSON 3.0.0 of a tileset's imagery (its MBTiles metadata: levels, bounds,
+    attribution), its tiles at the URL template ``tiles``."""
+    meta = dict(db.execute("SELECT name, value FROM metadata").fetchall())
+    lo, hi = db.execute("SELECT MIN(zoom_level), MAX(zoom_level) FROM tiles").fetchone()
+    w, s, e, n = (float(v) for v in str(meta.get("bounds", "-180,-85,180,85")).split(","))
+    lo = int(lo if lo is not None else meta.get("minzoom", 0))
+    hi = int(hi if hi is not None else meta.get("maxzoom", 0))
+    return {
+        "tilejson": "3.0.0",
+        "name": str(meta.get("name", name)),
+        "description": str(meta.get("description", "")),
+        "attribution": str(meta.get("attribution", "")),
+        "scheme": "xyz",
+        "format": str(meta.get("format", "png")),
+        "tiles": [tiles],
+        "minzoom": lo,
+        "maxzoom": hi,
+        "bounds": [w, s, e, n],
+        "center": [(w + e) / 2.0, (s + n) / 2.0, lo],
+    }
+
+
+def city_3dtiles(provider: TilesetProvider) -> tuple[dict[str, Any], list[bytes]] | None:
+    """(tileset.json, glb contents) of the cities a tileset stores, standing on its ground;
+    None without a city."""
+    city = provider.city()
+    if city is None:
+        return None
+    from lodscape.city.model import build_city
+    from lodscape.store.tiles3d import city_tileset
+
+    def ground(lon: Any, lat: Any) -> Any:
+        flat = [
+            provider.ground_height(float(a), float(b))
+            for a, b in zip(np.ravel(lon), np.ravel(lat), strict=True)
+        ]
+        out = np.array([np.nan if v is None else v for v in flat], np.float64)
+        return out.reshape(np.shape(lon))
+
+    tileset, contents = city_tileset(build_city(city, ground))
+    return tileset, contents
 
 
 def cesium_layer(
