@@ -10,6 +10,7 @@ import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -359,3 +360,124 @@ def test_build_bakes_imagery_at_its_own_levels(
     assert code == 2
     assert "bakes local imagery" in err
     assert not (tmp_path / "x.lods").exists()
+
+
+# --- what a raster layer can be, and what it must refuse ---------------------------------------
+
+
+def _tile_over(r: Any, lon: float, lat: float, z: int) -> NDArray[np.uint8]:
+    from lodscape.geo.tiles import tile
+
+    t = tile(lon, lat, z)
+    return r.decode(r.fetch(t.z, t.x, t.y), 256)
+
+
+def test_palette_grey_and_overview_rasters(tmp_path: Path) -> None:
+    import rasterio
+    from rasterio.enums import Resampling
+    from rasterio.transform import Affine
+
+    from lodscape.imagery.raster import RasterImagery
+
+    t = Affine(10.0, 0.0, WEST, 0.0, -10.0, NORTH)
+    common = {"driver": "GTiff", "height": 512, "width": 512, "crs": "EPSG:32616", "transform": t}
+    with rasterio.open(tmp_path / "pal.tif", "w", count=1, dtype="uint8", **common) as d:
+        d.write(np.full((1, 512, 512), 3, np.uint8))
+        d.write_colormap(1, {3: (10, 200, 30, 255)})
+    with rasterio.open(tmp_path / "grey.tif", "w", count=1, dtype="uint16", **common) as d:
+        # a 16-bit band: stretched between its 2nd and 98th percentiles
+        d.write(np.tile(np.linspace(1000, 3000, 512, dtype=np.uint16), (512, 1))[None])
+    with rasterio.open(
+        tmp_path / "cog.tif", "w", count=3, dtype="uint8", tiled=True, **common
+    ) as d:
+        d.write(np.full((3, 512, 512), 90, np.uint8))
+        d.build_overviews([2, 4, 8], Resampling.average)
+    from rasterio.warp import transform_bounds
+
+    with rasterio.open(tmp_path / "grey.tif") as src:
+        (w, s, e, n) = transform_bounds(src.crs, "EPSG:4326", *src.bounds)
+    lon, lat = (w + e) / 2, (s + n) / 2
+    pal = _tile_over(RasterImagery(tmp_path / "pal.tif"), lon, lat, 14)
+    inside = pal[..., 3] == 255
+    assert inside.mean() > 0.2
+    assert tuple(pal[inside][0][:3]) == (10, 200, 30)
+    grey = _tile_over(RasterImagery(tmp_path / "grey.tif"), lon, lat, 12)
+    row = grey[128, :, 0][grey[128, :, 3] == 255].astype(int)
+    # stretched, and west to east it brightens
+    assert row.min() < 60
+    assert row.max() > 200
+    assert (np.diff(row) >= -2).all()
+    # a coarse level of a raster with overviews: still its colour, only coarser
+    cog = RasterImagery(tmp_path / "cog.tif")
+    coarse = _tile_over(cog, lon, lat, 9)
+    covered = coarse[..., 3] > 250
+    assert covered.any()
+    assert np.abs(coarse[covered][:, :3].astype(int) - 90).max() <= 1
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("broken", "not a raster GDAL can read"),
+        ("nocrs", "has no CRS"),
+        ("nodata", "nodata everywhere"),
+        ("badmbtiles", "not an MBTiles file"),
+        ("missing", "no such file or folder"),
+        ("emptyfolder", "no z/x/y tile folders"),
+    ],
+)
+def test_bad_imagery_is_refused_in_one_line(
+    content: str,
+    message: str,
+    site: dict[str, str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import rasterio
+    from rasterio.transform import Affine
+
+    path = tmp_path / "layer.tif"
+    t = Affine(10.0, 0.0, WEST, 0.0, -10.0, NORTH)
+    if content == "broken":
+        path.write_bytes(b"II*\x00 not really a tiff")
+    elif content == "nocrs":
+        with rasterio.open(
+            path, "w", driver="GTiff", height=8, width=8, count=3, dtype="uint8", transform=t
+        ) as d:
+            d.write(np.zeros((3, 8, 8), np.uint8))
+    elif content == "nodata":
+        with rasterio.open(
+            path, "w", driver="GTiff", height=8, width=8, count=1, dtype="float32",
+            crs="EPSG:32616", transform=t, nodata=-1.0,
+        ) as d:  # fmt: skip
+            d.write(np.full((1, 8, 8), -1.0, np.float32))
+    elif content == "badmbtiles":
+        path = tmp_path / "layer.mbtiles"
+        path.write_bytes(b"garbage, not sqlite")
+    elif content == "emptyfolder":
+        path = tmp_path / "tiles"
+        path.mkdir()
+    out = tmp_path / "v.png"
+    code, _, err = run_cli(
+        ["render", site["dem"], "--size", "32x24", "-o", str(out), "--imagery", str(path)],
+        capsys,
+    )
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert message in lines[0]
+    assert not out.exists()
+
+
+def test_the_gpu_terrain_mode_composites_layers_too(site: dict[str, str]) -> None:
+    from lodscape.scene import SceneOptions
+
+    opts = SceneOptions(terrain_mode="gpu")
+    with lodscape.open(site["dem"], opts, imagery=[site["red"], site["blue"]]) as scene:
+        lon, lat = _centre(scene)
+        rgb, _ = scene.render(_down(scene, lon, lat, 3000.0, 64))
+        if scene.terrain_mode != "gpu":
+            pytest.skip(scene.terrain_mode_note or "no tessellation here")
+        west, east = rgb[:, :24].reshape(-1, 3).mean(0), rgb[:, 40:].reshape(-1, 3).mean(0)
+        assert west[0] > 200, west
+        assert east[2] > 200, east
