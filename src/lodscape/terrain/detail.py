@@ -417,6 +417,9 @@ class DetailHeights:
         fj, fi = np.meshgrid(gj / f, gi / f, indexing="ij")
         h = interpolate(base, fi, fj)
         f_ = t.fractal
+        if t.sigma == 0.0:
+            # no amplitude (imagery or land cover finer than the DEM): the lattice refined alone
+            return h.astype(np.float32)
         h += fbm_window(
             f_.seed, f_.hurst, t.sigma, lv, i0, j0, segments + 1, segments + 1, start=t.start
         )
@@ -425,7 +428,7 @@ class DetailHeights:
     def _detail_at(self, xm: F64, ym: F64, spacing: float) -> F64:
         t = self.tree
         lv = _level_for(spacing)
-        if lv <= t.start:
+        if lv <= t.start or t.sigma == 0.0:
             return np.zeros(np.shape(xm))
         return _field_at(t.fractal.seed, t.fractal.hurst, t.sigma, lv, t.start, xm, ym)
 
