@@ -222,6 +222,9 @@ def _amplitude(hurst: float) -> float:
 
 def detail_bound(fractal: Fractal, sigma: float, start: int, lattice: I64, segments: int) -> F64:
     """Metres of error of detail a ``segments``-cell tile at lattice level ``lattice`` may miss."""
+    if sigma == 0.0:
+        # no amplitude: no detail to miss (and no calibration to run for it)
+        return np.zeros(np.shape(lattice))
     rel = lattice - start
     below = (
         sigma
@@ -321,6 +324,8 @@ class DetailTree:
 
     @property
     def dmax(self) -> float:
+        if self.sigma == 0.0:
+            return 0.0
         return self.sigma * _amplitude(round(self.fractal.hurst, 6))
 
     @property
