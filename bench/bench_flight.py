@@ -13,6 +13,11 @@ Three runs over the same cameras:
 
 They run twice: on the local tileset alone, and with imagery from a loopback tile server that
 answers each tile after ``--latency-ms`` (a remote server), where loading when needed hurts.
+With ``--ortho``, instead, the staged pipeline flies with a local orthophoto 8× finer than
+the DEM (0.625 m, a JPEG-compressed tiled GeoTIFF of 2-pixel cells made here, 32,776² for the
+4097² DEM) as an imagery layer at its own levels (issue 18): the tree then goes three levels
+below the tileset's terrain, its stored surface cut finer. It is compared with the same flight
+over the tileset alone.
 
 Reported: frames that fall back more than one level, frames whose CPU work (selection, stalls,
 uploads) exceeds the frame's 33.3 ms, and peak resident bytes, after the first second.
@@ -77,15 +82,23 @@ def cameras(dem: Path, seconds: float) -> list[Camera]:
 
 
 def run(
-    tileset: Path, cams: list[Camera], stream: StreamOptions | None, imagery: str | None
+    tileset: Path,
+    cams: list[Camera],
+    stream: StreamOptions | None,
+    imagery: str | None,
+    ortho: Path | None = None,
 ) -> dict[str, float]:
     opts = SceneOptions(gpu_budget_mb=BUDGET_MB, anisotropy=1.0, stream=stream)
     clock = SimClock()
-    provider: Provider = TilesetProvider(tileset)
-    if imagery is not None:
-        layer = ImageryLayer(HttpSource(imagery, max_connections=16), index=1)
-        provider = LayeredProvider(provider, [layer])
-    with lodscape.Scene(provider, opts, owns=True, clock=clock) as scene:
+    if ortho is not None:
+        opened = lodscape.open(tileset, opts, clock=clock, imagery=[ortho])
+    else:
+        provider: Provider = TilesetProvider(tileset)
+        if imagery is not None:
+            layer = ImageryLayer(HttpSource(imagery, max_connections=16), index=1)
+            provider = LayeredProvider(provider, [layer])
+        opened = lodscape.Scene(provider, opts, owns=True, clock=clock)
+    with opened as scene:
         if stream is not None:
             rows = fly(scene, iter(cams), FPS)
         else:
@@ -115,6 +128,7 @@ def run(
         "cpu_ms_median": statistics.median(r["frame_cpu_ms"] for r in after),
         "cpu_ms_max": max(r["frame_cpu_ms"] for r in after),
         "peak_mib": peak / 2**20,
+        "layer_fallbacks": sum(int(r.get("layer_fallbacks", 0)) for r in after),
     }
 
 
@@ -130,16 +144,48 @@ def dataset(work: Path, n: int) -> tuple[Path, Path]:
     return dem, tileset
 
 
+def write_ortho(path: Path, dem: Path, factor: int = 8) -> None:
+    """An RGB orthophoto ``factor``× finer than ``dem`` over it, written strip by strip."""
+    import rasterio
+    from rasterio.transform import Affine
+
+    with rasterio.open(dem) as d:
+        t, crs, n = d.transform, d.crs, d.width * factor
+    profile = {
+        "driver": "GTiff",
+        "height": n,
+        "width": n,
+        "count": 3,
+        "dtype": "uint8",
+        "crs": crs,
+        "transform": Affine(t.a / factor, 0.0, t.c, 0.0, t.e / factor, t.f),
+        "tiled": True,
+        "blockxsize": 512,
+        "blockysize": 512,
+        "compress": "jpeg",
+        "photometric": "YCBCR",
+    }
+    strip = 4096
+    with rasterio.open(path, "w", **profile) as out:
+        for row in range(0, n, strip):
+            h = min(strip, n - row)
+            cells = np.random.default_rng(row).integers(40, 230, (3, (h + 1) // 2, (n + 1) // 2))
+            block = np.repeat(np.repeat(cells.astype(np.uint8), 2, axis=1), 2, axis=2)
+            out.write(block[:, :h, :n], window=rasterio.windows.Window(0, row, n, h))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--work", type=Path, default=None, help="keep the DEM and tileset here")
     ap.add_argument("--seconds", type=float, default=40.0)
     ap.add_argument("--latency-ms", type=float, default=40.0, help="the imagery server's delay")
+    ap.add_argument("--ortho", action="store_true", help="fly with an orthophoto 8x finer too")
+    ap.add_argument("--dem", type=int, default=4097, help="the DEM's side (4097: issue 4's)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        dem, tileset = dataset(work, 4097)
+        dem, tileset = dataset(work, args.dem)
         size = tileset.stat().st_size / 2**20
         cams = cameras(dem, args.seconds)
         print(
@@ -158,6 +204,27 @@ def main() -> None:
             ("naive (load when needed)", None),
         ]
         try:
+            if args.ortho:
+                ortho = work / f"fbm{args.dem}-ortho.tif"
+                if not ortho.exists():
+                    t = time.perf_counter()
+                    write_ortho(ortho, dem)
+                    print(f"wrote {ortho} in {time.perf_counter() - t:.0f} s")
+                print("-- a local orthophoto 8x finer than the DEM (staged)")
+                for label, imagery_path in (
+                    ("tileset alone", None),
+                    ("with the orthophoto", ortho),
+                ):
+                    stream = StreamOptions(cache_mb=BUDGET_MB, memory_mb=BUDGET_MB)
+                    r = run(tileset, cams, stream, None, imagery_path)
+                    print(
+                        f"{label:>25}: {r['frames']} frames after the first second: "
+                        f"{r['fallback_gt_1']} fall back > 1 level, {r['over_budget']} over "
+                        f"{1000 / FPS:.1f} ms (CPU median {r['cpu_ms_median']:.1f} ms, max "
+                        f"{r['cpu_ms_max']:.1f} ms), peak resident {r['peak_mib']:.1f} MiB, "
+                        f"layer fallbacks {r.get('layer_fallbacks', 0)}"
+                    )
+                return
             for imagery, where in [
                 (None, "the local tileset"),
                 (server.template, f"imagery from a server {args.latency_ms:.0f} ms away"),
