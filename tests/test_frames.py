@@ -73,8 +73,9 @@ class Rig:
         gpu_budget: float = 1e12,
         upload_ms: float = 6.0,
         ahead: tuple[float, ...] = (),
+        texture_levels: tuple[int, ...] | None = None,
     ) -> None:
-        self.view = TerrainView(provider.tree)
+        self.view = TerrainView(provider.tree, texture_levels=texture_levels)
         self.gpu = FakeGpu()
         self.clock = SimClock()
         opts = StreamOptions(ahead=ahead, upload_ms=upload_ms)
@@ -283,4 +284,45 @@ def test_the_blocking_policy_loads_everything_in_one_frame(
         assert plan2.required == []
         assert report2.loaded == 0
     finally:
+        rig.close()
+
+
+def test_an_imagery_layer_is_loaded_at_its_own_levels_and_never_waited_for(
+    provider: RasterProvider, cam: Camera
+) -> None:
+    """A layer whose finest level is one below the terrain's texture level: blocking frames
+    require its tiles, at levels capped by its own; streaming frames never do (none, or an
+    ancestor's, until they come), and converge to the blocking frame's."""
+    from lodscape.geo.keys import is_overlay, layer_of_array
+    from lodscape.lod.select import NO_TEXTURE
+
+    own = provider.texture_levels[0]
+    levels = (own, own + 1)
+    near = cam.moved(alt=cam.alt - 900.0)
+    blocking = Rig(provider, texture_levels=levels)
+    rig = Rig(provider, texture_levels=levels)
+    try:
+        want, _ = blocking.step(near, blocking=True)
+        sel = want.selection
+        assert sel.layer_keys.shape == (1, sel.count)
+        assert (layer_of_array(sel.layer_keys[0]) == 1).all()
+        z_layer = sel.z - sel.layer_up[0]
+        assert int(z_layer.max()) <= own + 1
+        # the band asks for more than the terrain's own texture: tiles split below it
+        assert int(z_layer.max()) == own + 1
+        assert any(is_overlay(k) for k in want.required)
+        first, report = rig.step(near)
+        assert not any(is_overlay(k) for k in first.required)
+        assert (first.selection.layer_keys == NO_TEXTURE).all()
+        assert all(key == -1 for it in first.items for key, _ in it.layers)
+        for _ in range(80):
+            plan, report = rig.step(near)
+            assert report.stall_ms == 0.0
+            if plan.loads.size == 0:
+                break
+        assert plan.selection.layer_fallbacks == 0
+        got = sorted(int(k) for k in plan.selection.layer_keys[0])
+        assert got == sorted(int(k) for k in sel.layer_keys[0])
+    finally:
+        blocking.close()
         rig.close()

@@ -203,7 +203,9 @@ def _bad_input() -> bool:
     """Whether the exception being handled is about the inputs."""
     import sys
 
-    return isinstance(sys.exc_info()[1], SourceError)
+    from lodscape.imagery.sources import ImageryError
+
+    return isinstance(sys.exc_info()[1], SourceError | ImageryError)
 
 
 def _rasters(
