@@ -42,7 +42,7 @@ from lodscape.errors import SourceError
 from lodscape.geo.tiles import ORIGIN, Bbox
 from lodscape.terrain.fractal import MAX_LEVEL, fbm_window
 from lodscape.terrain.mesh import GRIDS
-from lodscape.terrain.pyramid import TileStats, sag
+from lodscape.terrain.pyramid import DeeperTree, TileStats, sag
 
 __all__ = [
     "DetailLevel",
@@ -298,7 +298,7 @@ class DetailLevel:
 
 
 @dataclass(frozen=True, eq=False)
-class DetailTree:
+class DetailTree(DeeperTree):
     """A DEM's tile tree with fractal detail below it, down to ``zmax`` (lattice ``MAX_LEVEL``
     at the finest grid)."""
 
@@ -329,19 +329,7 @@ class DetailTree:
         return self.sigma * _amplitude(round(self.fractal.hurst, 6))
 
     @property
-    def grids(self) -> tuple[int, ...]:
-        return tuple(self.base.grids)
-
-    @property
-    def tile_size(self) -> int:
-        return int(self.base.tile_size)
-
-    @property
-    def zmin(self) -> int:
-        return int(self.base.zmin)
-
-    @property
-    def zmax(self) -> int:
+    def zmax(self) -> int:  # type: ignore[override]
         return max(int(self.base.zmax), MAX_LEVEL - _log2(self.base.grids[-1]))
 
     @property
@@ -349,33 +337,10 @@ class DetailTree:
         # textures follow the detail: their hillshade shows it
         return self.zmax
 
-    @property
-    def height_range(self) -> tuple[float, float]:
-        lo, hi = self.base.height_range
-        return (float(lo), float(hi))
-
-    @property
-    def coarsened(self) -> int:
-        return int(self.base.coarsened)
-
-    @property
-    def levels(self) -> tuple[Any, ...]:
-        return tuple(self.level(z) for z in range(self.zmin, self.zmax + 1))
-
-    def level(self, z: int) -> Any:
-        lv = self._levels.get(z)
-        if lv is None:
-            lv = (
-                _Wrapped(self.base.level(z), self.dmax)
-                if z <= self.base.zmax
-                else DetailLevel(z, self)
-            )
-            self._levels[z] = lv
-        return lv
-
-    def roots(self) -> tuple[I64, I64]:
-        r: tuple[I64, I64] = self.base.roots()
-        return r
+    def _make_level(self, z: int) -> Any:
+        if z <= self.base.zmax:
+            return _Wrapped(self.base.level(z), self.dmax)
+        return DetailLevel(z, self)
 
     def adaptive(self, z: int, segments: int) -> bool:
         """Whether a tile's mesh is below the data (terrain-adaptive diagonals, detail added)."""

@@ -25,6 +25,7 @@ from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, merc_to_lonlat, tiles_arr
 from lodscape.terrain.mesh import GRIDS
 
 __all__ = [
+    "DeeperTree",
     "Level",
     "RefinedTree",
     "SampleSource",
@@ -367,14 +368,14 @@ class _RefinedLevel:
         return TileStats(st.exists, st.min_h, st.max_h, errs)
 
 
-@dataclass(frozen=True, eq=False)
-class RefinedTree:
-    """A tile tree carried on below its finest level down to ``zmax`` (for imagery finer than
-    the terrain), the levels below being its finest surface refined."""
+class DeeperTree:
+    """What a tile tree carried on below another's (``base``) finest level shares: the base's
+    grids, tile size, roots and heights, and its levels made once each by ``_make_level``.
+    Subclasses give ``zmax``, ``texture_zmax`` and ``_make_level``."""
 
     base: Any
+    _levels: dict[int, Any]
     zmax: int
-    _levels: dict[int, Any] = field(default_factory=dict, repr=False)
 
     @property
     def grids(self) -> tuple[int, ...]:
@@ -389,11 +390,6 @@ class RefinedTree:
         return int(self.base.zmin)
 
     @property
-    def texture_zmax(self) -> int | None:
-        z = self.base.texture_zmax
-        return None if z is None else int(z)
-
-    @property
     def height_range(self) -> tuple[float, float]:
         lo, hi = self.base.height_range
         return (float(lo), float(hi))
@@ -403,6 +399,38 @@ class RefinedTree:
         return int(self.base.coarsened)
 
     @property
+    def levels(self) -> tuple[Any, ...]:
+        return tuple(self.level(z) for z in range(self.zmin, self.zmax + 1))
+
+    def level(self, z: int) -> Any:
+        lv = self._levels.get(z)
+        if lv is None:
+            lv = self._levels[z] = self._make_level(z)
+        return lv
+
+    def _make_level(self, z: int) -> Any:
+        raise NotImplementedError
+
+    def roots(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        r: tuple[NDArray[np.int64], NDArray[np.int64]] = self.base.roots()
+        return r
+
+
+@dataclass(frozen=True, eq=False)
+class RefinedTree(DeeperTree):
+    """A tile tree carried on below its finest level down to ``zmax`` (for imagery finer than
+    the terrain), the levels below being its finest surface refined."""
+
+    base: Any
+    zmax: int
+    _levels: dict[int, Any] = field(default_factory=dict, repr=False)
+
+    @property
+    def texture_zmax(self) -> int | None:
+        z = self.base.texture_zmax
+        return None if z is None else int(z)
+
+    @property
     def twist(self) -> Any:
         return self.base.twist
 
@@ -410,18 +438,5 @@ class RefinedTree:
     def roughness(self) -> Any:
         return self.base.roughness
 
-    @property
-    def levels(self) -> tuple[Any, ...]:
-        return tuple(self.level(z) for z in range(self.zmin, self.zmax + 1))
-
-    def level(self, z: int) -> Any:
-        if z <= self.base.zmax:
-            return self.base.level(z)
-        lv = self._levels.get(z)
-        if lv is None:
-            lv = self._levels[z] = _RefinedLevel(z, self.base)
-        return lv
-
-    def roots(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        r: tuple[NDArray[np.int64], NDArray[np.int64]] = self.base.roots()
-        return r
+    def _make_level(self, z: int) -> Any:
+        return self.base.level(z) if z <= self.base.zmax else _RefinedLevel(z, self.base)
