@@ -481,3 +481,49 @@ def test_the_gpu_terrain_mode_composites_layers_too(site: dict[str, str]) -> Non
         west, east = rgb[:, :24].reshape(-1, 3).mean(0), rgb[:, 40:].reshape(-1, 3).mean(0)
         assert west[0] > 200, west
         assert east[2] > 200, east
+
+
+def test_an_mbtiles_layer_is_transparent_outside_its_bounds_not_failing(
+    site: dict[str, str], tmp_path: Path
+) -> None:
+    import io
+    import sqlite3
+    from contextlib import closing
+
+    from PIL import Image
+
+    from lodscape.geo.tiles import tiles_array
+
+    with lodscape.open(site["dem"]) as scene:
+        lon, lat = _centre(scene)
+        b = scene.provider.bounds_merc
+        z = scene.provider.texture_levels[0]
+    (w, _), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+    # red tiles over the DEM's west half only, which the metadata's bounds say
+    buf = io.BytesIO()
+    Image.new("RGB", (256, 256), (255, 0, 0)).save(buf, format="PNG")
+    path = tmp_path / "west.mbtiles"
+    xs = np.linspace(b.left, (b.left + b.right) / 2, 16)
+    ys = np.linspace(b.bottom, b.top, 16)
+    xx, yy = np.meshgrid(xs, ys)
+    tx, ty = tiles_array(xx.ravel(), yy.ravel(), z)
+    with closing(sqlite3.connect(path)) as db:
+        db.execute("CREATE TABLE metadata (name TEXT, value TEXT)")
+        db.execute(
+            "CREATE TABLE tiles (zoom_level INT, tile_column INT, tile_row INT, tile_data BLOB)"
+        )
+        west_half = float(merc_to_lonlat((b.left + b.right) / 2, 0.0)[0])
+        db.execute("INSERT INTO metadata VALUES ('bounds', ?)", (f"{w},{s},{west_half},{n}",))
+        for x, y in {(int(a), int(c)) for a, c in zip(tx, ty, strict=True)}:
+            db.execute(
+                "INSERT INTO tiles VALUES (?, ?, ?, ?)", (z, x, (1 << z) - 1 - y, buf.getvalue())
+            )
+        db.commit()
+    with lodscape.open(site["dem"], imagery=[path]) as scene:
+        rgb, _ = scene.render(_down(scene, lon, lat, 2500.0, 64))
+        assert scene.imagery_failures() == {}
+    west_px, east_px = rgb[:, :20].reshape(-1, 3).mean(0), rgb[:, 44:].reshape(-1, 3).mean(0)
+    assert west_px[0] > 200
+    assert west_px[1] < 60
+    # the east is the terrain's own tint, not red
+    assert east_px[1] > 60

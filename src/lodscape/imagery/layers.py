@@ -80,7 +80,7 @@ class ImageryLayer:
     def fetch(self, z: int, x: int, y: int) -> bytes:
         """The tile's bytes (b"": nothing there, drawn transparent); ImageryError, counted and
         said once per kind, when it cannot be had."""
-        if z < self.min_zoom:
+        if z < self.min_zoom or not self.fetcher.covers(z, x, y):
             return b""
         down = self._down
         if down is not None and time.monotonic() < down[0]:

@@ -75,6 +75,11 @@ class ImageryFetcher(Protocol):
         """What ``fetch`` gave as (size, size, 4) RGBA."""
         ...
 
+    def covers(self, z: int, x: int, y: int) -> bool:
+        """Whether the source has data over tile z/x/y (False: it is transparent there, not
+        missing)."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -284,6 +289,9 @@ class HttpSource:
     def decode(self, data: bytes, size: int) -> NDArray[np.uint8]:
         return decode_image(data, size)
 
+    def covers(self, z: int, x: int, y: int) -> bool:
+        return True
+
     def close(self) -> None:
         self._client.close()
         if self.cache is not None:
@@ -307,6 +315,8 @@ class MBTilesSource:
         if hi is None:
             raise ImageryError(f"{self.name}: an MBTiles file with no tiles")
         self.min_zoom, self.max_zoom = int(lo), int(hi)
+        #: Where it has tiles (its metadata's ``bounds``, Web Mercator), None: not said.
+        self.bounds: tuple[float, float, float, float] | None = _mbtiles_bounds(uri)
 
     def fetch(self, z: int, x: int, y: int) -> bytes:
         db = getattr(self._local, "db", None)
@@ -334,6 +344,9 @@ class MBTilesSource:
     def decode(self, data: bytes, size: int) -> NDArray[np.uint8]:
         return decode_image(data, size)
 
+    def covers(self, z: int, x: int, y: int) -> bool:
+        return self.bounds is None or _overlaps(self.bounds, z, x, y)
+
     def close(self) -> None:
         pass
 
@@ -360,8 +373,35 @@ class DirectorySource:
     def decode(self, data: bytes, size: int) -> NDArray[np.uint8]:
         return decode_image(data, size)
 
+    def covers(self, z: int, x: int, y: int) -> bool:
+        return True
+
     def close(self) -> None:
         pass
+
+
+def _mbtiles_bounds(uri: str) -> tuple[float, float, float, float] | None:
+    """An MBTiles file's ``bounds`` metadata (west,south,east,north degrees) in Web Mercator
+    metres, or None where it has none that reads."""
+    from lodscape.geo.tiles import lonlat_to_merc
+
+    try:
+        with sqlite3.connect(uri, uri=True) as db:
+            row = db.execute("SELECT value FROM metadata WHERE name = 'bounds'").fetchone()
+        w, s, e, n = (float(v) for v in str(row[0]).split(","))
+    except (sqlite3.Error, TypeError, ValueError):
+        return None
+    if not (w < e and s < n):
+        return None
+    (left, right), (bottom, top) = lonlat_to_merc([w, e], [max(s, -85.05), min(n, 85.05)])
+    return float(left), float(bottom), float(right), float(top)
+
+
+def _overlaps(b: tuple[float, float, float, float], z: int, x: int, y: int) -> bool:
+    from lodscape.geo.tiles import Tile, xy_bounds
+
+    left, bottom, right, top = xy_bounds(Tile(x, y, z))
+    return left < b[2] and right > b[0] and bottom < b[3] and top > b[1]
 
 
 def imagery_source(spec: str, *, cache_dir: str | os.PathLike[str] | None = None) -> ImageryFetcher:

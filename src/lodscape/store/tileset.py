@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import sqlite3
 import threading
@@ -487,25 +488,55 @@ def _heights_in(
     mesh: _Mesh, lon: NDArray[np.float64], lat: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     """Heights of a tile's mesh (lon, lat, height per vertex; triangles) at points inside the
-    tile, by the triangle that holds each (NaN where none does), in chunks of points."""
+    tile, by the triangle that holds each (NaN where none does).
+
+    The points are bucketed on a grid of cells; each triangle is tested only against the points
+    of the cells its box touches (a few per point), not against every point: a 65² grid of
+    points on a 4,000-triangle tile costs milliseconds, not the 400 ms of testing every pair."""
     plon, plat, h, tri = mesh
-    ax, ay = plon[tri[:, 0]], plat[tri[:, 0]]
-    bx, by = plon[tri[:, 1]], plat[tri[:, 1]]
-    cx, cy = plon[tri[:, 2]], plat[tri[:, 2]]
+    n = len(lon)
+    out = np.full(n, np.nan)
+    if n == 0 or len(tri) == 0:
+        return out
+    x0, x1, y0, y1 = float(lon.min()), float(lon.max()), float(lat.min()), float(lat.max())
+    g = int(np.clip(math.isqrt(n) // 2, 1, 256))
+    sx, sy = g / max(x1 - x0, 1e-12), g / max(y1 - y0, 1e-12)
+    cell = np.clip(((lat - y0) * sy).astype(np.int64), 0, g - 1) * g + np.clip(
+        ((lon - x0) * sx).astype(np.int64), 0, g - 1
+    )
+    order = np.argsort(cell, kind="stable")
+    first = np.searchsorted(cell[order], np.arange(g * g))
+    count = np.searchsorted(cell[order], np.arange(g * g), side="right") - first
+    tx, ty = plon[tri], plat[tri]
+    near = (tx.max(1) >= x0) & (tx.min(1) <= x1) & (ty.max(1) >= y0) & (ty.min(1) <= y1)
+    t = np.nonzero(near)[0]
+    if not t.size:
+        return out
+    i0 = np.clip(np.floor((tx[t].min(1) - x0) * sx), 0, g - 1).astype(np.int64)
+    i1 = np.clip(np.floor((tx[t].max(1) - x0) * sx), 0, g - 1).astype(np.int64)
+    j0 = np.clip(np.floor((ty[t].min(1) - y0) * sy), 0, g - 1).astype(np.int64)
+    j1 = np.clip(np.floor((ty[t].max(1) - y0) * sy), 0, g - 1).astype(np.int64)
+    w = i1 - i0 + 1
+    cells = w * (j1 - j0 + 1)
+    # every (triangle, cell) its box touches, then every (triangle, point) in those cells
+    pair = np.repeat(np.arange(t.size), cells)
+    k = np.arange(pair.size) - np.repeat(np.cumsum(cells) - cells, cells)
+    cid = (j0[pair] + k // w[pair]) * g + i0[pair] + k % w[pair]
+    m = count[cid]
+    tri_of = t[np.repeat(pair, m)]
+    q = np.arange(tri_of.size) - np.repeat(np.cumsum(m) - m, m)
+    pt = order[np.repeat(first[cid], m) + q]
+    a, b, c = tri[tri_of, 0], tri[tri_of, 1], tri[tri_of, 2]
+    ax, ay, bx, by, cx, cy = plon[a], plat[a], plon[b], plat[b], plon[c], plat[c]
+    px, py = lon[pt], lat[pt]
     det = (by - cy) * (ax - cx) + (cx - bx) * (ay - cy)
-    out = np.full(len(lon), np.nan)
-    step = max(1, 2_000_000 // max(len(tri), 1))
-    for i in range(0, len(lon), step):
-        px, py = lon[i : i + step, None], lat[i : i + step, None]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            wa = ((by - cy) * (px - cx) + (cx - bx) * (py - cy)) / det
-            wb = ((cy - ay) * (px - cx) + (ax - cx) * (py - cy)) / det
-        wc = 1.0 - wa - wb
-        inside = (wa >= -1e-9) & (wb >= -1e-9) & (wc >= -1e-9) & (det != 0)
-        k = np.argmax(inside, axis=1)
-        r = np.arange(len(k))
-        v = wa[r, k] * h[tri[k, 0]] + wb[r, k] * h[tri[k, 1]] + wc[r, k] * h[tri[k, 2]]
-        out[i : i + step] = np.where(inside[r, k], v, np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wa = ((by - cy) * (px - cx) + (cx - bx) * (py - cy)) / det
+        wb = ((cy - ay) * (px - cx) + (ax - cx) * (py - cy)) / det
+    wc = 1.0 - wa - wb
+    inside = (wa >= -1e-9) & (wb >= -1e-9) & (wc >= -1e-9) & (det != 0)
+    v = wa * h[a] + wb * h[b] + wc * h[c]
+    out[pt[inside]] = v[inside]
     return out
 
 
