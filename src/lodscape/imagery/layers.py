@@ -156,7 +156,13 @@ def open_layer(
     elif os.path.exists(spec):
         from lodscape.imagery.raster import RasterImagery
 
-        fetcher = RasterImagery(spec)
+        raster = RasterImagery(spec)
+        if raster.needs_overviews:
+            warn(
+                f"imagery layer {index} ({spec}): a large raster without overviews; its coarse "
+                f"levels read all of it, slowly (gdaladdo -r average {spec} adds them)"
+            )
+        fetcher = raster
     else:
         raise ImageryError(
             f"--imagery {spec!r}: no such file or folder, and not an http(s) URL template "

@@ -72,6 +72,8 @@ class RasterImagery:
             self.resolution_merc = _merc_resolution(src)
             self._stretch = _stretch(src, self._bands) if src.dtypes[0] != "uint8" else None
             self.size = (src.width, src.height)
+            #: A large raster with no overviews: its coarse levels read all of it, slowly.
+            self.needs_overviews = max(src.width, src.height) > 4096 and not src.overviews(1)
         native = math.log2(2.0 * ORIGIN / (TILE * self.resolution_merc))
         # the level whose texels are as fine as the pixels (a third of a level of slack, so a
         # 0.6 m orthophoto does not ask for a level that is all magnification)

@@ -117,6 +117,11 @@ class _Job:
     done_at: float | None = None
 
 
+#: Threads that fetch imagery layers' tiles (network waits, raster reads), apart from the
+#: terrain's workers.
+NET_THREADS = 8
+
+
 @dataclass
 class _Failure:
     attempts: int
@@ -145,18 +150,26 @@ class Streamer:
         self._jobs: dict[int, _Job] = {}
         self._failures: dict[int, _Failure] = {}
         self._slots = [-math.inf] * self.options.workers
+        #: Simulated worker slots of the imagery's threads.
+        self._net_slots = [-math.inf] * NET_THREADS
         self._pool = ThreadPoolExecutor(self.options.workers, thread_name_prefix="lodscape-io")
         self._net: ThreadPoolExecutor | None = None
         if self.remote is not None:
-            self._net = ThreadPoolExecutor(8, thread_name_prefix="lodscape-net")
+            self._net = ThreadPoolExecutor(NET_THREADS, thread_name_prefix="lodscape-net")
         self._pinned: set[int] = set()
 
     # --- requests ----------------------------------------------------------------------------
 
     def request(self, keys: Iterable[int], stage: Stage, skip: Callable[[int], bool]) -> None:
         """Ask for ``keys`` (most urgent first) up to ``stage``; ``skip`` says which are already
-        on the GPU. Stops at the in-flight limit: less urgent classes wait their turn."""
+        on the GPU. Stops at the in-flight limit: less urgent classes wait their turn. Terrain
+        and imagery (``remote``) keys have a limit each, so a slow imagery source never takes
+        the terrain's places."""
         now = self.clock.now()
+        busy = [0, 0]
+        for k in self._jobs:
+            busy[self._lane(k)] += 1
+        limit = self.options.in_flight
         for key in keys:
             if skip(key):
                 continue
@@ -172,8 +185,12 @@ class Streamer:
             failure = self._failures.get(key)
             if failure is not None and now < failure.retry_at:
                 continue
-            if len(self._jobs) >= self.options.in_flight:
-                return
+            lane = self._lane(key)
+            if busy[lane] >= limit:
+                if self._net is None or busy[1 - lane] >= limit:
+                    return
+                continue
+            busy[lane] += 1
             if failure is not None:
                 self.stats.retried += 1
             self.stats.requested += 1
@@ -181,8 +198,12 @@ class Streamer:
             future = self._pool_for(key).submit(self._work, key, cached, decode)
             self._jobs[key] = _Job(key, decode, now, future)
 
+    def _lane(self, key: int) -> int:
+        """1 for keys of the imagery's own threads, 0 for the terrain's."""
+        return int(self._net is not None and self.remote is not None and self.remote(key))
+
     def _pool_for(self, key: int) -> ThreadPoolExecutor:
-        if self._net is not None and self.remote is not None and self.remote(key):
+        if self._net is not None and self._lane(key):
             return self._net
         return self._pool
 
@@ -214,9 +235,10 @@ class Streamer:
                 took = 0.0 if exc is not None else job.future.result()[2]
                 if simulated:
                     # the worker slot that frees first takes the job
-                    slot = int(np.argmin(self._slots))
-                    start = max(job.submitted, self._slots[slot])
-                    job.done_at = self._slots[slot] = start + took
+                    slots = self._net_slots if self._lane(key) else self._slots
+                    slot = int(np.argmin(slots))
+                    start = max(job.submitted, slots[slot])
+                    job.done_at = slots[slot] = start + took
                 else:
                     job.done_at = now
             if job.done_at > now:
