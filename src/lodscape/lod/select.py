@@ -70,6 +70,9 @@ U64 = NDArray[np.uint64]
 F64 = NDArray[np.float64]
 
 _EMPTY_U = np.zeros(0, dtype=np.uint64)
+#: Levels coarser than the pixel band that the terrain's own texture is taken at under imagery
+#: layers (it shows where they are transparent or not in yet).
+UNDER_LAYERS = 2
 #: An imagery layer's key where a tile has none of its tiles to draw (``Selection.layer_keys``).
 NO_TEXTURE = np.uint64(0xFFFF_FFFF_FFFF_FFFF)
 #: Slack around each tile's box, as a share of its side.
@@ -452,7 +455,10 @@ def select(
     i, f = ints, floats
     t = _Drawn(i[0], i[1], i[2], i[3], f[0], f[1], f[2], f[3], f[4], np.zeros_like(i[0]))
     band = _band_levels(options, tree, t, previous)
-    tex_up = _capped(band, t, levels[0], tree.zmin)
+    # under imagery layers the terrain's own texture shows only where they are transparent or
+    # not in yet: it is taken UNDER_LAYERS levels coarser (a sixteenth of the memory)
+    under = UNDER_LAYERS if len(levels) > 1 else 0
+    tex_up = _capped(band + under, t, levels[0], tree.zmin)
     layer_up = [_capped(band, t, zl, tree.zmin) for zl in levels[1:]]
     layer_keys = [
         texture_keys_zxy(t.z - up, t.x >> up, t.y >> up, j + 1) for j, up in enumerate(layer_up)
@@ -465,7 +471,7 @@ def select(
         loads = _missing(resident, t, tex_up)
         t = _fall_back(camera, tree, resident, t)
         band = _band_levels(options, tree, t, previous)
-        own_up = _capped(band, t, levels[0], tree.zmin)
+        own_up = _capped(band + under, t, levels[0], tree.zmin)
         tex_up, unresolved = _texture_fall_back(tree, resident, t, own_up)
         layer_up, layer_keys = [], []
         for j, zl in enumerate(levels[1:]):
@@ -476,7 +482,9 @@ def select(
             layer_fallbacks += int(((got_up > want_up) | (got == NO_TEXTURE)).sum())
         extra = np.concatenate([unresolved, *wanted])
         loads = _order_loads(np.concatenate([loads, extra[~_member(extra, loads)]]))
-    magnified = int((t.px * np.exp2(tex_up) > options.split * tsize).sum())
+    # magnified: the finest texture a tile wears is above the band (no finer one exists)
+    finest_up = np.min(np.vstack([tex_up - under, *layer_up]), axis=0) if t.z.size else tex_up
+    magnified = int((t.px * np.exp2(finest_up) > options.split * tsize).sum())
     # a neighbour's edge may sit up to its own error away: at most max_sse pixels seen from
     # no farther than our far side, or a fallback tile's whole error
     back = t.fallback > 0
