@@ -123,3 +123,46 @@ def _any_tile(level: Path) -> tuple[int, int]:
     """(x, y) of some exported imagery file of a level folder."""
     f = next(level.rglob("*.png"))
     return int(f.parent.name), int(f.stem)
+
+
+def test_heights_in_a_tile_are_its_triangles(built: Path) -> None:
+    """The grid of cells finds, for every point, the triangle the brute force finds (points on
+    a grid, at vertices, on edges and outside the tile included), and its height there."""
+    import numpy as np
+
+    from lodscape.store.tileset import TilesetProvider, _heights_in
+
+    tp = TilesetProvider(built)
+    try:
+        z = tp.tree.zmax
+        ys, xs = np.nonzero(tp.tree.level(z).exists)
+        lv = tp.tree.level(z)
+        mesh = tp._decoded(z, int(xs[0] + lv.x0), int(ys[0] + lv.y0))
+    finally:
+        tp.close()
+    assert mesh is not None
+    plon, plat, h, tri = mesh
+    rng = np.random.default_rng(5)
+    g = np.linspace(plon.min(), plon.max(), 40)
+    gy = np.linspace(plat.min(), plat.max(), 40)
+    gx, gy = np.meshgrid(g, gy)
+    lon = np.concatenate([gx.ravel(), plon, rng.uniform(plon.min() - 0.01, plon.max(), 500)])
+    lat = np.concatenate([gy.ravel(), plat, rng.uniform(plat.min(), plat.max() + 0.01, 500)])
+    got = _heights_in(mesh, lon, lat)
+    for i in range(len(lon)):  # the reference: every triangle for each point
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        det = (plat[b] - plat[c]) * (plon[a] - plon[c]) + (plon[c] - plon[b]) * (plat[a] - plat[c])
+        wa = (
+            (plat[b] - plat[c]) * (lon[i] - plon[c]) + (plon[c] - plon[b]) * (lat[i] - plat[c])
+        ) / det
+        wb = (
+            (plat[c] - plat[a]) * (lon[i] - plon[c]) + (plon[a] - plon[c]) * (lat[i] - plat[c])
+        ) / det
+        wc = 1.0 - wa - wb
+        hit = np.nonzero((wa >= -1e-9) & (wb >= -1e-9) & (wc >= -1e-9))[0]
+        if hit.size == 0:
+            assert np.isnan(got[i])
+            continue
+        k = hit[0]
+        want = wa[k] * h[a[k]] + wb[k] * h[b[k]] + wc[k] * h[c[k]]
+        assert got[i] == pytest.approx(want, abs=1e-6)

@@ -36,7 +36,7 @@ __all__ = [
     "MBTilesSource",
     "TileCache",
     "TileMissing",
-    "imagery_source",
+    "decode_image",
 ]
 
 USER_AGENT = "lodscape/0.1 (terrain engine; +https://pypi.org/project/lodscape/)"
@@ -402,20 +402,3 @@ def _overlaps(b: tuple[float, float, float, float], z: int, x: int, y: int) -> b
 
     left, bottom, right, top = xy_bounds(Tile(x, y, z))
     return left < b[2] and right > b[0] and bottom < b[3] and top > b[1]
-
-
-def imagery_source(spec: str, *, cache_dir: str | os.PathLike[str] | None = None) -> ImageryFetcher:
-    """An imagery source from what a user typed: a URL template, an .mbtiles file or a folder."""
-    if spec.startswith(("http://", "https://")):
-        cache = None
-        if cache_dir is not None:
-            cache = TileCache(Path(cache_dir) / "imagery-cache.sqlite")
-        return HttpSource(spec, cache=cache)
-    if spec.lower().endswith((".mbtiles", ".lods")):
-        return MBTilesSource(spec)
-    if os.path.isdir(spec):
-        return DirectorySource(spec)
-    raise ImageryError(
-        f"--imagery {spec!r}: expected an http(s) URL template with {{z}}/{{x}}/{{y}}, an "
-        ".mbtiles file or a folder of z/x/y tiles"
-    )

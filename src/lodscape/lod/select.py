@@ -472,14 +472,18 @@ def select(
         t = _fall_back(camera, tree, resident, t)
         band = _band_levels(options, tree, t, previous)
         own_up = _capped(band + under, t, levels[0], tree.zmin)
-        tex_up, unresolved = _texture_fall_back(tree, resident, t, own_up)
+        tex_up, own_keys, ok = _texture_fall_back(tree.zmin, resident, t, own_up, 0)
+        # a tile with no texture of its own resident anywhere above it must have it loaded
+        unresolved = np.unique(own_keys[~ok])
         layer_up, layer_keys = [], []
         for j, zl in enumerate(levels[1:]):
             want_up = _capped(band, t, zl, tree.zmin)
-            got_up, got = _layer_fall_back(tree, resident, t, want_up, j + 1)
+            got_up, got, ok = _texture_fall_back(tree.zmin, resident, t, want_up, j + 1)
+            # an imagery layer is never waited for: where none is resident it is not drawn
+            got[~ok] = NO_TEXTURE
             layer_up.append(got_up)
             layer_keys.append(got)
-            layer_fallbacks += int(((got_up > want_up) | (got == NO_TEXTURE)).sum())
+            layer_fallbacks += int(((got_up > want_up) | ~ok).sum())
         extra = np.concatenate([unresolved, *wanted])
         loads = _order_loads(np.concatenate([loads, extra[~_member(extra, loads)]]))
     # magnified: the finest texture a tile wears is above the band (no finer one exists)
@@ -692,46 +696,28 @@ def _metrics_many(
     return _Drawn(z, x, y, k, px, sse, dn, df, err, fallback)
 
 
-def _texture_fall_back(tree: TreeLike, resident: U64, t: _Drawn, up: I64) -> tuple[I64, U64]:
-    """Each drawn tile's nearest resident texture at or above the level it wants. A tile with
-    none resident keeps the one it wants, which is returned to be loaded."""
-    want = texture_keys_zxy(t.z - up, t.x >> up, t.y >> up)
-    m = ~_member(want, resident)
-    if not m.any():
-        return up, _EMPTY_U
-    own = is_texture_array(resident)
-    own[own] = layer_of_array(resident[own]) == 0
-    tex_ids = np.sort(tile_id_of_array(resident[own]))
-    # only from the wanted level up: a texture finer than the band asks for is not used
-    found, steps = _nearest_resident(t.z[m], t.x[m], t.y[m], tex_ids, tree.zmin, up[m])
-    new = up.copy()
-    new[np.nonzero(m)[0][found]] = steps[found]
-    return new, np.unique(want[m][~found])
-
-
-def _layer_fall_back(
-    tree: TreeLike, resident: U64, t: _Drawn, up: I64, layer: int
-) -> tuple[I64, U64]:
-    """Each drawn tile's nearest resident tile of imagery ``layer`` at or above the level it
-    wants: (levels up, keys), ``NO_TEXTURE`` where none is resident (the layer is not drawn
-    there until its tile comes; a frame never waits for imagery)."""
+def _texture_fall_back(
+    zmin: int, resident: U64, t: _Drawn, up: I64, layer: int
+) -> tuple[I64, U64, NDArray[np.bool_]]:
+    """Each drawn tile's nearest resident texture of ``layer`` (0: the terrain's own) at or
+    above the level it wants: (levels up, its keys, whether one is resident). A tile with none
+    keeps the level it wants."""
     want = texture_keys_zxy(t.z - up, t.x >> up, t.y >> up, layer)
     m = ~_member(want, resident)
     if not m.any():
-        return up, want
+        return up, want, np.ones(want.size, dtype=bool)
     mine = resident[is_texture_array(resident)]
     ids = np.sort(tile_id_of_array(mine[layer_of_array(mine) == layer]))
-    found, steps = _nearest_resident(t.z[m], t.x[m], t.y[m], ids, 0, up[m])
-    new_up = up.copy()
+    # only from the wanted level up: a texture finer than the band asks for is not used
+    found, steps = _nearest_resident(t.z[m], t.x[m], t.y[m], ids, zmin, up[m])
+    i = np.nonzero(m)[0][found]
+    new = up.copy()
+    new[i] = steps[found]
     keys = want.copy()
-    i = np.nonzero(m)[0]
-    new_up[i[found]] = steps[found]
-    s = steps[found]
-    keys[i[found]] = texture_keys_zxy(
-        t.z[i[found]] - s, t.x[i[found]] >> s, t.y[i[found]] >> s, layer
-    )
-    keys[i[~found]] = NO_TEXTURE
-    return new_up, keys
+    keys[i] = texture_keys_zxy(t.z[i] - new[i], t.x[i] >> new[i], t.y[i] >> new[i], layer)
+    ok = ~m
+    ok[i] = True
+    return new, keys, ok
 
 
 def _order_loads(keys: U64, dist: F64 | None = None) -> U64:

@@ -289,10 +289,7 @@ def draw_items(sel: Selection, max_sse: float = 2.0) -> list[DrawItem]:
     that texture it covers (a half per level up), its skirt, and the screen-space error the GPU
     terrain mode's tessellation may add to the tile's own (``max_sse`` less it, at least a
     tenth of ``max_sse``)."""
-    up = sel.texture_up
-    scale = np.exp2(-up.astype(np.float64))
-    u = (sel.x & ((1 << up) - 1)) * scale
-    v = (sel.y & ((1 << up) - 1)) * scale
+    u, v, scale = _windows(sel.x, sel.y, sel.texture_up)
     budget = np.maximum(max_sse - sel.sse, 0.1 * max_sse)
     cols = zip(sel.keys, sel.texture_keys, sel.skirt, u, v, scale, budget, strict=True)
     items = [
@@ -302,13 +299,21 @@ def draw_items(sel: Selection, max_sse: float = 2.0) -> list[DrawItem]:
     if not sel.layer_keys.size:
         return items
     # per layer: its key (-1 for none) and its window, as for the terrain's own texture
-    lup = sel.layer_up
-    lscale = np.exp2(-lup.astype(np.float64))
-    lu = (sel.x & ((1 << lup) - 1)) * lscale
-    lv = (sel.y & ((1 << lup) - 1)) * lscale
+    lu, lv, lscale = _windows(sel.x, sel.y, sel.layer_up)
     lkeys = np.where(sel.layer_keys == NO_TEXTURE, -1, sel.layer_keys.astype(np.int64))
     per_tile = zip(lkeys.T.tolist(), lu.T.tolist(), lv.T.tolist(), lscale.T.tolist(), strict=True)
     return [
         replace(item, layers=tuple(zip(k, zip(a, b, c, strict=True), strict=True)))
         for item, (k, a, b, c) in zip(items, per_tile, strict=True)
     ]
+
+
+def _windows(
+    x: NDArray[np.int64], y: NDArray[np.int64], up: NDArray[np.int64]
+) -> tuple[F64, F64, F64]:
+    """The window (offset u, v and scale) of a texture ``up`` levels above each tile (x, y)
+    that the tile covers: a half per level."""
+    scale: F64 = np.exp2(-up.astype(np.float64))
+    u: F64 = ((x & ((1 << up) - 1)) * scale).astype(np.float64)
+    v: F64 = ((y & ((1 << up) - 1)) * scale).astype(np.float64)
+    return u, v, scale

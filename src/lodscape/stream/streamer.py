@@ -244,19 +244,29 @@ class Streamer:
             if job.done_at > now:
                 continue
             del self._jobs[key]
-            if exc is not None:
-                self._fail(key, exc, now)
-                continue
-            data, made, _ = job.future.result()
-            self._failures.pop(key, None)
-            if data is not None:
-                self.stats.fetched += 1
-                self._put_cache(key, data)
-            else:
-                self.stats.cache_hits += 1
+            made = self._settle(key, job.future, now)
             if made is not None:
-                self.stats.decoded += 1
                 self._put_memory(key, made)
+
+    def _settle(
+        self, key: int, future: Future[tuple[bytes | None, Made | None, float]], now: float
+    ) -> Made | None:
+        """A finished job into the accounts: its failure recorded (for the backoff), or its
+        fetched bytes cached; returns what it decoded (None: it failed, or only fetched)."""
+        exc = future.exception()
+        if exc is not None:
+            self._fail(key, exc, now)
+            return None
+        data, made, _ = future.result()
+        self._failures.pop(key, None)
+        if data is not None:
+            self.stats.fetched += 1
+            self._put_cache(key, data)
+        else:
+            self.stats.cache_hits += 1
+        if made is not None:
+            self.stats.decoded += 1
+        return made
 
     def _fail(self, key: int, exc: BaseException, now: float) -> None:
         if not isinstance(exc, LodscapeError | OSError | ValueError):
@@ -344,17 +354,7 @@ class Streamer:
                     self._jobs[key] = _Job(key, True, now, future)
                 continue
             self._jobs.pop(key, None)
-            exc = future.exception()
-            if exc is not None:
-                self._fail(key, exc, now)
-                continue
-            data, made, _ = future.result()
-            self._failures.pop(key, None)
-            if data is not None:
-                self.stats.fetched += 1
-                self._put_cache(key, data)
-            self.stats.decoded += 1
-            out[i] = made
+            out[i] = self._settle(key, future, now)
         return out
 
     # --- budgets -----------------------------------------------------------------------------
