@@ -186,6 +186,47 @@ def _detail(
         raise LodscapeError(f"bad option: {exc}") from None
 
 
+FillOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--fill",
+        help="What stands where the DEM has no data: none (a hole: nothing drawn; the "
+        "default), nearest (the nearest height stretched), value:H (level ground at H m) or "
+        "ellipsoid (height 0). A tileset keeps the fill it was built with.",
+    ),
+]
+SeaLevelOpt = Annotated[
+    str,
+    typer.Option(
+        "--sea-level",
+        help="Heights below this (metres) are tinted as water, shaded by depth; none: no sea.",
+    ),
+]
+BandOpt = Annotated[
+    int | None,
+    typer.Option("--band", min=1, help="The height band of a multi-band raster (1-based)."),
+]
+NodataOpt = Annotated[
+    float | None,
+    typer.Option(
+        "--nodata", callback=_finite, help="A nodata value the DEM uses but does not declare."
+    ),
+]
+
+
+def _sea_level(text: str) -> float | None:
+    """--sea-level: metres, or none."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise LodscapeError(f"--sea-level must be metres or none, got {text!r}")
+    return value
+
+
 CityOpt = Annotated[
     Path | None,
     typer.Option(help="An OpenStreetMap file (.osm.pbf, .osm) whose city to drape on the terrain."),
@@ -211,6 +252,10 @@ class TerrainFlags:
     sigma: float | None = None
     seed: int | None = None
     city: Path | None = None
+    fill: str | None = None
+    sea_level: str = "0"
+    band: int | None = None
+    nodata: float | None = None
 
     def fractal(self, source: str) -> Fractal | None:
         return _detail(source, self.detail, self.hurst, self.sigma, self.seed)
@@ -249,6 +294,10 @@ class TerrainFlags:
             imagery_cache=self.imagery_cache,
             imagery_maxzoom=self.imagery_maxzoom,
             city=self.city,
+            fill=self.fill,
+            sea_level=_sea_level(self.sea_level),
+            band=self.band,
+            nodata=self.nodata,
         )
 
     def refuse_for_globe(self) -> None:
@@ -278,6 +327,10 @@ _TERRAIN_FLAGS = [
         ("sigma", SigmaOpt, None),
         ("seed", SeedOpt, None),
         ("city", CityOpt, None),
+        ("fill", FillOpt, None),
+        ("sea_level", SeaLevelOpt, "0"),
+        ("band", BandOpt, None),
+        ("nodata", NodataOpt, None),
     )
 ]
 
@@ -762,6 +815,18 @@ def build(
             "to top): a georeferenced raster (an orthophoto), an .mbtiles file or a folder."
         ),
     ] = None,
+    fill: Annotated[
+        str,
+        typer.Option(
+            "--fill",
+            help="What the tiles hold where the data has none: ellipsoid (height 0: the globe "
+            "a Cesium client expects; the default), none (holes: no triangles), nearest or "
+            "value:H. Kept in the tileset's metadata.",
+        ),
+    ] = "ellipsoid",
+    sea_level: SeaLevelOpt = "0",
+    band: BandOpt = None,
+    nodata: NodataOpt = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Build a tileset from INPUTS once, to render, fly or serve it anywhere. Run it again after
@@ -785,6 +850,10 @@ def build(
             resolution=resolution,
             allow_mixed_crs=allow_mixed_crs,
             imagery=tuple(imagery or ()),
+            fill=fill,
+            sea_level=_sea_level(sea_level),
+            band=band,
+            nodata=nodata,
         )
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
 from typing import Any, Literal
@@ -33,7 +33,14 @@ from lodscape.terrain.detail import (
     parse_procedural,
 )
 from lodscape.terrain.pyramid import build_tree
-from lodscape.terrain.source import ArraySource, HeightSource, RasterSource
+from lodscape.terrain.source import (
+    ArraySource,
+    Fill,
+    FilledSource,
+    HeightSource,
+    RasterSource,
+    parse_fill,
+)
 
 __all__ = [
     "SourceSpec",
@@ -86,6 +93,10 @@ def open(
     imagery_cache: str | PathLike[str] | None = None,
     imagery_maxzoom: int | None = None,
     city: Any = None,
+    fill: str | Fill | None = None,
+    sea_level: float | None = 0.0,
+    band: int | None = None,
+    nodata: float | None = None,
     **array_kwargs: Any,
 ) -> Scene:
     """A scene over a tileset built by ``lodscape build`` (.lods), a GeoTIFF (any GDAL raster), a
@@ -103,7 +114,13 @@ def open(
       up. Failures are counted (``Scene.imagery_failures``) and said once on stderr;
       ``options.imagery_timeout`` bounds a render's wait and ``options.imagery_strict`` makes
       any failure an error;
-    - ``city`` (an OSM file or a ``City``) is draped on it, with the cities a tileset stores.
+    - ``city`` (an OSM file or a ``City``) is draped on it, with the cities a tileset stores;
+    - ``fill``: what stands where a raster has no data: ``none`` (a hole, nothing drawn),
+      ``nearest`` (the nearest valid height stretched), ``value:H`` or ``ellipsoid`` (height
+      0); a tileset keeps the fill it was built with;
+    - ``sea_level``: heights below it are tinted as water (None: no sea);
+    - ``band`` picks a multi-band raster's height band; ``nodata`` declares a nodata value the
+      file does not.
 
     A scene opened from a path or an array closes what it opened when it closes."""
     specs = _imagery_specs(imagery)
@@ -121,10 +138,17 @@ def open(
         # a mask is worth metres, not the DEM's resolution: the tree goes on below the data
         # with heights interpolated (fractal detail of no amplitude), and its masks with it
         detail = Fractal(0.7, 0.0, 0)
+    if spec is not None and spec.kind not in ("raster",) and (band or nodata is not None):
+        raise SourceError(f"{spec.text}: --band and --nodata are for a raster DEM")
+    if spec is not None and spec.kind == "tileset" and fill is not None:
+        raise SourceError(f"{spec.text}: a tileset keeps the fill it was built with (--fill)")
+    if fill is None:
+        fill = Fill()
+    ground = _Ground(fill if isinstance(fill, Fill) else parse_fill(fill), sea_level, band, nodata)
     timeout = (options or SceneOptions()).imagery_timeout
     layers = _open_layers(specs, imagery_cache, imagery_maxzoom, timeout)
     try:
-        provider, owns = _terrain(source, spec, detail, array_kwargs)
+        provider, owns = _terrain(source, spec, detail, array_kwargs, ground)
     except BaseException:
         for layer in layers:
             layer.close()
@@ -170,22 +194,41 @@ def _ground_under(town: Any) -> str:
     return f"flat:{w - pw},{s - ps},{e + pw},{n + ps}"
 
 
+@dataclass(frozen=True)
+class _Ground:
+    """How a raster's heights are read and tinted: the fill, the sea, the band, nodata."""
+
+    fill: Fill = field(default_factory=Fill)
+    sea_level: float | None = 0.0
+    band: int | None = None
+    nodata: float | None = None
+
+
 def _terrain(
-    source: Any, spec: SourceSpec | None, detail: Fractal | None, array_kwargs: dict[str, Any]
+    source: Any,
+    spec: SourceSpec | None,
+    detail: Fractal | None,
+    array_kwargs: dict[str, Any],
+    ground: _Ground | None = None,
 ) -> tuple[Provider, bool]:
     """The terrain provider a source names, and whether the scene owns it."""
+    ground = ground or _Ground()
     if spec is None:
         if isinstance(source, np.ndarray):
-            return _lattice(ArraySource(source, **array_kwargs), detail), True
+            if ground.nodata is not None:
+                array_kwargs = {"nodata": ground.nodata, **array_kwargs}
+            array = ArraySource(source, **array_kwargs)
+            return _lattice(FilledSource(array, ground.fill), detail, ground.sea_level), True
         if detail is not None:
             raise SourceError("fractal detail needs a raster source, not a ready provider")
         if hasattr(source, "sample"):  # a height source: meshed on the fly
-            return RasterProvider(source), False
+            filled = source if ground.fill.kind == "none" else FilledSource(source, ground.fill)
+            return RasterProvider(filled, sea_level=ground.sea_level), False
         return source, False
     if spec.kind == "none":
         raise SourceError(f"{spec.text}: no terrain (none is for the globe alone)")
     if spec.kind == "procedural":
-        return procedural_provider(spec.text, detail), True
+        return procedural_provider(spec.text, detail, sea_level=ground.sea_level), True
     if spec.kind == "tileset":
         if detail is not None:
             raise SourceError(
@@ -200,15 +243,20 @@ def _terrain(
 
             return RefinedProvider(tileset, finest), True
         return tileset, True
-    src = flat_source(spec.text) if spec.kind == "flat" else RasterSource(spec.text)
-    return _lattice(src, detail), True
+    if spec.kind == "flat":
+        src: HeightSource = flat_source(spec.text)
+    else:
+        src = FilledSource(
+            RasterSource(spec.text, band=ground.band, nodata=ground.nodata), ground.fill
+        )
+    return _lattice(src, detail, ground.sea_level), True
 
 
-def _lattice(src: HeightSource, detail: Fractal | None) -> Provider:
+def _lattice(src: HeightSource, detail: Fractal | None, sea_level: float | None) -> Provider:
     if detail is None:
-        return RasterProvider(src)
+        return RasterProvider(src, sea_level=sea_level)
     try:
-        return fractal_provider(src, detail)
+        return fractal_provider(src, detail, sea_level=sea_level)
     except BaseException:
         src.close()
         raise
@@ -265,7 +313,9 @@ def _with_layers(provider: Provider, layers: list[Any], owns: bool) -> Provider:
     if finest > provider.tree.zmax:
         if type(provider) is RasterProvider and owns:
             tree = DetailTree.over(provider.tree, Fractal(0.7, 0.0, 0))
-            provider = FractalProvider(DetailHeights(provider.source, tree), tree)
+            provider = FractalProvider(
+                DetailHeights(provider.source, tree), tree, sea_level=provider.imagery.sea_level
+            )
         elif not isinstance(provider, FractalProvider):
             # no lattice to refine (a tileset): its finest stored surface, sampled finer
             provider = RefinedProvider(provider, finest)
@@ -301,13 +351,17 @@ def flat_source(spec: str) -> ArraySource:
     return src
 
 
-def fractal_provider(source: HeightSource, fractal: Fractal) -> FractalProvider:
+def fractal_provider(
+    source: HeightSource, fractal: Fractal, *, sea_level: float | None = 0.0
+) -> FractalProvider:
     """A raster with fractal detail below its resolution."""
     tree = DetailTree.over(build_tree(source), fractal)
-    return FractalProvider(DetailHeights(source, tree), tree)
+    return FractalProvider(DetailHeights(source, tree), tree, sea_level=sea_level)
 
 
-def procedural_provider(spec: str, override: Fractal | None = None) -> FractalProvider:
+def procedural_provider(
+    spec: str, override: Fractal | None = None, *, sea_level: float | None = 0.0
+) -> FractalProvider:
     """The procedural planet of ``procedural:seed=N[,hurst=H][,sigma=S]``; ``override``'s
     fields, where given, win over the spec's."""
     try:
@@ -322,4 +376,4 @@ def procedural_provider(spec: str, override: Fractal | None = None) -> FractalPr
         )
     sigma = float(f.sigma if f.sigma is not None else 0.0)
     tree = ProceduralTree(f, sigma)
-    return FractalProvider(ProceduralHeights(tree), tree)
+    return FractalProvider(ProceduralHeights(tree), tree, sea_level=sea_level)

@@ -27,7 +27,7 @@ from lodscape.store.tileset import SCHEMA_VERSION, TileRecord, TilesetWriter, lo
 from lodscape.terrain.points import POINT_SUFFIXES, grid_points, read_points, write_grid
 from lodscape.terrain.pyramid import LevelSpan, level_range, level_span
 from lodscape.terrain.rtin import Rtin
-from lodscape.terrain.source import HeightSource, open_rasters
+from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
 
 __all__ = ["BuildOptions", "BuildReport", "build", "executor_for"]
 
@@ -57,8 +57,18 @@ class BuildOptions:
     #: GDAL raster), MBTiles files or folders of z/x/y tiles. The tileset's imagery then goes
     #: down to the finest layer's own level, below the terrain's if it is finer.
     imagery: tuple[str, ...] = ()
+    #: What stands where the data has none (kept in the tileset's metadata): ``ellipsoid``
+    #: (height 0, the globe a Cesium client expects around and under the data), ``none``
+    #: (holes: no triangles there), ``nearest`` or ``value:H``.
+    fill: str = "ellipsoid"
+    #: Heights below it are tinted as water (None: no sea).
+    sea_level: float | None = 0.0
+    #: The rasters' height band (None: their only one) and a nodata value they do not declare.
+    band: int | None = None
+    nodata: float | None = None
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "fill", str(parse_fill(self.fill)))
         if not (math.isfinite(self.error_texels) and self.error_texels >= 0.0):
             raise ValueError(f"Expected error_texels >= 0, got {self.error_texels}")
         if self.resolution is not None and not self.resolution > 0.0:
@@ -100,7 +110,10 @@ def build(
     out = Path(output)
     t0 = time.perf_counter()
     rasters = _rasters(inputs, out, options)
-    source = open_rasters(rasters, allow_mixed_crs=options.allow_mixed_crs)
+    raw = open_rasters(
+        rasters, allow_mixed_crs=options.allow_mixed_crs, band=options.band, nodata=options.nodata
+    )
+    source = FilledSource(raw, parse_fill(options.fill))
     try:
         span = level_span(
             source.bounds_merc,
@@ -122,6 +135,10 @@ def build(
             span.zmax,
             tuple(os.path.abspath(p) for p in options.imagery),
             imagery_zmax,
+            options.fill,
+            options.sea_level,
+            options.band,
+            options.nodata,
         )
         plan = _plan(source, span.zmin, max(span.zmax, imagery_zmax))
         manifest = _manifest(source, options, inputs, span, height_range, imagery_zmax)

@@ -24,7 +24,7 @@ from lodscape.store.quantized_mesh import QUANTIZED_MAX, encode, quantize
 from lodscape.store.tileset import TIN_GRID, TileRecord
 from lodscape.terrain.mesh import grid_coordinates
 from lodscape.terrain.rtin import Rtin
-from lodscape.terrain.source import HeightSource, open_rasters
+from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
 
 __all__ = ["Job", "make_tile", "make_tiles", "tile_budget"]
 
@@ -47,21 +47,37 @@ class Job:
     #: Imagery layers baked over the tint, bottom to top, and the finest imagery level.
     imagery: tuple[str, ...] = ()
     imagery_zmax: int = -1
+    #: What stands where there is no data (``terrain.source.parse_fill``): "none" leaves it
+    #: out of the meshes.
+    fill: str = "ellipsoid"
+    #: Heights below it are tinted as water (None: no sea).
+    sea_level: float | None = 0.0
+    #: The rasters' height band (None: their only one) and an undeclared nodata value.
+    band: int | None = None
+    nodata: float | None = None
 
 
-_sources: dict[tuple[tuple[str, ...], bool], HeightSource] = {}
+_sources: dict[tuple[Any, ...], HeightSource] = {}
 _imagery: dict[tuple[str, ...], list[Any]] = {}
 _sources_lock = threading.Lock()
 
 
 def _source(job: Job) -> HeightSource:
     """The job's source, opened once per process (and shared by its threads)."""
-    key = (job.inputs, job.allow_mixed_crs)
+    key = (job.inputs, job.allow_mixed_crs, job.band, job.nodata, job.fill)
     with _sources_lock:
         src = _sources.get(key)
         if src is None:
-            src = _sources[key] = open_rasters(job.inputs, allow_mixed_crs=job.allow_mixed_crs)
+            raw = open_rasters(
+                job.inputs, allow_mixed_crs=job.allow_mixed_crs, band=job.band, nodata=job.nodata
+            )
+            src = _sources[key] = FilledSource(raw, parse_fill(job.fill))
         return src
+
+
+#: Metres added to the points without data while meshing with holes: no budget keeps a
+#: triangle that spans both, so rims are cut at the grid's resolution.
+_RIM = 1.0e7
 
 
 def tile_budget(job: Job, z: int, y: int) -> float:
@@ -92,7 +108,14 @@ def _layers(job: Job) -> list[Any]:
 
 def _texture(job: Job, src: HeightSource, z: int, x: int, y: int) -> bytes:
     """The tile's PNG: the tint (its alpha: where the terrain has data) under the layers."""
-    rgba = TintImagery(src, job.height_range, tile_size=job.tile_size).texture(z, x, y)
+    kind = parse_fill(job.fill).kind
+    rgba = TintImagery(
+        src,
+        job.height_range,
+        tile_size=job.tile_size,
+        alpha={"none": "valid", "nearest": "covers"}.get(kind, "all"),
+        sea_level=job.sea_level,
+    ).texture(z, x, y)
     if job.imagery and z <= job.imagery_zmax:
         rgb = rgba[..., :3].astype(np.float32)
         for layer in _layers(job):
@@ -121,11 +144,26 @@ def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
     xs, ys = grid_coordinates(z, x, y, TIN_GRID)
     side = xs[-1] - xs[0]
     heights, valid = src.sample_grid(xs, ys, side / TIN_GRID)
-    if not valid.any():
+    holes = job.fill == "none"
+    if not valid.any() and holes:
         return TileRecord(z, x, y)
-    rtin = Rtin(heights)
     budget = tile_budget(job, z, y)
-    verts, tris = rtin.mesh(budget)
+    if holes and not valid.all():
+        # a triangle that holds data and no data has a huge error: it splits down to the grid,
+        # so the mesh's rim follows the data's within a cell; then triangles touching a point
+        # without data are left out, and the vertices only they used
+        rtin = Rtin(np.where(valid, heights, heights + _RIM))
+        verts, tris = rtin.mesh(budget)
+        keep = valid[verts[:, 1], verts[:, 0]][tris].all(axis=1)
+        if not keep.any():
+            return TileRecord(z, x, y)
+        used = np.unique(tris[keep])
+        renumber = np.full(len(verts), -1, np.int64)
+        renumber[used] = np.arange(used.size)
+        verts, tris = verts[used], renumber[tris[keep]].astype(np.int32)
+    else:
+        rtin = Rtin(heights)
+        verts, tris = rtin.mesh(budget)
     vh = heights[verts[:, 1], verts[:, 0]].astype(np.float64)
     b = bounds(t)
     lon_col, _ = merc_to_lonlat(xs, np.zeros_like(xs))

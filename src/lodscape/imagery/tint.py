@@ -18,6 +18,7 @@ __all__ = [
     "AMBIENT",
     "NODATA_GREY",
     "RAMP",
+    "WATER",
     "HeightSourceLike",
     "TintImagery",
     "hillshade",
@@ -39,6 +40,15 @@ RAMP: NDArray[np.float64] = np.array(
         [0.55, 168.0, 124.0, 78.0],  # brown
         [0.75, 146.0, 136.0, 130.0],  # grey
         [1.00, 248.0, 248.0, 250.0],  # near-white
+    ]
+)
+
+#: Water below sea level, by depth over the data's deepest: (normalised depth, R, G, B).
+WATER: NDArray[np.float64] = np.array(
+    [
+        [0.00, 150.0, 196.0, 226.0],  # shallows
+        [0.25, 80.0, 140.0, 200.0],
+        [1.00, 18.0, 44.0, 112.0],  # the deep
     ]
 )
 
@@ -93,8 +103,12 @@ def tint(
     azimuth: float = 315.0,
     altitude: float = 45.0,
     z_factor: float = 1.0,
+    sea_level: float | None = 0.0,
 ) -> NDArray[np.uint8]:
-    """(T, T, 3) RGB of a bordered (T+2, T+2) height grid: hypsometric colour × hillshade."""
+    """(T, T, 3) RGB of a bordered (T+2, T+2) height grid: hypsometric colour × hillshade.
+
+    Heights below ``sea_level`` (when the range reaches below it) are water, shaded by depth
+    over the range's deepest, and the land ramp runs from sea level up; None: no sea."""
     h = np.asarray(heights)
     ok = np.asarray(valid, dtype=bool)
     if h.ndim != 2 or h.shape[0] != h.shape[1] or h.shape[0] < 3:
@@ -116,9 +130,17 @@ def tint(
         h64, texel_size_m, azimuth=azimuth, altitude=altitude, z_factor=z_factor
     )
     inner = h64[1:-1, 1:-1]
+    sea = sea_level is not None and math.isfinite(sea_level) and lo < sea_level
+    land = max(lo, float(sea_level)) if sea and sea_level is not None else lo
     # a single-height dataset (lo == hi) maps to the ramp's foot rather than dividing by zero
-    span = hi - lo if hi > lo else 1.0
-    base = ramp((inner - lo) / span)
+    span = hi - land if hi > land else 1.0
+    base = ramp((inner - land) / span)
+    if sea:
+        wet = inner < land
+        depth = (land - inner[wet]) / (land - lo)
+        base[wet] = np.stack(
+            [np.interp(depth, WATER[:, 0], WATER[:, k]) for k in (1, 2, 3)], axis=-1
+        )
     base[~ok[1:-1, 1:-1]] = NODATA_GREY
     rgb = base * light[..., None]
     return np.rint(np.clip(rgb, 0.0, 255.0)).astype(np.uint8)
@@ -138,7 +160,14 @@ class TintImagery:
         azimuth: float = 315.0,
         altitude: float = 45.0,
         z_factor: float = 1.0,
+        alpha: str = "covers",
+        sea_level: float | None = 0.0,
     ) -> None:
+        """``alpha`` says where the terrain is drawn: ``valid`` where there is data (holes
+        and the margins cut out), ``covers`` inside the raster's footprint, ``all`` everywhere
+        (a fill stands in); ``sea_level`` as ``tint``'s."""
+        if alpha not in ("valid", "covers", "all"):
+            raise ValueError(f"Expected alpha valid, covers or all, got {alpha!r}")
         if tile_size < 1:
             raise ValueError(f"Expected a tile size of at least 1 texel, got {tile_size}")
         lo, hi = float(height_range[0]), float(height_range[1])
@@ -150,6 +179,8 @@ class TintImagery:
         self.azimuth = azimuth
         self.altitude = altitude
         self.z_factor = z_factor
+        self.alpha = alpha
+        self.sea_level = sea_level
 
     def sample_bounds(self, z: int, x: int, y: int) -> Bbox:
         """The box whose (T+2)² vertex grid lands on the tile's texel centres plus a border ring."""
@@ -166,21 +197,29 @@ class TintImagery:
         return (b.right - b.left) / self.tile_size * math.cos(math.radians(float(lat)))
 
     def texture(self, z: int, x: int, y: int) -> NDArray[np.uint8]:
-        """The (tile_size, tile_size, 4) RGBA texture of tile z/x/y; alpha 0 where the source
-        does not cover the texel (the terrain ends there; holes inside the data are filled)."""
-        rgb = self.rgb(z, x, y)
-        b = self.sample_bounds(z, x, y)
+        """The (tile_size, tile_size, 4) RGBA texture of tile z/x/y; alpha 0 where the terrain
+        is not drawn (``alpha``: where there is no data, or outside the raster)."""
+        rgb, valid = self._rgb(z, x, y)
         n = self.tile_size
-        step = (b.right - b.left) / (n + 1)
-        # texel centres: the inner samples of the bordered grid
-        xs = b.left + step * np.arange(1, n + 1, dtype=np.float64)
-        ys = b.top - step * np.arange(1, n + 1, dtype=np.float64)
-        inside = self.heights.covers(xs[None, :], ys[:, None])
+        if self.alpha == "valid":
+            inside = valid[1:-1, 1:-1]
+        elif self.alpha == "covers":
+            b = self.sample_bounds(z, x, y)
+            step = (b.right - b.left) / (n + 1)
+            # texel centres: the inner samples of the bordered grid
+            xs = b.left + step * np.arange(1, n + 1, dtype=np.float64)
+            ys = b.top - step * np.arange(1, n + 1, dtype=np.float64)
+            inside = self.heights.covers(xs[None, :], ys[:, None])
+        else:
+            inside = np.ones((n, n), bool)
         alpha = np.where(inside, 255, 0).astype(np.uint8)
         return np.dstack([rgb, np.broadcast_to(alpha, (n, n))])
 
     def rgb(self, z: int, x: int, y: int) -> NDArray[np.uint8]:
         """The (tile_size, tile_size, 3) RGB tint of tile z/x/y."""
+        return self._rgb(z, x, y)[0]
+
+    def _rgb(self, z: int, x: int, y: int) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
         n = self.tile_size + 2
         heights, valid = self.heights.read(self.sample_bounds(z, x, y), (n, n))
         return tint(
@@ -191,4 +230,5 @@ class TintImagery:
             azimuth=self.azimuth,
             altitude=self.altitude,
             z_factor=self.z_factor,
-        )
+            sea_level=self.sea_level,
+        ), valid

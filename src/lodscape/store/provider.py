@@ -20,7 +20,7 @@ from lodscape.imagery.sources import ImageryError
 from lodscape.terrain.fractal import MAX_LEVEL
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import RefinedTree, TileTree, build_tree
-from lodscape.terrain.source import HeightSource
+from lodscape.terrain.source import Fill, HeightSource
 
 __all__ = [
     "FractalProvider",
@@ -108,18 +108,42 @@ def texture_of(provider: Provider, key: int) -> NDArray[np.uint8]:
     return made
 
 
+def fill_of(source: Any) -> Fill:
+    """The fill a (wrapped) height source was opened with; none if it does not say."""
+    for _ in range(8):  # wrappers keep the source they wrap as ``source``
+        fill = getattr(source, "fill", None)
+        if isinstance(fill, Fill):
+            return fill
+        source = getattr(source, "source", None)
+        if source is None:
+            break
+    return Fill("none")
+
+
 class RasterProvider:
     """A height source meshed on the fly: regular grids per tile, tint + hillshade imagery."""
 
     textures = "imagery"
     layers: tuple[Any, ...] = ()
 
-    def __init__(self, source: HeightSource, tree: Any = None) -> None:
+    def __init__(
+        self, source: HeightSource, tree: Any = None, *, sea_level: float | None = 0.0
+    ) -> None:
         self.source = source
         self.name = source.name
         self.tree = tree if tree is not None else build_tree(source)
         self.bounds_merc = source.bounds_merc
-        self.imagery = TintImagery(source, self.tree.height_range, tile_size=self.tree.tile_size)
+        # where there is no data the terrain is cut (fill none), or the fill stands in: over
+        # the raster (nearest), or everywhere the tiles reach (a level or the ellipsoid)
+        kind = fill_of(source).kind
+        alpha = {"none": "valid", "nearest": "covers"}.get(kind, "all")
+        self.imagery = TintImagery(
+            source,
+            self.tree.height_range,
+            tile_size=self.tree.tile_size,
+            alpha=alpha,
+            sea_level=sea_level,
+        )
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         xm, ym = lonlat_to_merc([lon], [lat])
@@ -178,8 +202,8 @@ class FractalProvider(RasterProvider):
     """A raster with fractal detail below its resolution, or the procedural planet: meshes of
     exact lattice heights, split along their lowest diagonals below the data (paper 003)."""
 
-    def __init__(self, heights: Any, tree: Any) -> None:
-        super().__init__(heights, tree)
+    def __init__(self, heights: Any, tree: Any, *, sea_level: float | None = 0.0) -> None:
+        super().__init__(heights, tree, sea_level=sea_level)
         self.heights: Any = heights
         self.detail_tree: Any = tree
 

@@ -262,6 +262,9 @@ def build_tree(
     depth = len(grids) - 1
 
     levels: dict[int, tuple[Level, NDArray[np.float32], tuple[int, int, int, int]]] = {}
+    # a fill that stands in where there is no data (a level, the ellipsoid, the nearest height)
+    # makes every tile over the data's box one to draw; without, a tile exists where data does
+    stands_in = getattr(getattr(source, "fill", None), "kind", "none") != "none"
     height_range = (0.0, 0.0)
     child: tuple[NDArray[np.float32], tuple[int, int, int, int], Level] | None = None
     twist = np.zeros((0, 0), np.float32)
@@ -282,7 +285,10 @@ def build_tree(
             twist, roughness = _twist(h, valid, ny, nx)
         mn = _blocks(h).min(axis=(2, 3)).astype(np.float32)
         mx = _blocks(h).max(axis=(2, 3)).astype(np.float32)
-        exists = np.asarray(_blocks(valid).any(axis=(2, 3)), dtype=bool)
+        if stands_in:
+            exists = np.ones((ny, nx), dtype=bool)
+        else:
+            exists = np.asarray(_blocks(valid).any(axis=(2, 3)), dtype=bool)
         e16 = np.zeros((ny, nx), dtype=np.float32)
         if child is not None:
             hc, crng, clv = child

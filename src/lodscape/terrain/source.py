@@ -37,15 +37,23 @@ from lodscape.geo.tiles import MAX_LAT, ORIGIN, Bbox, lonlat_to_merc
 
 __all__ = [
     "COARSE_SIZE",
+    "HEIGHT_LIMITS",
     "ArraySource",
+    "Fill",
+    "FilledSource",
     "HeightSource",
     "MosaicSource",
     "RasterSource",
     "open_rasters",
+    "parse_fill",
 ]
 
 #: Longest side (pixels) of the hole-filled whole-raster overview that fills invalid points.
 COARSE_SIZE = 1024
+#: Heights (metres) a DEM's valid pixels may have: below the deepest sea floor (−10,994 m) or
+#: above the highest summit (8,849 m) with a margin, a value is a nodata marker nobody declared
+#: (−3.4e38, ±1e30, 32767…), and the DEM is refused rather than drawn as a spike.
+HEIGHT_LIMITS = (-12000.0, 9000.0)
 #: Points per edge when projecting the footprint (edges curve in Web Mercator).
 _EDGE_POINTS = 64
 #: Lattice step (points) and tolerance (pixels) of ``sample_grid``'s interpolated projection.
@@ -342,8 +350,11 @@ class _GridSource:
         f = 1 << m
         strip = f * max(1, _STRIP_PIXELS // (w * f))  # a multiple of the block, so strips align
         sums, counts = [], []
+        lo, hi = math.inf, -math.inf
         for r0 in range(0, h, strip):
             vals, ok = self._read_raw(None, r0, min(r0 + strip, h), 0, w)
+            if ok.any():
+                lo, hi = min(lo, float(vals[ok].min())), max(hi, float(vals[ok].max()))
             s, n = vals, ok.astype(np.float64)
             for _ in range(m):
                 s, n = _halve(s), _halve(n)
@@ -355,6 +366,9 @@ class _GridSource:
         valid = self._count > 0.0
         if not valid.any():
             raise SourceError(f"{self.name}: every pixel is nodata")
+        self._check_heights(lo, hi)
+        #: The lowest and highest valid height of the data (metres).
+        self.data_range = (lo, hi)
         coarse = self._sum / np.maximum(self._count, 1.0)
         if not valid.all():
             # nearest valid pixel: fills holes and nodata margins without inventing heights
@@ -366,6 +380,17 @@ class _GridSource:
         # the block-mean geometry even where the file has an overview of this factor
         ch, cw = self._coarse.shape
         self._coarse_level = _Level(m, ch, cw, float(f), float(f), None)
+
+    def _check_heights(self, lo: float, hi: float) -> None:
+        """Refuse heights no terrain has: an undeclared nodata value, or not metres."""
+        low, high = HEIGHT_LIMITS
+        if lo >= low and hi <= high:
+            return
+        bad = lo if lo < low else hi
+        raise SourceError(
+            f"{self.name}: height {bad:.6g} is outside {low:.0f}..{high:.0f} m: an undeclared "
+            f"nodata value (declare it with --nodata {bad:.6g}) or heights not in metres"
+        )
 
     def _level(self, k: int) -> _Level:
         """Level k: the file's own overview of factor 2^k, else the aligned 2^k block mean."""
@@ -564,12 +589,15 @@ class _GridSource:
 class RasterSource(_GridSource):
     """One band of any GDAL raster read through rasterio, in any CRS; heights in metres."""
 
-    def __init__(self, path: str | os.PathLike[str], band: int = 1) -> None:
+    def __init__(
+        self, path: str | os.PathLike[str], band: int | None = None, nodata: float | None = None
+    ) -> None:
         self.path = os.fspath(path)
         name = self.path
         self._lock = threading.Lock()
         self._closed = False
-        self._band = band
+        self._band = 1 if band is None else band
+        self._nodata = nodata
         self._overview_ds: list[Any] = []
         try:
             with warnings.catch_warnings():
@@ -587,8 +615,19 @@ class RasterSource(_GridSource):
             self.close()
             raise
 
-    def _init_dataset(self, name: str, band: int) -> None:
+    def _init_dataset(self, name: str, asked: int | None) -> None:
         ds = self._ds
+        band = self._band
+        if asked is None and ds.count > 1:
+            # an alpha band beside one height band is a mask, not a second choice
+            kinds = [str(getattr(c, "name", c)).lower() for c in ds.colorinterp]
+            heights = [i + 1 for i, k in enumerate(kinds) if k != "alpha"]
+            if len(heights) != 1:
+                raise SourceError(
+                    f"{name}: has {ds.count} bands; a DEM is one band of heights: pick it with "
+                    "--band N"
+                )
+            band = self._band = heights[0]
         if not 1 <= band <= ds.count:
             raise SourceError(f"{name}: band {band} does not exist (the raster has {ds.count})")
         dtype = np.dtype(ds.dtypes[band - 1])
@@ -628,8 +667,13 @@ class RasterSource(_GridSource):
                 data = ds.read(self._band, window=window, masked=True)
             except Exception as exc:  # GDAL errors surface as several rasterio classes
                 raise SourceError(f"{self.name}: read failed: {_one_line(exc)}") from None
-        vals = np.ma.getdata(data).astype(np.float64)
+        raw = np.ma.getdata(data)
+        vals = raw.astype(np.float64)
         ok = ~np.ma.getmaskarray(data)
+        if self._nodata is not None:
+            # compared in the file's own type: -3.4e38 is not exactly a float32
+            nd = np.float64(self._nodata)
+            ok &= (raw != raw.dtype.type(nd)) if raw.dtype.kind == "f" else (vals != nd)
         if self._scale != 1.0 or self._offset != 0.0:
             vals = vals * self._scale + self._offset
         ok &= np.isfinite(vals)
@@ -763,14 +807,100 @@ class MosaicSource:
             s.close()
 
 
+@dataclass(frozen=True)
+class Fill:
+    """What stands where the data has none: ``none`` (a hole: nothing drawn), ``nearest`` (the
+    nearest valid height, stretched), ``value`` (level ground at ``height``) or ``ellipsoid``
+    (height 0)."""
+
+    kind: str = "none"
+    height: float = 0.0
+
+    def __str__(self) -> str:
+        return f"value:{self.height:g}" if self.kind == "value" else self.kind
+
+
+def parse_fill(text: str) -> Fill:
+    """``none``, ``nearest``, ``value:H`` (metres) or ``ellipsoid``; one-line SourceError."""
+    kind, _, arg = str(text).strip().partition(":")
+    if kind in ("none", "nearest", "ellipsoid") and not arg:
+        return Fill(kind)
+    if kind == "value":
+        try:
+            h = float(arg)
+        except ValueError:
+            h = math.nan
+        if math.isfinite(h):
+            return Fill("value", h)
+    raise SourceError(f"--fill must be none, nearest, value:H (metres) or ellipsoid, got {text!r}")
+
+
+class FilledSource:
+    """A height source whose points without data get the ``fill``'s height (``nearest`` and
+    ``none`` keep the source's own nearest-valid fill, which ``none`` never draws). Validity is
+    the source's: the fill is a stated default, never data."""
+
+    def __init__(self, source: HeightSource, fill: Fill) -> None:
+        self.source = source
+        self.fill = fill
+        self.name = source.name
+        self.crs_wkt = source.crs_wkt
+        self.bounds_merc = source.bounds_merc
+        self.resolution_merc = source.resolution_merc
+
+    def _filled(
+        self, got: tuple[NDArray[np.float32], NDArray[np.bool_]]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        h, valid = got
+        if self.fill.kind in ("value", "ellipsoid") and not valid.all():
+            level = self.fill.height if self.fill.kind == "value" else 0.0
+            h = np.where(valid, h, np.float32(level)).astype(np.float32)
+        return h, valid
+
+    def sample(
+        self, xm: NDArray[np.float64], ym: NDArray[np.float64], spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        return self._filled(self.source.sample(xm, ym, spacing))
+
+    def sample_grid(
+        self, xs: NDArray[np.float64], ys: NDArray[np.float64], spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        return self._filled(self.source.sample_grid(xs, ys, spacing))
+
+    def read(
+        self, bounds: Bbox, shape: tuple[int, int]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        return self._filled(self.source.read(bounds, shape))
+
+    def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]:
+        return self.source.covers(xm, ym)
+
+    def pixels_in(self, box: Bbox) -> Iterator[tuple[F64, F64, F64]]:
+        return self.source.pixels_in(box)
+
+    def close(self) -> None:
+        self.source.close()
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "source":  # not set yet (unpickling): no recursion
+            raise AttributeError(name)
+        # what else the wrapped source knows (shape, data_range…), for callers that ask
+        return getattr(self.source, name)
+
+
 def open_rasters(
-    paths: Sequence[str | os.PathLike[str]], *, allow_mixed_crs: bool = False
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    allow_mixed_crs: bool = False,
+    band: int | None = None,
+    nodata: float | None = None,
 ) -> HeightSource:
-    """One raster as a RasterSource, several as a MosaicSource; each file checked as it opens."""
+    """One raster as a RasterSource, several as a MosaicSource; each file checked as it opens
+    (``band`` and ``nodata`` apply to every file)."""
     opened: list[RasterSource] = []
     try:
         for p in paths:
-            opened.append(RasterSource(p))
+            opened.append(RasterSource(p, band=band, nodata=nodata))
         if not opened:
             raise SourceError("no input rasters given")
         crs = {CRS.from_wkt(s.crs_wkt) for s in opened}
