@@ -99,6 +99,8 @@ def test_every_tiles_real_error_is_within_its_recorded_error(dem: str, tileset: 
     for z, x, y, error, data in tiles:
         b = bounds(Tile(x, y, z))
         inside = (lon >= b.left) & (lon <= b.right) & (lat >= b.bottom) & (lat <= b.top)
+        if not inside.any():
+            continue  # a tile of the ellipsoid beside the data, at one of its corners
         mesh = _mesh_at(
             decode(bytes(data)), (b.left, b.bottom, b.right, b.top), lon[inside], lat[inside]
         )

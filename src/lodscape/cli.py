@@ -22,7 +22,7 @@ import typer
 from numpy.typing import NDArray
 
 from lodscape.errors import LodscapeError
-from lodscape.geo.tiles import merc_to_lonlat
+from lodscape.geo.tiles import ORIGIN, merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import SelectOptions
 from lodscape.scene import Scene, SceneOptions
@@ -734,6 +734,7 @@ def info(
     """Print a source's footprint, resolution, heights and tile levels (and for a tileset, its
     size and provenance)."""
     from lodscape.store.provider import RefinedProvider
+    from lodscape.store.tileset import TIN_GRID
 
     with open_scene(source) as scene:
         provider = scene.provider
@@ -773,11 +774,31 @@ def info(
             if not hasattr(lv, "exists"):
                 line(f"{'z' + str(lv.z):>14}: computed on demand (procedural)")
                 continue
-            line(
+            text = (
                 f"{'z' + str(lv.z):>14}: {int(lv.exists.sum())} tiles, max error "
                 f"{float(lv.error[-1][lv.exists].max()):.2f} m"
-                + (" (finest grid)" if manifest is None else "")
             )
+            if manifest is None:
+                line(text + " (finest grid)")
+                continue
+            # each tile's budget: error_texels of its texels' ground size (build.tile_budget)
+            ys, _ = np.nonzero(lv.exists)
+            side = 2.0 * ORIGIN / (1 << lv.z)
+            _, lat = merc_to_lonlat(0.0, ORIGIN - (ys + lv.y0 + 0.5) * side)
+            budget = opts["error_texels"] * side * np.cos(np.radians(lat)) / tree.tile_size
+            err = lv.error[-1][lv.exists]
+            over = int((err > budget * (1.0 + 1e-9)).sum())
+            worst = int(np.argmax(err / np.maximum(budget, 1e-12)))
+            line(
+                text + f"; {over} over their budget (worst {err[worst]:.2f} m against "
+                f"{budget[worst]:.2f} m)"
+            )
+            res = float(manifest.get("resolution_merc", 0.0))
+            if lv.z == tree.zmax and over and side / TIN_GRID <= res / 2.0:
+                line(
+                    f"{'':>14}  the finest grid is twice as fine as the data: what is left is "
+                    "the data's own relief between its samples"
+                )
 
 
 @app.command()

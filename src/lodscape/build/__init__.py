@@ -13,17 +13,23 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from pyproj import CRS
 
 from lodscape.build.executors import BuildExecutor, executor_for
-from lodscape.build.tiles import Job, make_tiles
+from lodscape.build.tiles import Job, make_tiles, tile_budget
 from lodscape.errors import SourceError
-from lodscape.geo.tiles import Bbox, bounds_array
-from lodscape.store.tileset import SCHEMA_VERSION, TileRecord, TilesetWriter, lonlat_bounds
+from lodscape.geo.tiles import ORIGIN, Bbox, bounds_array
+from lodscape.store.tileset import (
+    SCHEMA_VERSION,
+    TIN_GRID,
+    TileRecord,
+    TilesetWriter,
+    lonlat_bounds,
+)
 from lodscape.terrain.points import POINT_SUFFIXES, grid_points, read_points, write_grid
 from lodscape.terrain.pyramid import LevelSpan, level_range, level_span
 from lodscape.terrain.rtin import Rtin
@@ -158,26 +164,28 @@ def build(
             Rtin(np.zeros((3, 3)))
             executor = executor or executor_for()
         label = executor.label if executor is not None else "none"
-        batch: list[TileRecord] = []
-        last = time.monotonic()
-        if executor is not None:
-            # a few neighbouring tiles per task: a task's overhead (a Dask round trip, above
-            # all) is then small against its work
-            chunks = ((job, pending[i : i + _CHUNK]) for i in range(0, len(pending), _CHUNK))
-            for records in executor.imap(make_tiles, chunks):
-                batch.extend(records)
-                if len(batch) >= options.batch or time.monotonic() - last > 2.0:
-                    writer.write(batch)
-                    done += len(batch)
-                    batch, last = [], time.monotonic()
-                    if progress is not None:
-                        progress(done, total)
-            if batch:
-                writer.write(batch)
-                done += len(batch)
-                if progress is not None:
-                    progress(done, total)
-        writer.finish(_mbtiles(manifest, out))
+        made = len(pending)
+        done = _run(executor, job, pending, writer, options.batch, progress, done, total)
+        zmax = span.zmax
+        if imagery_zmax <= span.zmax:
+            # the finest level is honest: where a tile misses its budget, its children are
+            # built, a level at a time, until none does or the grid is twice as fine as the data
+            while 2.0 * ORIGIN / (1 << zmax) / TIN_GRID > source.resolution_merc / 2.0:
+                over = _over_budget(writer, job, zmax)
+                if not over:
+                    break
+                writer.plan(over)
+                pending = writer.pending()
+                done, total = writer.counts()
+                made += len(pending)
+                if pending:
+                    executor = executor or executor_for()
+                    label = executor.label
+                finer = replace(job, zmax=zmax + 1)
+                done = _run(executor, finer, pending, writer, options.batch, progress, done, total)
+                zmax += 1
+        span = replace(span, zmax=zmax)
+        writer.finish(_mbtiles(manifest, out), zmax=zmax)
         ok = True
     finally:
         if own and executor is not None:
@@ -191,13 +199,57 @@ def build(
     return BuildReport(
         out,
         total,
-        len(pending),
+        made,
         writer.resumed,
         time.perf_counter() - t0,
         label,
         (span.zmin, span.texture_zmax, span.zmax),
         imagery_zmax if options.imagery else None,
     )
+
+
+def _run(
+    executor: BuildExecutor | None,
+    job: Job,
+    pending: list[tuple[int, int, int]],
+    writer: TilesetWriter,
+    size: int,
+    progress: Progress | None,
+    done: int,
+    total: int,
+) -> int:
+    """Make the pending tiles on the executor, written a batch per transaction; returns the
+    tiles done."""
+    if executor is None or not pending:
+        return done
+    batch: list[TileRecord] = []
+    last = time.monotonic()
+    # a few neighbouring tiles per task: a task's overhead (a Dask round trip, above all) is
+    # then small against its work
+    chunks = ((job, pending[i : i + _CHUNK]) for i in range(0, len(pending), _CHUNK))
+    for records in executor.imap(make_tiles, chunks):
+        batch.extend(records)
+        if len(batch) >= size or time.monotonic() - last > 2.0:
+            writer.write(batch)
+            done += len(batch)
+            batch, last = [], time.monotonic()
+            if progress is not None:
+                progress(done, total)
+    if batch:
+        writer.write(batch)
+        done += len(batch)
+        if progress is not None:
+            progress(done, total)
+    return done
+
+
+def _over_budget(writer: TilesetWriter, job: Job, z: int) -> list[tuple[int, int, int]]:
+    """The children of the level-z tiles whose measured error exceeds their budget."""
+    out = []
+    for x, y, error in writer.db.execute("SELECT x, y, error FROM terrain WHERE z = ?", (z,)):
+        if error > tile_budget(job, z, y) * (1.0 + 1e-9):
+            out.extend((z + 1, 2 * x + dx, 2 * y + dy) for dy in (0, 1) for dx in (0, 1))
+    return out
 
 
 def _imagery_zmax(imagery: Sequence[str], texture_zmax: int) -> int:

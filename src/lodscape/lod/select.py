@@ -98,6 +98,10 @@ class TileStats(Protocol):
     @property
     def error(self) -> NDArray[np.floating]: ...
 
+    #: Tiles without children (never split), or None.
+    @property
+    def leaf(self) -> NDArray[np.bool_] | None: ...
+
     def take(self, m: NDArray[np.bool_]) -> TileStats: ...
 
 
@@ -412,6 +416,8 @@ def select(
         can = z < zmax
         big = (px > options.split * tsize) & (z < ztex)
         refine = can & (big | too_rough)
+        if st.leaf is not None:
+            refine &= ~st.leaf[keep]  # nothing finer was built there
         if can and prev.size:
             was = _member(ids, prev) & ~refine
             if was.any():

@@ -4,9 +4,11 @@ TileJSON (``imagery.json``: levels, bounds, attribution), and the stored cities'
 3D Tiles (``3dtiles/tileset.json``, ``3dtiles/{i}.glb``).
 
 Cesium starts from the tiling scheme's level 0, so the levels above the tileset's roots get
-flat tiles (at the data's lowest height) over the roots' ancestors; from the roots down every
-tile is the tileset's own. The folder is written under a temporary name and renamed when
-complete, so a failed export leaves nothing behind.
+filler tiles over the roots' ancestors: the ellipsoid (height 0) itself, curved meshes with
+enough vertices to follow it at their level, with normals; from the roots down every tile is the
+tileset's own. Where a tile is not available a client draws its ancestor's surface, so the
+world outside the data is the ellipsoid, never the data's lowest height. The folder is written
+under a temporary name and renamed when complete, so a failed export leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -21,11 +23,18 @@ from typing import Any
 
 import numpy as np
 
-from lodscape.geo.tiles import Bbox, Tile, bounds
+from lodscape.geo.tiles import Bbox, Tile, bounds, merc_to_lonlat
 from lodscape.store.quantized_mesh import encode, ungzip
 from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
+from lodscape.terrain.mesh import grid_coordinates, grid_indices
 
-__all__ = ["cesium_layer", "city_3dtiles", "export_cesium", "imagery_tilejson"]
+__all__ = [
+    "cesium_layer",
+    "city_3dtiles",
+    "ellipsoid_tile",
+    "export_cesium",
+    "imagery_tilejson",
+]
 
 
 def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str]) -> int:
@@ -134,15 +143,13 @@ def cesium_layer(
     for z, x, y in db.execute("SELECT z, x, y FROM terrain"):
         available[z].add((x, (1 << z) - 1 - y))
     levels: Any = manifest["levels"]
-    heights: Any = manifest["height_range"]
     zmin = int(levels["zmin"])
-    lo = float(heights[0])
     roots = [(x, y) for x, tms in available[zmin] for y in [(1 << zmin) - 1 - tms]]
     flat: dict[tuple[int, int, int], bytes] = {}
     for z in range(zmin):
         for x, y in {(rx >> (zmin - z), ry >> (zmin - z)) for rx, ry in roots}:
             tms = (1 << z) - 1 - y
-            flat[(z, x, tms)] = _flat(z, x, y, lo)
+            flat[(z, x, tms)] = ellipsoid_tile(z, x, y)
             available[z].add((x, tms))
     bounds_merc: Any = manifest["bounds_merc"]
     w, s, e, n = lonlat_bounds(Bbox(*bounds_merc))
@@ -169,17 +176,27 @@ def _write(path: Path, data: bytes) -> None:
     path.write_bytes(data)
 
 
-def _flat(z: int, x: int, y: int, height: float) -> bytes:
-    """A 2-triangle tile at one height: the levels above the data's roots."""
+def ellipsoid_tile(z: int, x: int, y: int) -> bytes:
+    """Tile z/x/y (OSM rows) of the ellipsoid itself, height 0: a grid regular in Web Mercator
+    (so it is cut where the tiling cuts), 32 cells a side at level 0 and 16 below (each cell
+    then spans at most 11.25° and its chords sag by at most 1/5 of the level's geometric error
+    in Cesium's terms), with the ellipsoid's normals."""
+    n = 32 if z == 0 else 16
     b = bounds(Tile(x, y, z))
-    lon = np.array([b.left, b.right, b.right, b.left])
-    lat = np.array([b.bottom, b.bottom, b.top, b.top])
+    xs, ys = grid_coordinates(z, x, y, n)
+    lon_col, _ = merc_to_lonlat(xs, np.zeros_like(xs))
+    _, lat_row = merc_to_lonlat(np.zeros_like(ys), ys)
+    # the sides exactly on the tile's edges, as the edge lists require
+    lon_col[0], lon_col[-1], lat_row[0], lat_row[-1] = b.left, b.right, b.top, b.bottom
+    lon, lat = np.meshgrid(lon_col, lat_row)
+    lon, lat = lon.ravel(), lat.ravel()
+    tris = grid_indices(n)[: 2 * n * n].astype(np.int64)
+    rad_lon, rad_lat = np.radians(lon), np.radians(lat)
+    up = np.column_stack(
+        [np.cos(rad_lat) * np.cos(rad_lon), np.cos(rad_lat) * np.sin(rad_lon), np.sin(rad_lat)]
+    )
     return encode(
-        lon,
-        lat,
-        np.full(4, height),
-        np.array([[0, 1, 2], [0, 2, 3]]),
-        (b.left, b.bottom, b.right, b.top),
+        lon, lat, np.zeros(lon.size), tris, (b.left, b.bottom, b.right, b.top), normals=up
     )
 
 

@@ -45,6 +45,8 @@ QUANTIZED_MAX = 32767
 #: Extension id of oct-encoded per-vertex normals.
 NORMALS_EXTENSION = 1
 _HEADER = struct.Struct("<3d2f4d3d")
+#: Smallest cosine term of the horizon point taken as exact: beyond it, 1/_LIMB scaled radii.
+_LIMB = 1e-6
 F64 = NDArray[np.float64]
 U16 = NDArray[np.uint16]
 U32 = NDArray[np.uint32]
@@ -145,7 +147,10 @@ def _horizon_occlusion(ecef: F64, sphere_center: F64) -> F64:
     along the sphere centre's direction, far enough that every vertex is behind its horizon."""
     scale = np.array([1.0 / WGS84_A, 1.0 / WGS84_A, 1.0 / WGS84_B])
     direction = sphere_center * scale
-    direction = direction / np.linalg.norm(direction)
+    length = float(np.linalg.norm(direction))
+    if not length > 1e-9:  # a tile round the whole Earth: no direction to look from
+        return np.full(3, np.nan)
+    direction = direction / length
     p = ecef * scale
     mag = np.linalg.norm(p, axis=1)
     unit = p / mag[:, None]
@@ -155,8 +160,17 @@ def _horizon_occlusion(ecef: F64, sphere_center: F64) -> F64:
     cos_b = 1.0 / mag
     sin_b = np.sqrt(mag * mag - 1.0) * cos_b
     denom = cos_a * cos_b - sin_a * sin_b
-    # a vertex more than 90° of horizon away has no finite point: Cesium then skips the test
-    magnitude = float(np.max(1.0 / denom)) if np.all(denom > 0.0) else float("nan")
+    if np.all(denom > _LIMB):
+        magnitude = float(np.max(1.0 / denom))
+    elif np.all(denom > -1e-9):
+        # vertices on the limb seen from the point (a tile a hemisphere wide, lying on the
+        # ellipsoid): the exact point is at infinity; far along the direction stands in
+        magnitude = 1.0 / _LIMB
+    else:
+        # more than a hemisphere (level 0): no point is behind the horizon of every camera
+        # that can see a vertex; NaN makes Cesium skip the test (its comparisons fail) rather
+        # than cull the Earth from the side opposite the point
+        magnitude = float("nan")
     result: F64 = direction * magnitude
     return result
 

@@ -161,10 +161,13 @@ class TilesetWriter:
                     "UPDATE plan SET done = 1 WHERE z = ? AND x = ? AND y = ?", (r.z, r.x, r.y)
                 )
 
-    def finish(self, mbtiles: dict[str, str]) -> None:
-        """Mark the build complete, with its MBTiles metadata, and fold the write-ahead log back
-        into the one file."""
+    def finish(self, mbtiles: dict[str, str], zmax: int | None = None) -> None:
+        """Mark the build complete, with its MBTiles metadata (and its finest level, where the
+        build went below the one it planned), and fold the write-ahead log back into the one
+        file."""
         manifest = self._manifest() or {}
+        if zmax is not None:
+            manifest["levels"] = {**manifest["levels"], "zmax": zmax}
         with self._transaction():
             self.db.executemany(
                 "INSERT OR REPLACE INTO metadata (name, value) VALUES (?, ?)", mbtiles.items()
@@ -255,7 +258,20 @@ def read_tree(db: sqlite3.Connection, manifest: dict[str, Any]) -> TileTree:
         min_h[y - y0, x - x0] = r[:, 4]
         max_h[y - y0, x - x0] = r[:, 5]
         error[0, y - y0, x - x0] = r[:, 3]
-        out.append(Level(z, x0, y0, exists, min_h, max_h, error))
+        leaf = None
+        if z < zmax:
+            # a build refines its finest level only where it missed its budget: elsewhere a
+            # tile of the level above has no children and is never split
+            kids = rows[rows[:, 0] == z + 1]
+            has = np.zeros((ny, nx), dtype=bool)
+            px = (kids[:, 1].astype(np.int64) >> 1) - x0
+            py = (kids[:, 2].astype(np.int64) >> 1) - y0
+            inside = (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
+            has[py[inside], px[inside]] = True
+            leaf = exists & ~has
+            if not leaf.any():
+                leaf = None
+        out.append(Level(z, x0, y0, exists, min_h, max_h, error, leaf))
     lo, hi = manifest["height_range"]
     return TileTree(
         tuple(out),

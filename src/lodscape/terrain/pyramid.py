@@ -66,9 +66,13 @@ class TileStats:
     max_h: NDArray[np.floating]
     #: (len(grids), N) metres of geometric error of each grid.
     error: NDArray[np.floating]
+    #: Tiles with no children (a tileset refined only where its finest level missed its
+    #: budget); None: every tile above the finest level has them.
+    leaf: NDArray[np.bool_] | None = None
 
     def take(self, m: NDArray[np.bool_]) -> TileStats:
-        return TileStats(self.exists[m], self.min_h[m], self.max_h[m], self.error[:, m])
+        leaf = None if self.leaf is None else self.leaf[m]
+        return TileStats(self.exists[m], self.min_h[m], self.max_h[m], self.error[:, m], leaf)
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,6 +87,8 @@ class Level:
     max_h: NDArray[np.float32]
     #: (len(grids), ny, nx): metres of vertical error of the tile meshed with grids[k] segments.
     error: NDArray[np.float32]
+    #: (ny, nx) tiles without children (see ``TileStats.leaf``); None: none.
+    leaf: NDArray[np.bool_] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -108,6 +114,7 @@ class Level:
             self.min_h.ravel()[flat],
             self.max_h.ravel()[flat],
             self.error[:, flat // nx, flat % nx],
+            None if self.leaf is None else self.leaf.ravel()[flat],
         )
 
 
