@@ -245,7 +245,7 @@ def _run(
 
 def _over_budget(writer: TilesetWriter, job: Job, z: int) -> list[tuple[int, int, int]]:
     """The children of the level-z tiles whose measured error exceeds their budget."""
-    out = []
+    out: list[tuple[int, int, int]] = []
     for x, y, error in writer.db.execute("SELECT x, y, error FROM terrain WHERE z = ?", (z,)):
         if error > tile_budget(job, z, y) * (1.0 + 1e-9):
             out.extend((z + 1, 2 * x + dx, 2 * y + dy) for dy in (0, 1) for dx in (0, 1))

@@ -188,8 +188,8 @@ def ellipsoid_tile(z: int, x: int, y: int) -> bytes:
     _, lat_row = merc_to_lonlat(np.zeros_like(ys), ys)
     # the sides exactly on the tile's edges, as the edge lists require
     lon_col[0], lon_col[-1], lat_row[0], lat_row[-1] = b.left, b.right, b.top, b.bottom
-    lon, lat = np.meshgrid(lon_col, lat_row)
-    lon, lat = lon.ravel(), lat.ravel()
+    grid_lon, grid_lat = np.meshgrid(lon_col, lat_row)
+    lon, lat = grid_lon.ravel(), grid_lat.ravel()
     tris = grid_indices(n)[: 2 * n * n].astype(np.int64)
     rad_lon, rad_lat = np.radians(lon), np.radians(lat)
     up = np.column_stack(
