@@ -60,8 +60,10 @@ out vec2 v_tuv;
 out float v_dist;
 out vec2 v_ground;
 out vec3 v_view;
+out float v_skirt;
 void main() {
     vec3 p = in_pos - in_skirt * u_skirt * u_up;
+    v_skirt = in_skirt;
     gl_Position = u_mvp * vec4(p, 1.0);
     v_uv = u_uv.xy + u_uv.z * in_uv;
     v_tuv = in_uv;
@@ -83,11 +85,17 @@ uniform sampler2D u_layer2;
 uniform sampler2D u_layer3;
 uniform vec3 u_layer_uv[4];
 uniform int u_layers;
+uniform mat3 u_rot;      // the tile's frame → view
+uniform vec3 u_up;       // the terrain's outside (up at the tile's centre), in its frame
 in vec2 v_uv;
 in vec2 v_tuv;           // where in the tile (0..1), for the layers' windows
 in float v_dist;
+in vec3 v_view;
+in float v_skirt;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
+//: The terrain's underside, seen past the data's edge or a hole's rim: a dark curtain.
+const vec3 UNDERSIDE = vec3(0.16, 0.16, 0.18);
 vec3 over(vec3 c, sampler2D s, vec3 w) {
     vec4 t = texture(s, w.xy + w.z * v_tuv);
     return mix(c, t.rgb, t.a);
@@ -101,6 +109,20 @@ void main() {
     ivec2 size = textureSize(u_tex, 0);
     ivec2 texel = clamp(ivec2(floor(v_uv * vec2(size))), ivec2(0), size - 1);
     if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
+    // seen from below (the surface's normal, turned to the outside, faces away from the eye):
+    // the underside, which the imagery does not show; a skirt, which hangs plumb, is part of
+    // it where it hangs above the eye (seen from above, skirts fill cracks in the ground's
+    // colours)
+    vec3 up = u_rot * u_up;
+    vec3 n = cross(dFdx(v_view), dFdy(v_view));
+    if (dot(n, up) < 0.0) n = -n;
+    bool under = v_skirt > 0.0 ? dot(v_view, up) > 0.0
+                               : dot(n, v_view) > 1e-3 * length(n) * length(v_view);
+    if (under) {
+        f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
+        f_dist = v_dist;
+        return;
+    }
     vec3 c = texture(u_tex, v_uv).rgb;
     if (u_layers > 0) c = over(c, u_layer0, u_layer_uv[0]);
     if (u_layers > 1) c = over(c, u_layer1, u_layer_uv[1]);

@@ -149,6 +149,7 @@ out float v_dist;
 out vec2 v_ground;
 out vec3 v_view;
 out vec3 v_normal;         // view space, from the height texture
+out float v_skirt;
 vec3 surface(vec2 uv) {
     float n = u_cells + 1.0;
     vec2 t = (clamp(uv, 0.0, 1.0) * u_cells + 0.5) / vec2(n, 2.0 * n);
@@ -160,6 +161,7 @@ void main() {
     float a = gl_TessCoord.x, b = gl_TessCoord.y;
     vec3 q = mix(mix(e_patch[0], e_patch[1], a), mix(e_patch[3], e_patch[2], a), b);
     vec3 p = surface(q.xy) - q.z * u_skirt * u_up;
+    v_skirt = q.z;
     gl_Position = u_mvp * vec4(p, 1.0);
     v_uv = u_uv.xy + u_uv.z * q.xy;
     v_tuv = q.xy;
