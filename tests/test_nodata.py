@@ -269,3 +269,21 @@ def test_the_finest_level_keeps_its_budget_or_is_twice_as_fine_as_the_data(
             magenta = np.all(rgb == (255, 0, 255), axis=2)
             below = np.maximum.accumulate(~magenta, axis=0)
             assert int((magenta & below).sum()) == 0
+
+
+@pytest.mark.gl
+@pytest.mark.parametrize("mode", ["cpu", "gpu"])
+def test_the_underside_seen_from_a_hole_is_a_dark_curtain(holed: str, mode: str) -> None:
+    # from inside the hole, below the data around it, looking level: the terrain's underside
+    above = _hole_camera(holed)
+    low = Camera(above.lon, above.lat, 150.0, pitch=5.0, fov_y=50.0, width=160, height=100)
+    with lodscape.open(holed, SceneOptions(background=BACKGROUND, terrain_mode=mode)) as scene:
+        rgb, depth = scene.render(low)
+        seen = np.isfinite(depth)
+        assert seen.mean() > 0.05
+        dark = np.all(np.abs(rgb.astype(int) - np.array([41, 41, 46])) <= 2, axis=2)
+        assert dark[seen].mean() > 0.9
+        # from above, the same terrain wears its imagery: no curtain
+        rgb, depth = scene.render(above.moved(lat=above.lat - 0.03))
+        dark = np.all(np.abs(rgb.astype(int) - np.array([41, 41, 46])) <= 2, axis=2)
+        assert dark[np.isfinite(depth)].mean() < 0.01
