@@ -192,7 +192,9 @@ def test_a_fast_low_flight_streams_within_its_budgets(tileset: Path) -> None:
 def test_ten_thousand_frames_keep_memory_flat(tileset: Path) -> None:
     """Small budgets and a tiny viewport: tiles churn through every stage for 10,000 frames;
     the budgets hold every frame and the process's memory does not grow."""
-    budget_mb = 3.0
+    # what one frame draws must fit (the GPU stage never evicts it): 3.9 MiB at worst since
+    # the build refines its finest level where it missed its budget
+    budget_mb = 5.0
     opts = SceneOptions(
         gpu_budget_mb=budget_mb,
         anisotropy=1.0,
