@@ -257,7 +257,9 @@ def _cracks(rgb: np.ndarray) -> int:
 
 @pytest.mark.gl
 def test_no_cracks_with_fractal_detail(dem: str) -> None:
-    with lodscape.open(dem, SceneOptions(background=MAGENTA), detail=Fractal(0.5, 3.0, 2)) as s:
+    with lodscape.open(
+        dem, SceneOptions(background=MAGENTA, ellipsoid=False), detail=Fractal(0.5, 3.0, 2)
+    ) as s:
         tree = s.tree
         assert isinstance(tree, DetailTree)
         b = s.provider.bounds_merc
@@ -375,7 +377,9 @@ def test_patch_culling_never_removes_a_pixel(tmp_path: object) -> None:
     lon, lat = _lonlat_centre(path)
     pictures, tris = [], []
     for cull in (True, False):
-        with lodscape.open(path, SceneOptions(cull_backfacing=cull, background=MAGENTA)) as s:
+        with lodscape.open(
+            path, SceneOptions(cull_backfacing=cull, background=MAGENTA, ellipsoid=False)
+        ) as s:
             views = [
                 # west of the ridge, low, looking east across it
                 Camera(lon - 0.025, lat, 820.0, heading=90, pitch=-8, width=320, height=180),

@@ -97,7 +97,9 @@ _cracks = magenta_cracks
 def test_gpu_mode_draws_the_cpu_terrain_without_cracks(dem: str) -> None:
     pictures = {}
     for mode in ("cpu", "gpu"):
-        with lodscape.open(dem, SceneOptions(background=MAGENTA, terrain_mode=mode)) as scene:
+        with lodscape.open(
+            dem, SceneOptions(background=MAGENTA, terrain_mode=mode, ellipsoid=False)
+        ) as scene:
             for name, cam in _views(scene).items():
                 rgb, depth = scene.render(cam)
                 assert scene.last is not None
@@ -134,7 +136,11 @@ def test_the_pixel_rule_thins_the_tessellation(dem: str) -> None:
     tris = {}
     for px in (4.0, 24.0):
         opts = SceneOptions(
-            select=SelectOptions(max_sse=6.0), background=MAGENTA, terrain_mode="gpu", tess_px=px
+            select=SelectOptions(max_sse=6.0),
+            background=MAGENTA,
+            terrain_mode="gpu",
+            tess_px=px,
+            ellipsoid=False,
         )
         with lodscape.open(dem, opts) as scene:
             rgb, _ = scene.render(_views(scene)["oblique"])

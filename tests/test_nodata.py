@@ -142,16 +142,23 @@ def test_a_nodata_hole_is_drawn_as_a_hole(holed: str, mode: str) -> None:
     cam = _hole_camera(holed)
     seen = {}
     for fill in ("none", "nearest", "ellipsoid", "value:100"):
-        opts = SceneOptions(background=BACKGROUND, terrain_mode=mode)
+        # the terrain alone: the ellipsoid the renderer draws behind it is off
+        opts = SceneOptions(background=BACKGROUND, terrain_mode=mode, ellipsoid=False)
         with lodscape.open(holed, opts, fill=fill) as scene:
             rgb, depth = scene.render(cam)
             assert scene.ground_height(cam.lon, cam.lat) is None  # no data here, whatever fill
         seen[fill] = (rgb, depth)
-    # none: the sky through it, nothing invented
+    # none: nothing of the terrain, nothing invented
     rgb, depth = seen["none"]
     sky = np.all(np.abs(rgb.astype(int) - np.array(BACKGROUND) * 255) <= 1, axis=2)
     assert sky.mean() > 0.99
     assert np.isinf(depth).mean() > 0.99
+    # and by default the ellipsoid through it, 3 km below the camera, in the no-data grey
+    with lodscape.open(holed, SceneOptions(terrain_mode=mode)) as scene:
+        rgb, depth = scene.render(cam)
+    assert np.isfinite(depth).all()
+    assert float(np.median(depth)) == pytest.approx(3000.0, abs=5.0)
+    assert np.ptp(rgb.reshape(-1, 3).astype(int), axis=1).max() <= 2
     # nearest: the old stretched surface (hundreds of metres up: 300..1200 m data)
     _, depth = seen["nearest"]
     assert np.isfinite(depth).all()
@@ -177,7 +184,7 @@ def test_a_tileset_keeps_its_fill_and_meshes_its_holes_out(
         provider = TilesetProvider(out)
         assert provider.manifest["options"]["fill"] == fill
         provider.close()
-        with lodscape.open(out, SceneOptions(background=BACKGROUND)) as scene:
+        with lodscape.open(out, SceneOptions(background=BACKGROUND, ellipsoid=False)) as scene:
             _, depth = scene.render(cam)
         depth_at[fill] = depth
         # a tileset keeps the fill it was built with
@@ -251,8 +258,45 @@ def test_the_finest_level_keeps_its_budget_or_is_twice_as_fine_as_the_data(
     code, text, _ = run_cli(["info", str(out)], capsys)
     assert code == 0
     assert "over their budget" in text
+    # an orthophoto finer than the refined terrain: the stored surface is cut finer under it
+    # (below leaves too), the layer worn at its own level, no holes
+    from _synthetic import write_ortho
+
+    rng = np.random.default_rng(0)
+    ortho = write_ortho(
+        str(tmp_path / "ortho.tif"),
+        rng.integers(0, 255, (600, 600, 3), dtype=np.uint8),
+        crs="EPSG:4326",
+        west=-29.9,
+        north=41.9,
+        res=0.0005,
+    )
+    opts = SceneOptions(background=MAGENTA, ellipsoid=False)
+    with lodscape.open(out, opts, imagery=[ortho]) as scene:
+        from lodscape.imagery.raster import RasterImagery
+
+        finest = RasterImagery(ortho).max_zoom
+        assert finest > zmax
+        assert scene.tree.zmax == finest
+        # over a tile of the level above the finest that has no children
+        import mercantile
+
+        t = mercantile.tile(-29.75, 41.75, zmax - 1)
+        stored = TilesetProvider(out)
+        base = stored.tree.level(zmax - 1)
+        stored.close()
+        assert base.leaf is not None
+        assert base.leaf[t.y - base.y0, t.x - base.x0]
+        g = scene.ground_height(-29.75, 41.75)
+        assert g is not None
+        cam = Camera(-29.75, 41.75, max(g, 0.0) + 1500.0, pitch=-90.0, width=96, height=96)
+        rgb, _ = scene.render(cam)
+        assert not np.all(rgb == (255, 0, 255), axis=2).any()
+        sel = scene.view.previous
+        assert sel is not None
+        assert int((sel.z - sel.layer_up[0]).max()) == finest
     # tiles without children are never split: close up, no holes
-    with lodscape.open(out, SceneOptions(background=MAGENTA)) as scene:
+    with lodscape.open(out, SceneOptions(background=MAGENTA, ellipsoid=False)) as scene:
         b = scene.provider.bounds_merc
         from lodscape.geo.tiles import merc_to_lonlat
 
@@ -277,7 +321,8 @@ def test_the_underside_seen_from_a_hole_is_a_dark_curtain(holed: str, mode: str)
     # from inside the hole, below the data around it, looking level: the terrain's underside
     above = _hole_camera(holed)
     low = Camera(above.lon, above.lat, 150.0, pitch=5.0, fov_y=50.0, width=160, height=100)
-    with lodscape.open(holed, SceneOptions(background=BACKGROUND, terrain_mode=mode)) as scene:
+    opts = SceneOptions(background=BACKGROUND, terrain_mode=mode, ellipsoid=False)
+    with lodscape.open(holed, opts) as scene:
         rgb, depth = scene.render(low)
         seen = np.isfinite(depth)
         assert seen.mean() > 0.05

@@ -95,7 +95,8 @@ def _plane_distance(camera: Camera, mesh: TileMesh) -> NDArray[np.float64]:
 
 @pytest.fixture
 def renderer(gl_ctx: Any) -> Any:
-    with Renderer(64, 48, ctx=gl_ctx) as r:
+    # the tiles alone: no ellipsoid behind them
+    with Renderer(64, 48, ctx=gl_ctx, ellipsoid=False) as r:
         yield r
 
 
@@ -196,7 +197,7 @@ def test_same_inputs_give_byte_identical_frames(renderer: Renderer, gl_ctx: Any)
     first = renderer.draw(cam, items)
     renderer.draw(cam.moved(heading=cam.heading + 30), items[::-1], background=MAGENTA)
     again = renderer.draw(cam, items)
-    with Renderer(160, 120, ctx=gl_ctx) as other:
+    with Renderer(160, 120, ctx=gl_ctx, ellipsoid=False) as other:
         for k in range(3):
             _put(other, k, _quadrant_texture(), lon=LON + 0.01 * k)
         fresh = other.draw(cam, items)
@@ -230,9 +231,9 @@ def test_a_thousand_draws_leak_no_gl_objects(gl_ctx: Any) -> None:
         if i % 4 == 3:
             counts.append(r.live_objects())
     assert gl_ctx.error == "GL_NO_ERROR"
-    # program + the clear layer texture + two index buffers + two tiles x (VBO, VAO, texture) +
-    # FBO with three attachments
-    assert counts == [1 + 1 + 2 + 2 * 3 + 4] * 250
+    # program + the clear layer texture + the ellipsoid's program and VAO + two index buffers +
+    # two tiles x (VBO, VAO, texture) + FBO with three attachments
+    assert counts == [1 + 1 + 2 + 2 + 2 * 3 + 4] * 250
     r.close()
     assert r.live_objects() == 0
     r.close()  # idempotent
@@ -268,7 +269,7 @@ def test_uploads_are_idempotent_and_share_index_buffers(renderer: Renderer) -> N
 
 
 def test_an_owned_context_is_created_and_released(gl_ctx: Any) -> None:
-    with Renderer(40, 30, background=MAGENTA) as r:
+    with Renderer(40, 30, background=MAGENTA, ellipsoid=False) as r:
         assert r.ctx is not gl_ctx
         _put(r, 1, _quadrant_texture())
         cam = Camera(LON, LAT, H + 3000, pitch=-90, width=40, height=30).with_clip(1.0, 1e4)
@@ -291,3 +292,46 @@ def test_a_texture_window_stretches_one_quadrant_over_the_tile(renderer: Rendere
     half = int(500.0 * cam.scale / 2000)  # the patch's half width in pixels
     core = rgb[32 - half + 2 : 32 + half - 2, 32 - half + 2 : 32 + half - 2]
     assert np.all(core == QUADRANTS["ne"])
+
+
+def _ellipsoid_depth(camera: Camera) -> NDArray[np.float64]:
+    """View depth of the WGS84 ellipsoid per pixel (inf where the ray misses), in float64."""
+    from lodscape.geo.frames import WGS84_A, WGS84_B
+
+    t = np.tan(np.radians(camera.fov_y) / 2)
+    x = ((np.arange(camera.width) + 0.5) / camera.width * 2 - 1) * t * camera.aspect
+    y = (1 - (np.arange(camera.height) + 0.5) / camera.height * 2) * t
+    xx, yy = np.meshgrid(x, y)
+    axes = np.array([WGS84_A, WGS84_A, WGS84_B])
+    d = (np.stack([xx, yy, -np.ones_like(xx)], axis=-1) @ camera.rotation) / axes
+    o = camera.position / axes
+    a, b, c = (d * d).sum(-1), d @ o, o @ o - 1.0
+    disc = b * b - a * c
+    hit = (disc >= 0) & (b < 0)
+    out = np.full(xx.shape, np.inf)
+    out[hit] = c / (-b[hit] + np.sqrt(disc[hit]))
+    return out
+
+
+@pytest.mark.parametrize(("alt", "pitch"), [(1000.0, -90.0), (1000.0, -5.0), (3e6, -60.0)])
+def test_the_ellipsoid_stands_behind_the_terrain(gl_ctx: Any, alt: float, pitch: float) -> None:
+    cam = Camera(LON, LAT, alt, heading=30.0, pitch=pitch, width=64, height=48).with_clip(1.0, 1e8)
+    want = _ellipsoid_depth(cam)
+    with Renderer(64, 48, ctx=gl_ctx, background=MAGENTA) as r:
+        rgb, depth = r.draw(cam, [])
+        hit = np.isfinite(want)
+        assert hit.any()
+        # where a ray meets it the ellipsoid is there, at its distance; elsewhere the sky
+        np.testing.assert_array_equal(np.isfinite(depth), hit)
+        np.testing.assert_allclose(depth[hit], want[hit], rtol=2e-4, atol=0.05)
+        assert (np.abs(rgb[hit].astype(int) - MAGENTA_U8).sum(-1) > 0).all()
+        assert (rgb[~hit] == MAGENTA_U8).all()
+        # grey: the no-data colour, lit
+        assert np.ptp(rgb[hit].astype(int), axis=-1).max() <= 1
+        if alt < 2000.0:
+            # any terrain drawn wins over it, even below height 0 (no depth written for it)
+            _put(r, 1, _quadrant_texture(), h=-300.0)
+            r.ellipsoid = True
+            look = Camera(LON, LAT, 500.0, pitch=-90, width=32, height=32).with_clip(1.0, 1e4)
+            _, d2 = r.draw(look, [_item(1, 0.0)])
+            assert float(np.median(d2)) == pytest.approx(800.0, abs=2.0)

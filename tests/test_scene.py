@@ -30,7 +30,7 @@ def dem(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 @pytest.fixture(scope="module")
 def scene(dem: str) -> lodscape.Scene:
-    with lodscape.open(dem, SceneOptions(background=MAGENTA)) as s:
+    with lodscape.open(dem, SceneOptions(background=MAGENTA, ellipsoid=False)) as s:
         yield s
 
 

@@ -70,6 +70,9 @@ class SceneOptions:
     imagery_timeout: float = 10.0
     #: Any imagery failure ends the frame with ``ImageryError`` instead of being drawn around.
     imagery_strict: bool = False
+    #: Draw the ellipsoid (height 0, in the no-data grey) wherever no terrain is: the world
+    #: outside the data and under its holes; False shows the background there.
+    ellipsoid: bool = True
 
     def __post_init__(self) -> None:
         if not self.gpu_budget_mb > 0.0:
@@ -408,6 +411,7 @@ class Scene:
                 "background": opts.background,
                 "anisotropy": opts.anisotropy,
                 "ground": self.ground,
+                "ellipsoid": opts.ellipsoid,
             }
             try:
                 self._renderer = Renderer(

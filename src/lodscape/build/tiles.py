@@ -183,7 +183,18 @@ def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
     qlat = _dequantize(quantize(lat_row, b.bottom, b.top), b.bottom, b.top)
     qh = _dequantize(quantize(heights.astype(np.float64), hmin, hmax), hmin, hmax)
     error = 0.0
+    # where the data ends the mesh ends (none) or drops to the fill (a wall) within the grid
+    # cell that straddles the edge: samples in such cells are not the surface's to match
+    cells = None
+    if job.fill != "nearest" and not valid.all():
+        cells = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
+    step = side / TIN_GRID
     for pxm, pym, ph in src.pixels_in(xy_bounds(t)):
+        if cells is not None:
+            ci = np.clip(np.floor((pxm - xs[0]) / step).astype(np.int64), 0, TIN_GRID - 1)
+            ri = np.clip(np.floor((ys[0] - pym) / step).astype(np.int64), 0, TIN_GRID - 1)
+            inside = cells[ri, ci]
+            pxm, pym, ph = pxm[inside], pym[inside], ph[inside]
         plon, plat = merc_to_lonlat(pxm, pym)
         error = max(error, _sample_error(rtin.errors, budget, qlon, qlat, qh, plon, plat, ph))
     error += _sag(tris, verts, side, b)

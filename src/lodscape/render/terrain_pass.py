@@ -22,7 +22,7 @@ import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.frames import enu_basis
+from lodscape.geo.frames import WGS84_A, WGS84_B, enu_basis
 from lodscape.geo.keys import is_texture, tile_id_of_array, tile_of
 from lodscape.geo.tiles import bounds_array, tile_from_id_array
 from lodscape.lod.camera import Camera
@@ -184,6 +184,48 @@ void main() {
 }
 """
 
+_ELLIPSOID_VERTEX = """
+#version 330
+void main() {
+    // one triangle over the whole viewport
+    vec2 p = vec2(float((gl_VertexID & 1) << 2) - 1.0, float((gl_VertexID & 2) << 1) - 1.0);
+    gl_Position = vec4(p, 0.0, 1.0);
+}
+"""
+
+_ELLIPSOID_FRAGMENT = """
+#version 330
+uniform mat3 u_to_world;   // view -> world (ECEF axes)
+uniform vec2 u_tan;        // tan of half the horizontal and vertical fields of view
+uniform vec2 u_size;       // viewport, pixels
+uniform vec3 u_eye;        // the camera in the ellipsoid's scaled space (a unit sphere)
+uniform float u_c;         // |u_eye|^2 - 1, from float64 on the CPU
+uniform vec3 u_inv_axes;   // 1/a, 1/a, 1/b
+uniform vec3 u_sun;        // towards the sun, world
+uniform vec3 u_colour;
+layout(location = 0) out vec4 f_color;
+layout(location = 1) out float f_dist;
+void main() {
+    vec2 ndc = gl_FragCoord.xy / u_size * 2.0 - 1.0;
+    // a ray whose parameter is the view depth: z = -1 in view space
+    vec3 d = u_to_world * vec3(ndc.x * u_tan.x, ndc.y * u_tan.y, -1.0);
+    vec3 dp = d * u_inv_axes;
+    float a = dot(dp, dp);
+    float b = dot(u_eye, dp);
+    float disc = b * b - a * u_c;
+    if (u_c <= 0.0 || b >= 0.0 || disc < 0.0) discard;
+    // the nearer root as c / (-b + sqrt(disc)): no cancellation however near the camera is
+    float t = u_c / (-b + sqrt(disc));
+    vec3 n = normalize((u_eye + t * dp) * u_inv_axes);
+    float light = 0.35 + 0.65 * max(dot(n, u_sun), 0.0);
+    f_color = vec4(u_colour * light, 1.0);
+    f_dist = t;
+}
+"""
+
+#: Colour of the ellipsoid where there is no terrain: the no-data grey, lit as the tint is.
+ELLIPSOID_GREY = (170.0 / 255.0,) * 3
+
 #: Ground texture coordinates wrap every this many metres (a whole number of every repeat).
 GROUND_WRAP = 4096.0
 
@@ -259,6 +301,7 @@ class Renderer:
         terrain_mode: str = "cpu",
         tess_px: float = 4.0,
         ground: str = "imagery",
+        ellipsoid: bool = True,
     ) -> None:
         if terrain_mode not in ("cpu", "gpu"):
             raise ValueError(f"terrain mode is cpu or gpu, got {terrain_mode!r}")
@@ -295,6 +338,9 @@ class Renderer:
                 u.value = LAYER_UNIT + i
         # what an imagery layer shows where it has no tile (yet): nothing
         self._clear = self._track(self.ctx.texture((1, 1), 4, bytes(4)))
+        #: Draw the ellipsoid (height 0) behind the terrain: the world outside the data.
+        self.ellipsoid = ellipsoid
+        self._ellipsoid: tuple[moderngl.Program, moderngl.VertexArray] | None = None
         self._materials: moderngl.TextureArray | None = None
         if ground == "landcover":
             from lodscape.imagery.landcover import ground_layers
@@ -549,6 +595,8 @@ class Renderer:
         fbo.color_mask = (_NONE, _ALL)  # type: ignore[assignment]
         fbo.clear(float("inf"), 0.0, 0.0, 0.0)
         fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
+        if self.ellipsoid:
+            self._draw_ellipsoid(camera)
         # no culling: skirts and steep faces are seen from both sides
         ctx.enable_only(moderngl.DEPTH_TEST)
         ctx.wireframe = self.wireframe
@@ -611,6 +659,37 @@ class Renderer:
         self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
         return self._finish(camera, fbo, after)
 
+    def _draw_ellipsoid(self, camera: Camera) -> None:
+        """The ellipsoid behind everything (no depth written: any terrain drawn wins), its
+        distance in the distance attachment where the terrain leaves it showing."""
+        self.ctx.enable_only(moderngl.NOTHING)
+        if self._ellipsoid is None:
+            program = self._track(
+                self.ctx.program(
+                    vertex_shader=_ELLIPSOID_VERTEX, fragment_shader=_ELLIPSOID_FRAGMENT
+                )
+            )
+            self._ellipsoid = (program, self._track(self.ctx.vertex_array(program, [])))
+        p, vao = self._ellipsoid
+        axes = np.array([WGS84_A, WGS84_A, WGS84_B])
+        eye = camera.position / axes  # float64 until the upload
+        ty = math.tan(math.radians(camera.fov_y) / 2.0)
+        values: dict[str, Any] = {
+            "u_to_world": np.ascontiguousarray(camera.rotation, np.float32),  # (R^T) col-major
+            "u_tan": np.array([ty * camera.aspect, ty], np.float32),
+            "u_size": np.array([camera.width, camera.height], np.float32),
+            "u_eye": eye.astype(np.float32),
+            "u_c": np.array([float(eye @ eye) - 1.0], np.float32),
+            "u_inv_axes": (1.0 / axes).astype(np.float32),
+            "u_sun": (camera.rotation.T @ _sun_view(camera).astype(np.float64)).astype(np.float32),
+            "u_colour": np.array(ELLIPSOID_GREY, np.float32),
+        }
+        for name, value in values.items():
+            u = p.get(name, None)
+            if isinstance(u, moderngl.Uniform):
+                u.write(np.ascontiguousarray(value).tobytes())
+        vao.render(moderngl.TRIANGLES, vertices=3)
+
     def _layers(self, item: DrawItem) -> list[tuple[moderngl.Texture, tuple[float, float, float]]]:
         """A tile's imagery layers as textures: a layer tile not uploaded (failed, or not in
         yet) is transparent, so the layer below shows."""
@@ -664,6 +743,10 @@ class Renderer:
             self._tess.close()
             self._tess = None
         self._free(self._clear)
+        if self._ellipsoid is not None:
+            self._free(self._ellipsoid[1])
+            self._free(self._ellipsoid[0])
+            self._ellipsoid = None
         self._free(self._program)
         self._closed = True
         if self._owns_ctx:

@@ -270,12 +270,12 @@ class RefinedProvider(_Retextured):
     def __init__(self, base: Provider, zmax: int) -> None:
         super().__init__(base)
         self.textures = base.textures
-        self.tree = cast(Any, RefinedTree(base.tree, max(int(zmax), int(base.tree.zmax))))
-        self._finest = int(base.tree.zmax)
+        self._refined = RefinedTree(base.tree, max(int(zmax), int(base.tree.zmax)))
+        self.tree = cast(Any, self._refined)
 
     def fetch(self, key: int) -> bytes:
         t = tile_of(key)
-        if is_texture(key) or t.z <= self._finest:
+        if is_texture(key) or self._refined.stored(t.z, t.x, t.y):
             return self.base.fetch(key)
         xs, ys = grid_coordinates(t.z, t.x, t.y, self.tree.grids[grid_of(key)])
         xx, yy = np.meshgrid(xs, ys)
@@ -290,7 +290,7 @@ class RefinedProvider(_Retextured):
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
         t = tile_of(key)
-        if is_texture(key) or t.z <= self._finest:
+        if is_texture(key) or self._refined.stored(t.z, t.x, t.y):
             return self.base.decode(key, data)
         s = self.tree.grids[grid_of(key)] + 1
         return build_mesh(key, t.z, t.x, t.y, np.frombuffer(data, np.float32).reshape(s, s))

@@ -375,10 +375,27 @@ class _RefinedLevel:
     base: Any
 
     def stats(self, x: NDArray[np.int64], y: NDArray[np.int64]) -> TileStats:
-        k = self.z - self.base.zmax
-        st = self.base.level(self.base.zmax).stats(x >> k, y >> k)
-        errs = np.stack([sag(self.z, g, y).astype(np.float32) for g in self.base.grids])
-        return TileStats(st.exists, st.min_h, st.max_h, errs)
+        """A stored tile's own statistics where level z has it; elsewhere those of its nearest
+        stored ancestor (a build refines its finest levels only where they missed their
+        budget, so that ancestor can be above the finest level), with the sag's error."""
+        base = self.base
+        errs = np.stack([sag(self.z, g, y).astype(np.float32) for g in base.grids])
+        exists = np.zeros(x.shape, dtype=bool)
+        min_h = np.zeros(x.shape, dtype=np.float32)
+        max_h = np.zeros(x.shape, dtype=np.float32)
+        for zb in range(min(self.z, base.zmax), base.zmin - 1, -1):
+            todo = ~exists
+            if not todo.any():
+                break
+            k = self.z - zb
+            st = base.level(zb).stats(x[todo] >> k, y[todo] >> k)
+            got = np.flatnonzero(todo)[st.exists]
+            exists[got] = True
+            min_h[got] = st.min_h[st.exists]
+            max_h[got] = st.max_h[st.exists]
+            if zb == self.z:
+                errs[:, got] = st.error[:, st.exists]
+        return TileStats(exists, min_h, max_h, errs)
 
 
 class DeeperTree:
@@ -452,4 +469,20 @@ class RefinedTree(DeeperTree):
         return self.base.roughness
 
     def _make_level(self, z: int) -> Any:
-        return self.base.level(z) if z <= self.base.zmax else _RefinedLevel(z, self.base)
+        leaves = [
+            zb
+            for zb in range(self.base.zmin, min(z, self.base.zmax) + 1)
+            if getattr(self.base.level(zb), "leaf", None) is not None
+        ]
+        if z <= self.base.zmax and not leaves:
+            return self.base.level(z)
+        # below the finest level, or at and below stored tiles without children: the finest
+        # stored surface, cut finer
+        return _RefinedLevel(z, self.base)
+
+    def stored(self, z: int, x: int, y: int) -> bool:
+        """Whether tile z/x/y is the base's own (not cut from an ancestor's surface)."""
+        if z > self.base.zmax:
+            return False
+        st = self.base.level(z).stats(np.array([x], np.int64), np.array([y], np.int64))
+        return bool(st.exists[0])
