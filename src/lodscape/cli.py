@@ -202,6 +202,14 @@ SeaLevelOpt = Annotated[
         help="Heights below this (metres) are tinted as water, shaded by depth; none: no sea.",
     ),
 ]
+EllipsoidOpt = Annotated[
+    bool,
+    typer.Option(
+        "--ellipsoid/--no-ellipsoid",
+        help="Draw the ellipsoid (height 0, grey) wherever there is no terrain: the world "
+        "outside the data and under its holes; --no-ellipsoid shows the sky there.",
+    ),
+]
 BandOpt = Annotated[
     int | None,
     typer.Option("--band", min=1, help="The height band of a multi-band raster (1-based)."),
@@ -256,6 +264,7 @@ class TerrainFlags:
     sea_level: str = "0"
     band: int | None = None
     nodata: float | None = None
+    ellipsoid: bool = True
 
     def fractal(self, source: str) -> Fractal | None:
         return _detail(source, self.detail, self.hurst, self.sigma, self.seed)
@@ -268,6 +277,7 @@ class TerrainFlags:
             budget_mb=budget_mb,
             imagery_timeout=self.imagery_timeout,
             imagery_strict=self.imagery_strict,
+            ellipsoid=self.ellipsoid,
         )
 
     def open(
@@ -331,6 +341,7 @@ _TERRAIN_FLAGS = [
         ("sea_level", SeaLevelOpt, "0"),
         ("band", BandOpt, None),
         ("nodata", NodataOpt, None),
+        ("ellipsoid", EllipsoidOpt, True),
     )
 ]
 
@@ -359,6 +370,7 @@ def _scene_options(
     budget_mb: float | None = None,
     imagery_timeout: float = 10.0,
     imagery_strict: bool = False,
+    ellipsoid: bool = True,
 ) -> SceneOptions:
     """Scene options from flags; a value the engine refuses is a one-line usage error. With
     ``budget_mb``, a streaming scene with that many MiB each of GPU, memory and cache."""
@@ -377,6 +389,7 @@ def _scene_options(
             terrain_mode=terrain_mode,
             imagery_timeout=imagery_timeout,
             imagery_strict=imagery_strict,
+            ellipsoid=ellipsoid,
             **streaming,
         )
     except ValueError as exc:
