@@ -5,6 +5,7 @@
    pixels that show invented ground.
 2. A coarse (0.03°, ~3 km), rough topo-bathymetric DEM: the planned finest level's worst error
    against its budget, and the level the build added below it.
+3. What the ellipsoid drawn behind the terrain costs a frame.
 
     python bench/bench_nodata.py [--work /tmp/bn]
 """
@@ -104,13 +105,44 @@ def finest(work: Path) -> None:
             print(f"| {z}{tag} | {len(rows)} | {worst[1]:.0f} | {worst[2]:.0f} | {over} |")
 
 
+def ellipsoid_cost(repeat: int) -> None:
+    """The ellipsoid behind the terrain: one full-screen pass, no depth written."""
+    from lodscape.data import sample_dem_path
+
+    print("\n## the ellipsoid pass: the sample DEM's overview, 1280×720, frames after warm-up")
+    print("| ellipsoid | median frame ms | median draw ms |")
+    print("|---|---|---|")
+    frames: dict[bool, list[float]] = {True: [], False: []}
+    draws: dict[bool, list[float]] = {True: [], False: []}
+    scenes = {e: lodscape.open(sample_dem_path(), SceneOptions(ellipsoid=e)) for e in (True, False)}
+    try:
+        cams = {e: s.overview_camera(1280, 720, 60.0) for e, s in scenes.items()}
+        for e, s in scenes.items():
+            s.render(cams[e])  # loads and uploads
+        for _ in range(repeat):
+            for e, s in scenes.items():  # interleaved: the machine's noise hits both alike
+                t0 = time.perf_counter()
+                s.render(cams[e])
+                frames[e].append((time.perf_counter() - t0) * 1e3)
+                assert s.last is not None
+                draws[e].append(float(s.last.as_dict()["draw_ms"]))
+    finally:
+        for s in scenes.values():
+            s.close()
+    for e in (False, True):
+        label = "on" if e else "off"
+        print(f"| {label} | {np.median(frames[e]):.1f} | {np.median(draws[e]):.1f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_nodata"))
+    ap.add_argument("--repeat", type=int, default=15)
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     holes(args.work)
     finest(args.work)
+    ellipsoid_cost(args.repeat)
 
 
 if __name__ == "__main__":
