@@ -184,6 +184,9 @@ def test_a_tileset_keeps_its_fill_and_meshes_its_holes_out(
         provider = TilesetProvider(out)
         assert provider.manifest["options"]["fill"] == fill
         provider.close()
+        code, text, _ = run_cli(["info", str(out)], capsys)
+        assert code == 0
+        assert f"fill: {fill} where the data has none" in text
         with lodscape.open(out, SceneOptions(background=BACKGROUND, ellipsoid=False)) as scene:
             _, depth = scene.render(cam)
         depth_at[fill] = depth
@@ -192,6 +195,10 @@ def test_a_tileset_keeps_its_fill_and_meshes_its_holes_out(
         assert code == 2
         assert "fill it was built with" in err
     assert np.isinf(depth_at["none"]).mean() > 0.99
+    # the raw DEM says how much of it is nodata: the hole is 100×80 of 257² pixels
+    code, text, _ = run_cli(["info", holed], capsys)
+    assert code == 0
+    assert f"nodata: {100 * 100 * 80 / 257**2:.1f} % of the raster" in text
     assert float(np.median(depth_at["ellipsoid"])) == pytest.approx(3000.0, abs=5.0)
 
 

@@ -775,12 +775,20 @@ def info(
             res = provider.resolution_merc
             if res is not None:
                 line(f"{'resolution':>14}: {res:.3f} m (Web Mercator)")
+            share = getattr(getattr(provider, "source", None), "valid_share", None)
+            if isinstance(share, float) and share < 1.0:
+                line(
+                    f"{'nodata':>14}: {100.0 * (1.0 - share):.1f} % of the raster (drawn as "
+                    "holes; --fill to stand something in)"
+                )
         else:
             size = os.path.getsize(source)
             line(f"{'tileset':>14}: {size / 2**20:.2f} MiB, schema {manifest['schema']}")
             line(f"{'terrain':>14}: quantized-mesh-1.0, octvertexnormals; imagery: MBTiles PNG")
             opts = manifest["options"]
             line(f"{'build':>14}: error {opts['error_texels']} texel(s) per level")
+            fill = opts.get("fill", "nearest")  # builds before the option filled with nearest
+            line(f"{'fill':>14}: {fill} where the data has none")
             for p in manifest["provenance"]:
                 line(f"{'input':>14}: {p['path']} ({p['bytes']:,d} bytes)")
         for lv in tree.levels:

@@ -43,6 +43,24 @@ class _GLObject(Protocol):
 
 _T = TypeVar("_T", bound=_GLObject)
 
+#: The terrain's underside, shared by both ground shaders: seen from below (the surface's
+#: normal, turned to the outside, faces away from the eye; past the data's edge or a hole's rim)
+#: it is a dark curtain, not the ground's colours seen from beneath. A skirt, which hangs plumb,
+#: is part of it where it hangs above the eye (seen from above, skirts fill cracks in the
+#: ground's colours).
+_UNDERSIDE = """
+uniform mat3 u_rot;      // the tile's frame -> view
+uniform vec3 u_up;       // the terrain's outside (up at the tile's centre), in its frame
+in float v_skirt;
+const vec3 UNDERSIDE = vec3(0.16, 0.16, 0.18);
+bool underside(vec3 view) {
+    vec3 up = u_rot * u_up;
+    vec3 n = cross(dFdx(view), dFdy(view));
+    if (dot(n, up) < 0.0) n = -n;
+    return v_skirt > 0.0 ? dot(view, up) > 0.0 : dot(n, view) > 1e-3 * length(n) * length(view);
+}
+"""
+
 _VERTEX_SHADER = """
 #version 330
 uniform mat4 u_mvp;      // projection · view, for positions relative to the tile centre
@@ -85,17 +103,13 @@ uniform sampler2D u_layer2;
 uniform sampler2D u_layer3;
 uniform vec3 u_layer_uv[4];
 uniform int u_layers;
-uniform mat3 u_rot;      // the tile's frame → view
-uniform vec3 u_up;       // the terrain's outside (up at the tile's centre), in its frame
 in vec2 v_uv;
 in vec2 v_tuv;           // where in the tile (0..1), for the layers' windows
 in float v_dist;
 in vec3 v_view;
-in float v_skirt;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
-//: The terrain's underside, seen past the data's edge or a hole's rim: a dark curtain.
-const vec3 UNDERSIDE = vec3(0.16, 0.16, 0.18);
+UNDERSIDE_GLSL
 vec3 over(vec3 c, sampler2D s, vec3 w) {
     vec4 t = texture(s, w.xy + w.z * v_tuv);
     return mix(c, t.rgb, t.a);
@@ -109,16 +123,7 @@ void main() {
     ivec2 size = textureSize(u_tex, 0);
     ivec2 texel = clamp(ivec2(floor(v_uv * vec2(size))), ivec2(0), size - 1);
     if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
-    // seen from below (the surface's normal, turned to the outside, faces away from the eye):
-    // the underside, which the imagery does not show; a skirt, which hangs plumb, is part of
-    // it where it hangs above the eye (seen from above, skirts fill cracks in the ground's
-    // colours)
-    vec3 up = u_rot * u_up;
-    vec3 n = cross(dFdx(v_view), dFdy(v_view));
-    if (dot(n, up) < 0.0) n = -n;
-    bool under = v_skirt > 0.0 ? dot(v_view, up) > 0.0
-                               : dot(n, v_view) > 1e-3 * length(n) * length(v_view);
-    if (under) {
+    if (underside(v_view)) {
         f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
         f_dist = v_dist;
         return;
@@ -148,12 +153,18 @@ in vec3 v_normal;                 // view space, from the height texture
 #endif
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
+UNDERSIDE_GLSL
 int cls(ivec2 t, ivec2 size) {
     return int(texelFetch(u_tex, clamp(t, ivec2(0), size - 1), 0).r * 255.0 + 0.5);
 }
 void main() {
     ivec2 size = textureSize(u_tex, 0);
     if (cls(ivec2(floor(v_uv * vec2(size))), size) == 255) discard;
+    if (underside(v_view)) {
+        f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
+        f_dist = v_dist;
+        return;
+    }
     // near ground repeats every 8 m, far ground every 64 m: sharp close up, no shimmer afar
     float far = smoothstep(200.0, 1500.0, v_dist);
     vec2 st = v_uv * vec2(size) - 0.5;
@@ -225,6 +236,9 @@ void main() {
 
 #: Colour of the ellipsoid where there is no terrain: the no-data grey, lit as the tint is.
 ELLIPSOID_GREY = (170.0 / 255.0,) * 3
+
+_FRAGMENT_SHADER = _FRAGMENT_SHADER.replace("UNDERSIDE_GLSL", _UNDERSIDE)
+_LANDCOVER_FRAGMENT_SHADER = _LANDCOVER_FRAGMENT_SHADER.replace("UNDERSIDE_GLSL", _UNDERSIDE)
 
 #: Ground texture coordinates wrap every this many metres (a whole number of every repeat).
 GROUND_WRAP = 4096.0

@@ -381,6 +381,12 @@ class _GridSource:
         ch, cw = self._coarse.shape
         self._coarse_level = _Level(m, ch, cw, float(f), float(f), None)
 
+    @property
+    def valid_share(self) -> float:
+        """The share of the raster's pixels that hold data (0..1)."""
+        h, w = self.shape
+        return float(self._count.sum()) / float(h * w)
+
     def _check_heights(self, lo: float, hi: float) -> None:
         """Refuse heights no terrain has: an undeclared nodata value, or not metres."""
         low, high = HEIGHT_LIMITS
