@@ -437,11 +437,32 @@ def _write_atomic(path: Path, write: object) -> None:
             tmp.unlink()
 
 
+_IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
+
+
+def _check_outputs(image: Path, depth: Path | None) -> None:
+    """Refuse an output the render could not write, before anything is rendered or written:
+    a bad type or a missing folder leaves no file of any kind."""
+    suffix = image.suffix.lower()
+    if suffix not in _IMAGE_SUFFIXES:
+        raise LodscapeError(f"{image}: unknown image type {suffix or '(none)'}; use .png or .jpg")
+    if depth is not None and depth.suffix.lower() not in {".npy", ".tif", ".tiff"}:
+        raise LodscapeError(
+            f"{depth}: depth is written as .npy or .tif, not {depth.suffix or '(none)'}"
+        )
+    for path in (image, depth):
+        if path is None:
+            continue
+        folder = path.expanduser().parent
+        if str(folder) and not folder.is_dir():
+            raise LodscapeError(f"{path}: folder {folder} does not exist")
+
+
 def _save_image(path: Path, rgb: NDArray[np.uint8]) -> None:
     from PIL import Image
 
     suffix = path.suffix.lower()
-    if suffix not in {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}:
+    if suffix not in _IMAGE_SUFFIXES:
         raise LodscapeError(f"{path}: unknown image type {suffix or '(none)'}; use .png or .jpg")
     fmt = Image.registered_extensions()[suffix]
     _write_atomic(path, lambda tmp: Image.fromarray(rgb).save(tmp, format=fmt))
@@ -526,6 +547,7 @@ def render(
     """Render one view of SOURCE (a DEM, a .lods tileset, procedural:seed=N, or flat with
     --city). Without --lon/--lat/--alt, a view of the whole data (or of the city)."""
     w, h = _size(size)
+    _check_outputs(output, depth)
     if globe:
         terrain.refuse_for_globe()
         if camera_file is not None and (lon is not None or lat is not None or alt is not None):
@@ -634,6 +656,10 @@ def fly(
         raise LodscapeError(f"{output}: the video is written as .mp4")
     if not 0.0 < fps <= 240.0:
         raise LodscapeError(f"--fps must be within 0..240, got {fps}")
+    if duration is not None and not duration > 0.0:
+        raise LodscapeError(f"--duration must be a positive number of seconds, got {duration}")
+    if not speed > 0.0:
+        raise LodscapeError(f"--speed must be a positive number of metres per second, got {speed}")
     for target in (output, stats):
         if target is not None and not (target.parent if str(target.parent) else Path(".")).is_dir():
             raise LodscapeError(f"{target}: folder {target.parent} does not exist")
@@ -1100,6 +1126,7 @@ def globe(
     from lodscape.globe import GlobeOptions
 
     w, h = _size(size)
+    _check_outputs(output, None)
     try:
         options = GlobeOptions(
             mode=mode,

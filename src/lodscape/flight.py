@@ -115,9 +115,9 @@ def _csv(text: str, name: str) -> tuple[F64, F64, F64, F64 | None]:
             )
         except (ValueError, IndexError):
             raise LodscapeError(f"{name}: row {number}: {','.join(row)!r} is not numbers") from None
-    a = np.array(values, dtype=np.float64).reshape(len(values), -1)
-    if a.shape[0] == 0:
-        raise LodscapeError(f"{name}: the route has no points")
+    if not values:
+        raise LodscapeError(f"{name}: the route has no points (a header and no rows)")
+    a = np.array(values, dtype=np.float64)
     return a[:, 0], a[:, 1], a[:, 2], (a[:, 3] if tcol is not None else None)
 
 

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape.errors import CameraError
 from lodscape.geo.frames import WGS84_A
 from lodscape.lod.camera import Camera
 from lodscape.lod.globe import GlobeMesh, Selection, by_error, mesh, screen_error, thinning
@@ -158,6 +159,11 @@ class Globe:
     def camera(self, camera: Camera) -> Camera:
         """The camera with clip distances for the globe."""
         ground = float(self.heights(np.array([camera.lat]), np.array([camera.lon]))[0])
+        if not camera.alt > ground:
+            raise CameraError(
+                f"camera is under the ground: alt {camera.alt:.1f} m but the globe at "
+                f"{camera.lon:.5f}, {camera.lat:.5f} is {ground:.1f} m"
+            )
         clearance = max(camera.alt - ground, 1.0)
         near = camera.near or max(min(0.05 * clearance, 1e5), 0.5)
         horizon = math.sqrt(clearance * (2 * WGS84_A + clearance)) + math.sqrt(9000.0 * 2 * WGS84_A)
@@ -196,6 +202,9 @@ class Globe:
         from lodscape.imagery.globe import global_image
         from lodscape.render.globe_pass import GlobeRenderer
 
+        t = time.perf_counter()
+        cam, sel, m = self.mesh(camera)  # a camera under the ground is refused before any GL
+        t1 = time.perf_counter()
         if self._renderer is None:  # once: the context and the images (not a frame's)
             self._renderer = GlobeRenderer(global_image(), self.options.background, self._ctx)
             if self.terrain is not None and self.options.imagery:
@@ -204,9 +213,7 @@ class Globe:
                 region = regional_image(self.terrain.provider)
                 if region is not None:
                     self._renderer.set_region(*region)
-        t = time.perf_counter()
-        cam, sel, m = self.mesh(camera)
-        t1 = time.perf_counter()
+        t2 = time.perf_counter()
         rgb, depth = self._renderer.draw(cam, m)
         self.last = {
             "triangles": sel.count,
@@ -215,7 +222,7 @@ class Globe:
             "extended": m.extended,
             "screen_error_px": round(screen_error(sel, cam), 3),
             "select_ms": round((t1 - t) * 1e3, 2),
-            "draw_ms": round((time.perf_counter() - t1) * 1e3, 2),
+            "draw_ms": round((time.perf_counter() - t2) * 1e3, 2),
         }
         return rgb, depth
 

@@ -245,6 +245,11 @@ def _terrain(
         return tileset, True
     if spec.kind == "flat":
         src: HeightSource = flat_source(spec.text)
+    elif spec.text.lower().endswith(".lods") and os.path.exists(spec.text):
+        # named as a tileset, and not an SQLite file: say that, not that GDAL cannot read it
+        size = os.path.getsize(spec.text)
+        what = "an empty file" if size == 0 else f"{size:,d} bytes that are not SQLite"
+        raise SourceError(f"{spec.text}: not a lodscape tileset ({what})")
     else:
         src = FilledSource(
             RasterSource(spec.text, band=ground.band, nodata=ground.nodata), ground.fill

@@ -1,0 +1,160 @@
+"""A corpus of hostile command lines: each ends with one line on stderr that names the input,
+exit status 2, and no output file of any kind."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from rasterio.transform import Affine
+
+from _synthetic import fbm_heights, run_cli, write_dem
+
+EAST, NORTH, RES = 700000.0, 4060000.0, 30.0
+
+
+def _dem(folder: Path) -> str:
+    return write_dem(
+        str(folder / "dem.tif"),
+        fbm_heights(65, seed=1),
+        crs="EPSG:32617",
+        west=EAST,
+        north=NORTH,
+        res=RES,
+    )
+
+
+def _header_only(folder: Path) -> list[str]:
+    (folder / "route.csv").write_text("lon,lat,alt\n")
+    return ["fly", _dem(folder), "--path", str(folder / "route.csv"), "-o", str(folder / "out.mp4")]
+
+
+def _bad_depth(folder: Path) -> list[str]:
+    return [
+        "render",
+        _dem(folder),
+        "-o",
+        str(folder / "out.png"),
+        "--depth",
+        str(folder / "out.xyz"),
+    ]
+
+
+def _globe_at_zero(folder: Path) -> list[str]:
+    return ["globe", "--lon", "10", "--lat", "45", "--alt", "0", "-o", str(folder / "out.png")]
+
+
+def _negative_duration(folder: Path) -> list[str]:
+    dem = _dem(folder)
+    return [
+        "fly",
+        dem,
+        "--orbit",
+        "-78.78,36.66,500,2000",
+        "--duration",
+        "-1",
+        "-o",
+        str(folder / "out.mp4"),
+    ]
+
+
+def _zero_speed(folder: Path) -> list[str]:
+    dem = _dem(folder)
+    return [
+        "fly",
+        dem,
+        "--orbit",
+        "-78.78,36.66,500,2000",
+        "--speed",
+        "0",
+        "-o",
+        str(folder / "out.mp4"),
+    ]
+
+
+def _empty_lods(folder: Path) -> list[str]:
+    (folder / "site.lods").write_bytes(b"")
+    return ["render", str(folder / "site.lods"), "-o", str(folder / "out.png")]
+
+
+def _text_lods(folder: Path) -> list[str]:
+    (folder / "site.lods").write_text("not a tileset\n")
+    return ["info", str(folder / "site.lods")]
+
+
+def _absurd(value: float) -> Callable[[Path], list[str]]:
+    def case(folder: Path) -> list[str]:
+        h = fbm_heights(65, seed=1)
+        h[3:6, 3:6] = np.float32(value)
+        dem = write_dem(
+            str(folder / "dem.tif"), h, crs="EPSG:32617", west=EAST, north=NORTH, res=RES
+        )
+        return ["render", dem, "-o", str(folder / "out.png")]
+
+    return case
+
+
+def _three_bands(folder: Path) -> list[str]:
+    h = fbm_heights(33, seed=2)
+    path = folder / "dem.tif"
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=33,
+        height=33,
+        count=3,
+        dtype="float32",
+        crs="EPSG:32617",
+        transform=Affine(RES, 0.0, EAST, 0.0, -RES, NORTH),
+    ) as dst:
+        dst.write(np.stack([h, h, h]))
+    return ["build", str(path), "-o", str(folder / "out.lods")]
+
+
+def _bad_fill(folder: Path) -> list[str]:
+    return ["render", _dem(folder), "--fill", "value:high", "-o", str(folder / "out.png")]
+
+
+def _bad_sea(folder: Path) -> list[str]:
+    return ["render", _dem(folder), "--sea-level", "deep", "-o", str(folder / "out.png")]
+
+
+def _band_on_a_procedural(folder: Path) -> list[str]:
+    return ["render", "procedural:seed=1", "--band", "2", "-o", str(folder / "out.png")]
+
+
+CASES = {
+    "route with a header only": (_header_only, "route.csv"),
+    "depth of an unknown type": (_bad_depth, "out.xyz"),
+    "globe camera at height 0": (_globe_at_zero, "under the ground"),
+    "negative flight duration": (_negative_duration, "--duration"),
+    "zero flight speed": (_zero_speed, "--speed"),
+    "empty .lods": (_empty_lods, "site.lods"),
+    "text .lods": (_text_lods, "site.lods"),
+    "undeclared nodata -3.4e38": (_absurd(-3.4e38), "--nodata"),
+    "undeclared nodata 1e30": (_absurd(1e30), "--nodata"),
+    "heights of 1e7 m": (_absurd(1e7), "--nodata"),
+    "three bands and no --band": (_three_bands, "--band"),
+    "a fill that is not one": (_bad_fill, "--fill"),
+    "a sea level that is not one": (_bad_sea, "--sea-level"),
+    "--band on a procedural source": (_band_on_a_procedural, "--band"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_hostile_command_lines(
+    name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    make, named = CASES[name]
+    argv = make(tmp_path)
+    before = set(tmp_path.iterdir())
+    code, _, err = run_cli(argv, capsys)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2, (name, err)
+    assert len(lines) == 1, (name, err)
+    assert named in lines[0], (name, lines[0])
+    assert set(tmp_path.iterdir()) == before, name  # nothing written, not even a temporary
