@@ -127,7 +127,35 @@ def _band_on_a_procedural(folder: Path) -> list[str]:
     return ["render", "procedural:seed=1", "--band", "2", "-o", str(folder / "out.png")]
 
 
+def _cache_is_a_file(folder: Path) -> list[str]:
+    (folder / "cache").write_text("a file")
+    return [
+        "render",
+        _dem(folder),
+        "--imagery",
+        "http://127.0.0.1:9/{z}/{x}/{y}.png",
+        "--imagery-cache",
+        str(folder / "cache"),
+        "-o",
+        str(folder / "out.png"),
+    ]
+
+
+def _metres_labelled_degrees(folder: Path) -> list[str]:
+    dem = write_dem(
+        str(folder / "utm.tif"),
+        fbm_heights(33, seed=3),
+        crs="EPSG:4326",
+        west=EAST,
+        north=NORTH,
+        res=RES,
+    )
+    return ["render", dem, "-o", str(folder / "out.png")]
+
+
 CASES = {
+    "imagery cache that is a file": (_cache_is_a_file, "cache"),
+    "UTM metres labelled EPSG:4326": (_metres_labelled_degrees, "CRS is probably wrong"),
     "route with a header only": (_header_only, "route.csv"),
     "depth of an unknown type": (_bad_depth, "out.xyz"),
     "globe camera at height 0": (_globe_at_zero, "under the ground"),

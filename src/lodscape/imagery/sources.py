@@ -26,7 +26,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.errors import LodscapeError
+from lodscape.errors import LodscapeError, SourceError
 
 __all__ = [
     "DirectorySource",
@@ -114,14 +114,22 @@ class TileCache:
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute(
-            "CREATE TABLE IF NOT EXISTS tiles (url TEXT PRIMARY KEY, data BLOB NOT NULL, "
-            "etag TEXT, last_modified TEXT, expires REAL NOT NULL)"
-        )
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute(
+                "CREATE TABLE IF NOT EXISTS tiles (url TEXT PRIMARY KEY, data BLOB NOT NULL, "
+                "etag TEXT, last_modified TEXT, expires REAL NOT NULL)"
+            )
+        except (OSError, sqlite3.Error) as exc:
+            # a cache folder that is a file, not writable, or a cache that is not SQLite
+            folder = self.path.parent
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            if folder.exists() and not folder.is_dir():
+                why = "it is a file, not a folder"
+            raise SourceError(f"{folder}: cannot hold the imagery cache ({why})") from None
 
     def get(self, url: str) -> tuple[bytes, str | None, str | None, float] | None:
         with self._lock:

@@ -254,6 +254,14 @@ class _GridSource:
         a = self.transform
         xs = a.a * cols + a.b * rows + a.c
         ys = a.d * cols + a.e * rows + a.f
+        if self._crs.is_geographic and (np.abs(xs).max() > 540.0 or np.abs(ys).max() > 90.5):
+            # degrees that are not: metres (UTM, a national grid) labelled with a lon/lat CRS
+            raise SourceError(
+                f"{self.name}: its coordinates ({xs.min():.6g}..{xs.max():.6g}, "
+                f"{ys.min():.6g}..{ys.max():.6g}) are outside {_crs_name(self.crs_wkt)}'s valid "
+                "range (longitude -180..180°, latitude -90..90°): the CRS is probably wrong; "
+                "fix it (e.g. gdal_edit.py -a_srs EPSG:326NN)"
+            )
         lon, lat = (np.asarray(v) for v in self._transformer("to_ll").transform(xs, ys))
         finite = np.isfinite(lon) & np.isfinite(lat)
         if not finite.any():
