@@ -16,15 +16,10 @@ from _synthetic import fbm_heights, run_cli, write_dem
 EAST, NORTH, RES = 700000.0, 4060000.0, 30.0
 
 
-def _dem(folder: Path) -> str:
-    return write_dem(
-        str(folder / "dem.tif"),
-        fbm_heights(65, seed=1),
-        crs="EPSG:32617",
-        west=EAST,
-        north=NORTH,
-        res=RES,
-    )
+def _dem(folder: Path, crs: str = "EPSG:32617") -> str:
+    """A small DEM in metres of ``crs`` (a lon/lat CRS makes it a mislabelled one)."""
+    h = fbm_heights(65, seed=1)
+    return write_dem(str(folder / "dem.tif"), h, crs=crs, west=EAST, north=NORTH, res=RES)
 
 
 def _header_only(folder: Path) -> list[str]:
@@ -47,32 +42,14 @@ def _globe_at_zero(folder: Path) -> list[str]:
     return ["globe", "--lon", "10", "--lat", "45", "--alt", "0", "-o", str(folder / "out.png")]
 
 
-def _negative_duration(folder: Path) -> list[str]:
-    dem = _dem(folder)
-    return [
-        "fly",
-        dem,
-        "--orbit",
-        "-78.78,36.66,500,2000",
-        "--duration",
-        "-1",
-        "-o",
-        str(folder / "out.mp4"),
-    ]
+def _orbit(flag: str, value: str) -> Callable[[Path], list[str]]:
+    """A flight round the DEM with one flag of the given value."""
 
+    def case(folder: Path) -> list[str]:
+        orbit = "-78.78,36.66,500,2000"
+        return ["fly", _dem(folder), "--orbit", orbit, flag, value, "-o", str(folder / "out.mp4")]
 
-def _zero_speed(folder: Path) -> list[str]:
-    dem = _dem(folder)
-    return [
-        "fly",
-        dem,
-        "--orbit",
-        "-78.78,36.66,500,2000",
-        "--speed",
-        "0",
-        "-o",
-        str(folder / "out.mp4"),
-    ]
+    return case
 
 
 def _empty_lods(folder: Path) -> list[str]:
@@ -142,15 +119,7 @@ def _cache_is_a_file(folder: Path) -> list[str]:
 
 
 def _metres_labelled_degrees(folder: Path) -> list[str]:
-    dem = write_dem(
-        str(folder / "utm.tif"),
-        fbm_heights(33, seed=3),
-        crs="EPSG:4326",
-        west=EAST,
-        north=NORTH,
-        res=RES,
-    )
-    return ["render", dem, "-o", str(folder / "out.png")]
+    return ["render", _dem(folder, "EPSG:4326"), "-o", str(folder / "out.png")]
 
 
 CASES = {
@@ -159,8 +128,8 @@ CASES = {
     "route with a header only": (_header_only, "route.csv"),
     "depth of an unknown type": (_bad_depth, "out.xyz"),
     "globe camera at height 0": (_globe_at_zero, "under the ground"),
-    "negative flight duration": (_negative_duration, "--duration"),
-    "zero flight speed": (_zero_speed, "--speed"),
+    "negative flight duration": (_orbit("--duration", "-1"), "--duration"),
+    "zero flight speed": (_orbit("--speed", "0"), "--speed"),
     "empty .lods": (_empty_lods, "site.lods"),
     "text .lods": (_text_lods, "site.lods"),
     "undeclared nodata -3.4e38": (_absurd(-3.4e38), "--nodata"),
