@@ -12,6 +12,7 @@ import rasterio
 from rasterio.transform import Affine
 
 from _synthetic import fbm_heights, run_cli, write_dem
+from lodscape.scene import SKY
 
 EAST, NORTH, RES = 700000.0, 4060000.0, 30.0
 
@@ -155,3 +156,34 @@ def test_hostile_command_lines(
     assert len(lines) == 1, (name, err)
     assert named in lines[0], (name, lines[0])
     assert set(tmp_path.iterdir()) == before, name  # nothing written, not even a temporary
+
+
+@pytest.mark.gl
+@pytest.mark.parametrize(
+    ("west", "north", "res", "shape"),
+    [(-180.0, -60.0, 25.0 / 128, (129, 129)), (-180.0, 85.0, 360.0 / 256, (121, 256))],
+    ids=["south cap", "whole world"],
+)
+def test_polar_and_global_dems_get_an_overview(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    west: float,
+    north: float,
+    res: float,
+    shape: tuple[int, int],
+) -> None:
+    """No camera given: a view of the whole data, even round a pole or the whole Earth (it
+    asked for a camera latitude of -96° and, from orbit, clipped the Earth at a horizon
+    computed for low altitudes)."""
+    h = np.ascontiguousarray(fbm_heights(257, seed=4)[: shape[0], : shape[1]])
+    dem = write_dem(str(tmp_path / "dem.tif"), h, crs="EPSG:4326", west=west, north=north, res=res)
+    out = tmp_path / "view.png"
+    code, _, err = run_cli(
+        ["render", dem, "-o", str(out), "--size", "160x100", "-q", "--no-ellipsoid"], capsys
+    )
+    assert code == 0, err
+    from PIL import Image
+
+    rgb = np.asarray(Image.open(out).convert("RGB")).astype(int)
+    sky = np.all(np.abs(rgb - np.array(SKY) * 255) <= 2, axis=2)
+    assert (~sky).mean() > 0.02  # the terrain is in the picture

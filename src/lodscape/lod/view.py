@@ -144,9 +144,9 @@ class TerrainView:
         probe = camera.with_clip(1.0, 2.0)
         boxes = tile_boxes(probe, self.tree.zmin, x, y, st.min_h, st.max_h)
         # everything in the data lies within its root boxes; the horizon bounds it on a planet
-        horizon = math.sqrt(max(camera.alt - lo, 1.0) * 2.0 * WGS84_A) + math.sqrt(
-            max(hi - lo, 1.0) * 2.0 * WGS84_A
-        )
+        # tangent lengths sqrt(h(2R + h)): exact from orbit too, where h is not small against R
+        up, rise = max(camera.alt - lo, 1.0), max(hi - lo, 1.0)
+        horizon = math.sqrt(up * (2.0 * WGS84_A + up)) + math.sqrt(rise * (2.0 * WGS84_A + rise))
         far = max(min(float(boxes.dist_far.max()), horizon), near * 10.0) * 1.01
         return camera.with_clip(near, far)
 
@@ -159,7 +159,15 @@ class TerrainView:
         extent = max(b.right - b.left, b.top - b.bottom) * math.cos(math.radians(lat))
         back = 0.75 * extent
         cam_lat = lat - math.degrees(back / WGS84_A)
+        if cam_lat < -89.0:
+            # data near the south pole (or a continent's width): look at it from the north
+            cam_lat = lat + math.degrees(back / WGS84_A)
         alt = hi + 0.55 * extent
+        if cam_lat > 89.0 or back > 0.25 * math.pi * WGS84_A:
+            # a cap or the whole globe: straight down from above its centre, far enough out
+            lat = min(max(lat, -89.0), 89.0)
+            alt = min(hi + extent / math.tan(math.radians(fov_y) / 2.0), 3.0e7)
+            return Camera(lon, lat, alt, pitch=-90.0, fov_y=fov_y, width=width, height=height)
         return Camera.looking_at(
             lon, cam_lat, alt, (lon, lat, (lo + hi) / 2.0), fov_y=fov_y, width=width, height=height
         )
