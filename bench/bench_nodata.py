@@ -27,7 +27,7 @@ import lodscape
 from _synthetic import fbm_heights, write_dem
 from lodscape import Camera, SceneOptions
 from lodscape.build import BuildOptions, build
-from lodscape.build.tiles import Job, tile_budget
+from lodscape.build.tiles import level_budget
 from lodscape.store.quantized_mesh import decode
 
 EAST, NORTH, RES = 700000.0, 4060000.0, 30.0
@@ -91,14 +91,15 @@ def finest(work: Path) -> None:
     report = build([dem], out)
     _, tex, zmax = report.levels
     planned = tex + 2
-    job = Job((), False, 256, 1.0, tex, (0.0, 1.0), 0.0)
     print("\n## a coarse (0.03°), rough topo-bathymetric DEM (-3,000..3,000 m)")
     print("| level | tiles | worst error m | its budget m | tiles over budget |")
     print("|---|---|---|---|---|")
     with closing(sqlite3.connect(out)) as db:
         for z in range(planned, zmax + 1):
             rows = db.execute("SELECT x, y, error FROM terrain WHERE z = ?", (z,)).fetchall()
-            ratio = [(e / tile_budget(job, z, y), e, tile_budget(job, z, y)) for _, y, e in rows]
+            # the default budget: one of the level's 256 texels a tile
+            budgets = [float(level_budget(1.0, 256, z, y)) for _, y, _ in rows]
+            ratio = [(e / b, e, b) for (_, _, e), b in zip(rows, budgets, strict=True)]
             worst = max(ratio)
             over = sum(1 for r in ratio if r[0] > 1.0 + 1e-9)
             tag = " (planned finest)" if z == planned else " (added)"

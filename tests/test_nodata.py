@@ -19,7 +19,7 @@ import lodscape
 from _synthetic import fbm_heights, run_cli, write_dem
 from lodscape import Camera, SceneOptions
 from lodscape.build import build
-from lodscape.build.tiles import Job, tile_budget
+from lodscape.build.tiles import level_budget
 from lodscape.errors import SourceError
 from lodscape.imagery.tint import tint
 from lodscape.store.tileset import TIN_GRID, TilesetProvider
@@ -245,11 +245,11 @@ def test_the_finest_level_keeps_its_budget_or_is_twice_as_fine_as_the_data(
     res = float(provider.manifest["resolution_merc"])
     assert provider.manifest["levels"]["zmax"] == zmax
     provider.close()
-    job = Job((), False, 256, 1.0, tex, (0.0, 1.0), res)
     with closing(sqlite3.connect(out)) as db:
         for z in (zmax - 1, zmax):
             rows = db.execute("SELECT x, y, error FROM terrain WHERE z = ?", (z,)).fetchall()
-            over = [(x, y) for x, y, e in rows if e > tile_budget(job, z, y) * (1 + 1e-9)]
+            # the default budget: one of the level's 256 texels a tile
+            over = [(x, y) for x, y, e in rows if e > level_budget(1.0, 256, z, y) * (1 + 1e-9)]
             if z == zmax - 1:
                 # the level above: children exactly under the tiles over budget
                 kids = {

@@ -772,6 +772,7 @@ def info(
 ) -> None:
     """Print a source's footprint, resolution, heights and tile levels (and for a tileset, its
     size and provenance)."""
+    from lodscape.build.tiles import level_budget
     from lodscape.store.provider import RefinedProvider
     from lodscape.store.tileset import TIN_GRID
 
@@ -828,11 +829,8 @@ def info(
             if manifest is None:
                 line(text + " (finest grid)")
                 continue
-            # each tile's budget: error_texels of its texels' ground size (build.tile_budget)
             ys, _ = np.nonzero(lv.exists)
-            side = 2.0 * ORIGIN / (1 << lv.z)
-            _, lat = merc_to_lonlat(0.0, ORIGIN - (ys + lv.y0 + 0.5) * side)
-            budget = opts["error_texels"] * side * np.cos(np.radians(lat)) / tree.tile_size
+            budget = level_budget(opts["error_texels"], tree.tile_size, lv.z, ys + lv.y0)
             err = lv.error[-1][lv.exists]
             over = int((err > budget * (1.0 + 1e-9)).sum())
             worst = int(np.argmax(err / np.maximum(budget, 1e-12)))
@@ -841,7 +839,8 @@ def info(
                 f"{budget[worst]:.2f} m)"
             )
             res = float(manifest.get("resolution_merc", 0.0))
-            if lv.z == tree.zmax and over and side / TIN_GRID <= res / 2.0:
+            grid = 2.0 * ORIGIN / (1 << lv.z) / TIN_GRID
+            if lv.z == tree.zmax and over and grid <= res / 2.0:
                 line(
                     f"{'':>14}  the finest grid is twice as fine as the data: what is left is "
                     "the data's own relief between its samples"

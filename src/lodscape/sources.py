@@ -138,7 +138,7 @@ def open(
         # a mask is worth metres, not the DEM's resolution: the tree goes on below the data
         # with heights interpolated (fractal detail of no amplitude), and its masks with it
         detail = Fractal(0.7, 0.0, 0)
-    if spec is not None and spec.kind not in ("raster",) and (band or nodata is not None):
+    if spec is not None and spec.kind != "raster" and (band or nodata is not None):
         raise SourceError(f"{spec.text}: --band and --nodata are for a raster DEM")
     if spec is not None and spec.kind == "tileset" and fill is not None:
         raise SourceError(f"{spec.text}: a tileset keeps the fill it was built with (--fill)")

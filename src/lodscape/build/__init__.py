@@ -20,7 +20,7 @@ import numpy as np
 from pyproj import CRS
 
 from lodscape.build.executors import BuildExecutor, executor_for
-from lodscape.build.tiles import Job, make_tiles, tile_budget
+from lodscape.build.tiles import Job, level_budget, make_tiles
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import ORIGIN, Bbox, bounds_array
 from lodscape.store.tileset import (
@@ -245,11 +245,13 @@ def _run(
 
 def _over_budget(writer: TilesetWriter, job: Job, z: int) -> list[tuple[int, int, int]]:
     """The children of the level-z tiles whose measured error exceeds their budget."""
-    out: list[tuple[int, int, int]] = []
-    for x, y, error in writer.db.execute("SELECT x, y, error FROM terrain WHERE z = ?", (z,)):
-        if error > tile_budget(job, z, y) * (1.0 + 1e-9):
-            out.extend((z + 1, 2 * x + dx, 2 * y + dy) for dy in (0, 1) for dx in (0, 1))
-    return out
+    rows = writer.db.execute("SELECT x, y, error FROM terrain WHERE z = ?", (z,)).fetchall()
+    x, y, error = np.array(rows, np.float64).reshape(-1, 3).T
+    over = error > level_budget(job.error_texels, job.tile_size, z, y) * (1.0 + 1e-9)
+    x, y = x[over].astype(np.int64), y[over].astype(np.int64)
+    kx = (2 * x[:, None] + np.array([0, 1, 0, 1])).ravel()
+    ky = (2 * y[:, None] + np.array([0, 0, 1, 1])).ravel()
+    return [(z + 1, int(a), int(b)) for a, b in zip(kx, ky, strict=True)]
 
 
 def _imagery_zmax(imagery: Sequence[str], texture_zmax: int) -> int:

@@ -14,7 +14,7 @@ from typing import Any
 
 import numba
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from lodscape.geo.frames import WGS84_A, geodetic_to_ecef
 from lodscape.geo.tiles import ORIGIN, Bbox, Tile, bounds, merc_to_lonlat, xy_bounds
@@ -26,7 +26,7 @@ from lodscape.terrain.mesh import grid_coordinates
 from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
 
-__all__ = ["Job", "make_tile", "make_tiles", "tile_budget"]
+__all__ = ["Job", "level_budget", "make_tile", "make_tiles", "tile_budget"]
 
 
 @dataclass(frozen=True)
@@ -80,12 +80,19 @@ def _source(job: Job) -> HeightSource:
 _RIM = 1.0e7
 
 
-def tile_budget(job: Job, z: int, y: int) -> float:
-    """Metres of vertical error a tile's mesh may have: ``error_texels`` of its texels' ground
-    size (so a level's tiles drawn at the pixel band's top stay near ``error_texels`` px)."""
+def level_budget(error_texels: float, tile_size: int, z: int, y: ArrayLike) -> NDArray[np.float64]:
+    """Metres of vertical error the meshes of tiles of rows ``y`` of level z may have:
+    ``error_texels`` of their texels' ground size (so a level's tiles drawn at the pixel band's
+    top stay near ``error_texels`` px)."""
     side = 2.0 * ORIGIN / (1 << z)
-    _, lat = merc_to_lonlat(0.0, ORIGIN - (y + 0.5) * side)
-    return float(job.error_texels * side * math.cos(math.radians(float(lat))) / job.tile_size)
+    _, lat = merc_to_lonlat(0.0, ORIGIN - (np.asarray(y, np.float64) + 0.5) * side)
+    out: NDArray[np.float64] = error_texels * side * np.cos(np.radians(lat)) / tile_size
+    return out
+
+
+def tile_budget(job: Job, z: int, y: int) -> float:
+    """``level_budget`` of one tile of a build."""
+    return float(level_budget(job.error_texels, job.tile_size, z, y))
 
 
 def make_tiles(job: Job, tiles: list[tuple[int, int, int]]) -> list[TileRecord]:

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from lodscape.geo.frames import WGS84_A, WGS84_B, enu_basis
 from lodscape.geo.keys import is_texture, tile_id_of_array, tile_of
 from lodscape.geo.tiles import bounds_array, tile_from_id_array
+from lodscape.imagery.tint import NODATA_GREY
 from lodscape.lod.camera import Camera
 from lodscape.lod.view import DrawItem
 from lodscape.render._context import create_context, is_software, make_current
@@ -235,7 +236,7 @@ void main() {
 """
 
 #: Colour of the ellipsoid where there is no terrain: the no-data grey, lit as the tint is.
-ELLIPSOID_GREY = (170.0 / 255.0,) * 3
+ELLIPSOID_GREY = (NODATA_GREY / 255.0,) * 3
 
 _FRAGMENT_SHADER = _FRAGMENT_SHADER.replace("UNDERSIDE_GLSL", _UNDERSIDE)
 _LANDCOVER_FRAGMENT_SHADER = _LANDCOVER_FRAGMENT_SHADER.replace("UNDERSIDE_GLSL", _UNDERSIDE)
@@ -695,7 +696,7 @@ class Renderer:
             "u_eye": eye.astype(np.float32),
             "u_c": np.array([float(eye @ eye) - 1.0], np.float32),
             "u_inv_axes": (1.0 / axes).astype(np.float32),
-            "u_sun": (camera.rotation.T @ _sun_view(camera).astype(np.float64)).astype(np.float32),
+            "u_sun": _sun_world(camera).astype(np.float32),
             "u_colour": np.array(ELLIPSOID_GREY, np.float32),
         }
         for name, value in values.items():
@@ -868,12 +869,17 @@ def _tints(keys: Sequence[int], on: bool) -> list[tuple[float, float, float, flo
     return out
 
 
-def _sun_view(camera: Camera) -> NDArray[np.float32]:
-    """Towards the sun (azimuth 315°, 45° up, as the tint's hillshade), in view space."""
+def _sun_world(camera: Camera) -> NDArray[np.float64]:
+    """Towards the sun (azimuth 315°, 45° up at the camera, as the tint's hillshade), ECEF."""
     az, alt = math.radians(315.0), math.radians(45.0)
     enu = np.array([math.sin(az) * math.cos(alt), math.cos(az) * math.cos(alt), math.sin(alt)])
-    world = enu_basis(camera.lon, camera.lat).T @ enu
-    return np.asarray(camera.rotation @ world, np.float32)
+    world: NDArray[np.float64] = enu_basis(camera.lon, camera.lat).T @ enu
+    return world
+
+
+def _sun_view(camera: Camera) -> NDArray[np.float32]:
+    """``_sun_world`` in view space."""
+    return np.asarray(camera.rotation @ _sun_world(camera), np.float32)
 
 
 def _view_offset(

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from lodscape.geo.frames import up_vector
 from lodscape.geo.tiles import Bbox, Tile, bounds, merc_to_lonlat
 from lodscape.store.quantized_mesh import encode, ungzip
 from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
@@ -191,13 +192,8 @@ def ellipsoid_tile(z: int, x: int, y: int) -> bytes:
     grid_lon, grid_lat = np.meshgrid(lon_col, lat_row)
     lon, lat = grid_lon.ravel(), grid_lat.ravel()
     tris = grid_indices(n)[: 2 * n * n].astype(np.int64)
-    rad_lon, rad_lat = np.radians(lon), np.radians(lat)
-    up = np.column_stack(
-        [np.cos(rad_lat) * np.cos(rad_lon), np.cos(rad_lat) * np.sin(rad_lon), np.sin(rad_lat)]
-    )
-    return encode(
-        lon, lat, np.zeros(lon.size), tris, (b.left, b.bottom, b.right, b.top), normals=up
-    )
+    rect = (b.left, b.bottom, b.right, b.top)
+    return encode(lon, lat, np.zeros(lon.size), tris, rect, normals=up_vector(lon, lat))
 
 
 def _ranges(tiles: set[tuple[int, int]]) -> list[dict[str, int]]:
