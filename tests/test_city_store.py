@@ -18,8 +18,6 @@ from lodscape.data import sample_city_path
 from lodscape.store.city import add_city, read_city
 from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
 
-pytestmark = pytest.mark.gl
-
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -116,6 +114,7 @@ def test_add_list_read_back_and_remove(fresh: Path, capsys: pytest.CaptureFixtur
     assert "no city named 'centre'" in err
 
 
+@pytest.mark.gl
 def test_render_drapes_the_stored_city(
     fresh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -11,8 +11,6 @@ import pytest
 
 from _synthetic import fbm_heights, run_cli, write_dem
 
-pytestmark = pytest.mark.gl
-
 
 @pytest.fixture(scope="module")
 def dem(tmp_path_factory: pytest.TempPathFactory) -> str:
@@ -26,6 +24,7 @@ def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str,
     return run_cli(argv, capsys)
 
 
+@pytest.mark.gl
 def test_render_writes_a_picture(
     dem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -73,6 +72,7 @@ def test_render_writes_a_picture(
     }
 
 
+@pytest.mark.gl
 def test_render_without_a_camera_shows_the_whole_data(
     dem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -26,8 +26,6 @@ from lodscape.data import sample_city_path
 from lodscape.serve import TileService, make_app
 from lodscape.store.quantized_mesh import decode
 
-pytestmark = pytest.mark.gl
-
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
