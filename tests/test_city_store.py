@@ -192,3 +192,81 @@ def test_a_failed_add_leaves_nothing(fresh: Path, monkeypatch: pytest.MonkeyPatc
     with closing(sqlite3.connect(fresh)) as db:
         names = [r[0] for r in db.execute("SELECT name FROM city_sets")]
     assert names == ["kept"]
+
+
+_KILLED_ADD = """
+import os, signal, sys
+import shapely
+from lodscape.cli import main
+
+real, calls = shapely.to_wkb, [0]
+
+def to_wkb(*args, **kwargs):  # the 20th building's footprint: deep inside the transaction
+    calls[0] += 1
+    if calls[0] == 20:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return real(*args, **kwargs)
+
+shapely.to_wkb = to_wkb
+main(["city", "add", sys.argv[1], sys.argv[2], "--name", "half-added"])
+"""
+
+
+def _kill_city_add(tileset: Path) -> None:
+    import subprocess
+    import sys
+
+    run = subprocess.run(
+        [sys.executable, "-c", _KILLED_ADD, str(tileset), str(sample_city_path())],
+        capture_output=True,
+        timeout=120,
+        check=False,
+    )
+    assert run.returncode == -9, run.stderr.decode()[-2000:]
+
+
+def test_a_killed_city_add_leaves_a_readable_tileset(
+    fresh: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """SIGKILL in the middle of ``city add``'s transaction: every reader still opens the file
+    (it read "attempt to write a readonly database" for good), the half-added city is not there,
+    and the next ``city add`` works."""
+    before = fresh.read_bytes()
+    _kill_city_add(fresh)
+    for argv in (["info", str(fresh)], ["city", "list", str(fresh)]):
+        code, out, err = run_cli(argv, capsys)
+        assert code == 0, (argv, err)
+        assert "half-added" not in out
+    with closing(TilesetProvider(fresh)) as provider:
+        assert provider.cities() == []
+        assert provider.tree.levels
+    code, _, err = run_cli(["city", "add", str(fresh), str(sample_city_path())], capsys)
+    assert code == 0, err
+    assert _count(fresh, "city_sets") == 1
+    assert not Path(str(fresh) + "-wal").exists()  # the log folded back: one file again
+    assert fresh.read_bytes() != before
+
+
+def test_a_hot_rollback_journal_is_undone_by_readers(
+    fresh: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A writer in rollback-journal mode (an older lodscape, or sqlite3 by hand) killed mid-write
+    leaves a hot journal: the first reader undoes it and every reader works."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os, signal, sqlite3, sys\n"
+        "db = sqlite3.connect(sys.argv[1], isolation_level=None)\n"
+        "db.execute('PRAGMA cache_size=1')\n"  # spill to the file: the journal is hot
+        "db.execute('BEGIN IMMEDIATE')\n"
+        "db.execute('DELETE FROM terrain')\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code, str(fresh)], timeout=60, check=False)
+    assert run.returncode == -9
+    assert Path(str(fresh) + "-journal").stat().st_size > 0
+    code_, _, err = run_cli(["info", str(fresh)], capsys)
+    assert code_ == 0, err
+    assert _count(fresh, "terrain") > 0  # the delete was undone
+    assert not Path(str(fresh) + "-journal").exists()

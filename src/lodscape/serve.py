@@ -22,13 +22,13 @@ import asyncio
 import gzip
 import hashlib
 import json
-import sqlite3
 import threading
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 from lodscape.store.export import cesium_layer
+from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import ungzip
 from lodscape.store.tileset import TilesetProvider
 
@@ -52,9 +52,7 @@ class TileService:
         provider = TilesetProvider(self.path)  # refuses what is not a complete tileset
         self.manifest = provider.manifest
         self._provider = provider
-        self._db = sqlite3.connect(
-            f"file:{self.path.resolve().as_posix()}?mode=ro", uri=True, check_same_thread=False
-        )
+        self._db = connect_readonly(self.path)
         self._lock = threading.Lock()
         layer, self._flat = cesium_layer(self._db, self.manifest, self.path.stem)
         self.layer = json.dumps(layer, indent=1).encode()

@@ -22,7 +22,7 @@ from pyproj import CRS
 from lodscape.build.executors import BuildExecutor, executor_for
 from lodscape.build.tiles import Job, level_budget, make_tiles
 from lodscape.errors import SourceError
-from lodscape.geo.tiles import ORIGIN, Bbox, bounds_array
+from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, bounds_array
 from lodscape.store.tileset import (
     SCHEMA_VERSION,
     TIN_GRID,
@@ -121,6 +121,7 @@ def build(
     )
     source = FilledSource(raw, parse_fill(options.fill))
     try:
+        _check_resolution(source, options.tile_size)
         span = level_span(
             source.bounds_merc,
             source.resolution_merc,
@@ -170,7 +171,10 @@ def build(
         if imagery_zmax <= span.zmax:
             # the finest level is honest: where a tile misses its budget, its children are
             # built, a level at a time, until none does or the grid is twice as fine as the data
-            while 2.0 * ORIGIN / (1 << zmax) / TIN_GRID > source.resolution_merc / 2.0:
+            while (
+                zmax < MAX_ZOOM
+                and 2.0 * ORIGIN / (1 << zmax) / TIN_GRID > source.resolution_merc / 2.0
+            ):
                 over = _over_budget(writer, job, zmax)
                 if not over:
                     break
@@ -337,10 +341,27 @@ def _height_range(source: HeightSource) -> tuple[float, float]:
     return float(h[valid].min()), float(h[valid].max())
 
 
+def _check_resolution(source: HeightSource, tile_size: int) -> None:
+    """Refuse data finer than the deepest level a tileset holds, before anything is written."""
+    wanted = math.ceil(math.log2(2.0 * ORIGIN / (tile_size * source.resolution_merc)))
+    limit = MAX_ZOOM - round(math.log2(tile_size / 64))
+    if wanted > limit:
+        finest = 2.0 * ORIGIN / (tile_size * (1 << limit))
+        raise SourceError(
+            f"{source.name}: pixels of {source.resolution_merc:.3g} m ask for level {wanted}; "
+            f"a tileset of {tile_size}-texel tiles ends at level {limit} ({finest:.3g} m): "
+            f"resample the DEM to {finest:.3g} m or coarser (e.g. gdalwarp -tr)"
+        )
+
+
 def _plan(source: HeightSource, zmin: int, zmax: int) -> list[tuple[int, int, int]]:
-    """Every tile of levels zmin..zmax whose 5×5 lattice touches the data's footprint."""
+    """Every tile of levels zmin..zmax that touches the data's footprint: a 5×5 lattice over the
+    tile, and the tile's point nearest the footprint's centre (a footprint smaller than the
+    lattice's spacing falls between its points)."""
     out: list[tuple[int, int, int]] = []
     f = np.linspace(0.0, 1.0, 5)
+    b = source.bounds_merc
+    cx, cy = (b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0
     for z in range(zmin, zmax + 1):
         x0, y0, nx, ny = level_range(source.bounds_merc, z)
         yy, xx = np.mgrid[y0 : y0 + ny, x0 : x0 + nx]
@@ -349,6 +370,7 @@ def _plan(source: HeightSource, zmin: int, zmax: int) -> list[tuple[int, int, in
         px = left[:, None, None] + f[None, None, :] * (right - left)[:, None, None]
         py = bottom[:, None, None] + f[None, :, None] * (top - bottom)[:, None, None]
         hit = source.covers(*np.broadcast_arrays(px, py)).reshape(x.size, -1).any(axis=1)
+        hit |= source.covers(np.clip(cx, left, right), np.clip(cy, bottom, top))
         out.extend(zip([z] * int(hit.sum()), x[hit].tolist(), y[hit].tolist(), strict=True))
     return out
 

@@ -28,7 +28,13 @@ import shapely
 from shapely.geometry import Polygon
 
 from lodscape.city.osm import Building, City, Feature
-from lodscape.store.manifest import TilesetError, is_tileset, read_manifest
+from lodscape.store.manifest import (
+    TilesetError,
+    connect_readonly,
+    fold_wal,
+    is_tileset,
+    read_manifest,
+)
 
 __all__ = ["add_city", "list_cities", "read_city", "remove_city"]
 
@@ -58,7 +64,8 @@ def _open_rw(path: str | os.PathLike[str]) -> sqlite3.Connection:
         raise TilesetError(f"{p}: no such file")
     if not is_tileset(p):
         raise TilesetError(f"{p}: not a lodscape tileset (not an SQLite file)")
-    db = sqlite3.connect(p, isolation_level=None)
+    connect_readonly(p).close()  # undoes a hot journal an older lodscape may have left
+    db = sqlite3.connect(p, isolation_level=None, timeout=30.0)
     try:
         manifest = read_manifest(db, str(p))
     except TilesetError:
@@ -67,6 +74,9 @@ def _open_rw(path: str | os.PathLike[str]) -> sqlite3.Connection:
     if not manifest.get("complete"):
         db.close()
         raise TilesetError(f"{p}: its build has not finished; finish it before adding a city")
+    # a write-ahead log while writing: readers (a running serve) never wait for the writer, and
+    # a writer killed mid-transaction leaves nothing a read-only reader must undo
+    db.execute("PRAGMA journal_mode=WAL")
     return db
 
 
@@ -172,6 +182,7 @@ def add_city(
     except sqlite3.Error as exc:
         raise TilesetError(f"{path}: cannot store the city ({exc})") from None
     finally:
+        fold_wal(db)
         db.close()
     return {
         "buildings": len(kept_b),
@@ -209,6 +220,7 @@ def remove_city(path: str | os.PathLike[str], name: str) -> None:
     except sqlite3.Error as exc:
         raise TilesetError(f"{path}: cannot remove the city ({exc})") from None
     finally:
+        fold_wal(db)
         db.close()
 
 

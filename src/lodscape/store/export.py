@@ -25,6 +25,7 @@ import numpy as np
 
 from lodscape.geo.frames import up_vector
 from lodscape.geo.tiles import Bbox, Tile, bounds, merc_to_lonlat
+from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import encode, ungzip
 from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
 from lodscape.terrain.mesh import grid_coordinates, grid_indices
@@ -51,7 +52,7 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
     provider.close()
     tmp = parent / f".{target.name}.{os.getpid()}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
-    db = sqlite3.connect(f"file:{Path(tileset).resolve().as_posix()}?mode=ro", uri=True)
+    db = connect_readonly(tileset)
     try:
         count = 0
         for z, x, y, data in db.execute("SELECT z, x, y, data FROM terrain"):

@@ -6,11 +6,12 @@ from __future__ import annotations
 import json
 import os
 import sqlite3
+from pathlib import Path
 from typing import Any
 
 from lodscape.errors import LodscapeError
 
-__all__ = ["TilesetError", "is_tileset", "read_manifest"]
+__all__ = ["TilesetError", "connect_readonly", "fold_wal", "is_tileset", "read_manifest"]
 
 _MAGIC = b"SQLite format 3\x00"
 
@@ -39,3 +40,36 @@ def is_tileset(path: str | os.PathLike[str]) -> bool:
             return f.read(16) == _MAGIC
     except OSError:
         return False
+
+
+def connect_readonly(path: str | os.PathLike[str]) -> sqlite3.Connection:
+    """A read-only connection to the tileset at ``path`` (any thread may use it).
+
+    A writer killed mid-transaction in rollback-journal mode leaves a hot journal that only a
+    connection with write access can undo (a read-only one fails with "attempt to write a
+    readonly database", for good): it is undone here first, once, with a short read-write
+    connection. Writers today keep a write-ahead log instead, which readers need not undo."""
+    p = Path(path).resolve()
+    journal = p.with_name(p.name + "-journal")
+    if journal.is_file() and journal.stat().st_size > 0:
+        try:
+            with sqlite3.connect(p, timeout=5.0) as rw:  # reading undoes the hot journal
+                rw.execute("SELECT count(*) FROM sqlite_master").fetchone()
+            rw.close()
+        except sqlite3.Error as exc:
+            raise TilesetError(
+                f"{path}: a write to it was interrupted and its journal ({journal.name}) needs "
+                f"write access to undo ({exc})"
+            ) from None
+    return sqlite3.connect(f"file:{p.as_posix()}?mode=ro", uri=True, check_same_thread=False)
+
+
+def fold_wal(db: sqlite3.Connection) -> None:
+    """Fold a writer's write-ahead log back into the one file (a tileset is one file to copy).
+    Another process holding the file open keeps it in WAL mode, which is complete and
+    consistent; the log folds in at the next writer's end."""
+    try:
+        db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        db.execute("PRAGMA journal_mode=DELETE")
+    except sqlite3.OperationalError:
+        pass

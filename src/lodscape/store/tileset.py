@@ -43,7 +43,13 @@ from lodscape.geo.tiles import (
     merc_to_lonlat,
     tiles_array,
 )
-from lodscape.store.manifest import TilesetError, is_tileset, read_manifest
+from lodscape.store.manifest import (
+    TilesetError,
+    connect_readonly,
+    fold_wal,
+    is_tileset,
+    read_manifest,
+)
 from lodscape.store.quantized_mesh import QuantizedMeshError, decode
 from lodscape.terrain.mesh import TileMesh, tin_mesh
 from lodscape.terrain.pyramid import Level, TileTree
@@ -173,13 +179,7 @@ class TilesetWriter:
                 "INSERT OR REPLACE INTO metadata (name, value) VALUES (?, ?)", mbtiles.items()
             )
             self._set_manifest({**manifest, "complete": True})
-        try:
-            self.db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-            self.db.execute("PRAGMA journal_mode=DELETE")
-        except sqlite3.OperationalError:
-            # another process has the file open: it stays in WAL mode, which is complete and
-            # consistent; the log folds in when the last connection closes
-            pass
+        fold_wal(self.db)
 
     def close(self) -> None:
         self.db.close()
@@ -331,8 +331,7 @@ class TilesetProvider:
         """This thread's read-only connection (SQLite connections are not shared by threads)."""
         db: sqlite3.Connection | None = getattr(self._local, "db", None)
         if db is None:
-            uri = f"file:{self.path.resolve().as_posix()}?mode=ro"
-            db = sqlite3.connect(uri, uri=True, check_same_thread=False)
+            db = connect_readonly(self.path)
             self._local.db = db
             with self._lock:
                 self._connections.append(db)
