@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import lodscape
-from _synthetic import fbm_heights, write_dem
+from _synthetic import fbm_heights, run_cli, write_dem
 from lodscape import Camera, SceneOptions
 from lodscape.build import BuildOptions, build
 from lodscape.build.executors import DaskExecutor, PoolExecutor
@@ -419,6 +419,48 @@ def test_a_full_disk_fails_in_one_line_and_resumes(dem: str, tmp_path: Path) -> 
     with lodscape.open(out) as scene:
         assert scene.tree.zmax > scene.tree.zmin
     os.unlink(out)
+
+
+def test_a_full_disk_at_the_first_write_leaves_no_file(dem: str, tmp_path: Path) -> None:
+    """The disk full before the tileset's first page: one line that says so, and no empty SQLite
+    file that readers would then call "not a lodscape tileset"."""
+    out = tmp_path / "full.lods"
+    code = (
+        "import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (2_000, 2_000)); "
+        "from lodscape.cli import main; "
+        f"main(['build', {dem!r}, '-o', {str(out)!r}, '-q', '--workers', '1'])"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().count("\n") == 0, proc.stderr
+    # a real full disk reads "the disk is full"; the size limit standing in for it, an I/O error
+    assert "disk is full" in proc.stderr or "is the disk full" in proc.stderr, proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_a_build_being_written_says_so(
+    dem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """While a build runs, readers say it is being written (not that it stopped), and a second
+    build of the same file is refused; once it has ended, killed or not, the lock is gone."""
+    out = tmp_path / "site.lods"
+    seen: list[tuple[int, str]] = []
+
+    def progress(done: int, total: int) -> None:
+        if not seen and done > 0:
+            code, _, err = run_cli(["info", str(out)], capsys)
+            seen.append((code, err))
+            with pytest.raises(TilesetError, match="another lodscape build is writing it"):
+                build([dem], out, executor=PoolExecutor(1, processes=False))
+
+    build([dem], out, executor=PoolExecutor(1, processes=False), progress=progress)
+    code, err = seen[0]
+    assert code == 2
+    assert "a build is writing it now" in err, err
+    assert "stopped" not in err
+    code, _, err = run_cli(["info", str(out)], capsys)
+    assert code == 0, err
 
 
 def test_a_laz_cloud_brings_its_own_crs_and_its_ground_class(tmp_path: Path) -> None:

@@ -123,7 +123,14 @@ def _metres_labelled_degrees(folder: Path) -> list[str]:
     return ["render", _dem(folder, "EPSG:4326"), "-o", str(folder / "out.png")]
 
 
+def _millimetre_pixels(folder: Path) -> list[str]:
+    h = fbm_heights(65, seed=1)
+    dem = write_dem(str(folder / "dem.tif"), h, crs="EPSG:32617", west=EAST, north=NORTH, res=0.001)
+    return ["build", dem, "-o", str(folder / "out.lods")]
+
+
 CASES = {
+    "pixels of 1 mm": (_millimetre_pixels, "ask for level 27"),
     "imagery cache that is a file": (_cache_is_a_file, "cache"),
     "UTM metres labelled EPSG:4326": (_metres_labelled_degrees, "CRS is probably wrong"),
     "route with a header only": (_header_only, "route.csv"),

@@ -5,13 +5,26 @@ from __future__ import annotations
 
 import json
 import os
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory file locks; a running build reads as stopped
+    fcntl = None  # type: ignore[assignment]
 import sqlite3
 from pathlib import Path
 from typing import Any
 
 from lodscape.errors import LodscapeError
 
-__all__ = ["TilesetError", "connect_readonly", "fold_wal", "is_tileset", "read_manifest"]
+__all__ = [
+    "TilesetError",
+    "being_written",
+    "connect_readonly",
+    "fold_wal",
+    "hold_for_writing",
+    "is_tileset",
+    "read_manifest",
+]
 
 _MAGIC = b"SQLite format 3\x00"
 
@@ -73,3 +86,36 @@ def fold_wal(db: sqlite3.Connection) -> None:
         db.execute("PRAGMA journal_mode=DELETE")
     except sqlite3.OperationalError:
         pass
+
+
+def hold_for_writing(path: str | os.PathLike[str]) -> Any:
+    """Mark the tileset at ``path`` as being written by this process, until the returned file is
+    closed or the process ends (an advisory ``flock``, which the kernel drops with the process,
+    so a killed build never leaves a stale mark). Raises ``TilesetError`` when another process
+    holds it."""
+    f = open(path, "rb")  # noqa: SIM115  (held open for the writer's life)
+    if fcntl is not None:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            raise TilesetError(
+                f"{path}: another lodscape build is writing it now; wait for it to finish"
+            ) from None
+    return f
+
+
+def being_written(path: str | os.PathLike[str]) -> bool:
+    """Whether a running build holds the tileset at ``path`` (see ``hold_for_writing``)."""
+    if fcntl is None:
+        return False
+    try:
+        with open(path, "rb") as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except OSError:
+                return True
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    except OSError:
+        return False
+    return False

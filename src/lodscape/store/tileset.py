@@ -45,8 +45,10 @@ from lodscape.geo.tiles import (
 )
 from lodscape.store.manifest import (
     TilesetError,
+    being_written,
     connect_readonly,
     fold_wal,
+    hold_for_writing,
     is_tileset,
     read_manifest,
 )
@@ -113,21 +115,41 @@ class TilesetWriter:
             raise TilesetError(f"{self.path}: exists and is not a tileset; choose another name")
         try:
             self.db = sqlite3.connect(self.path, isolation_level=None)
+            self.db.execute("PRAGMA schema_version")  # creates the file for the lock below
+        except sqlite3.Error as exc:
+            raise TilesetError(f"{self.path}: cannot write ({exc})") from None
+        try:
+            self._hold = hold_for_writing(self.path)
+        except TilesetError:
+            self.db.close()
+            raise
+        try:
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=NORMAL")
             self.db.executescript(_SCHEMA)
+            old = self._manifest()
+            if old is None:
+                self._set_manifest({**manifest, "complete": False})
         except sqlite3.Error as exc:
+            self.close()
+            if not existed:  # nothing half-made left behind: not even an empty SQLite file
+                for leftover in ("", "-wal", "-shm", "-journal"):
+                    Path(str(self.path) + leftover).unlink(missing_ok=True)
+            if "full" in str(exc):
+                raise TilesetError(f"{self.path}: the disk is full; nothing was written") from None
+            if "I/O" in str(exc):
+                raise TilesetError(
+                    f"{self.path}: cannot write (disk I/O error: is the disk full, or the file "
+                    "over a size limit?); nothing was written"
+                ) from None
             raise TilesetError(f"{self.path}: cannot write ({exc})") from None
-        old = self._manifest()
         if old is not None and _identity(old) != _identity(manifest):
-            self.db.close()
+            self.close()
             raise TilesetError(
                 f"{self.path}: was built from other inputs or options; "
                 "remove it, or build again with the same ones to resume"
             )
         self.resumed = old is not None
-        if old is None:
-            self._set_manifest({**manifest, "complete": False})
 
     # --- plan ----------------------------------------------------------------------------
 
@@ -183,6 +205,7 @@ class TilesetWriter:
 
     def close(self) -> None:
         self.db.close()
+        self._hold.close()
 
     # --- internals -----------------------------------------------------------------------
 
@@ -319,6 +342,11 @@ class TilesetProvider:
         if not self.manifest.get("complete"):
             done, total = db.execute("SELECT SUM(done), COUNT(*) FROM plan").fetchone()
             self.close()
+            if being_written(self.path):
+                raise TilesetError(
+                    f"{self.name}: a build is writing it now ({int(done or 0)} of "
+                    f"{int(total or 0)} tiles made); open it when the build has finished"
+                )
             raise TilesetError(
                 f"{self.name}: its build stopped at {int(done or 0)} of {int(total or 0)} "
                 "tiles; run the same lodscape build again to finish it"
