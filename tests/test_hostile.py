@@ -129,7 +129,33 @@ def _millimetre_pixels(folder: Path) -> list[str]:
     return ["build", dem, "-o", str(folder / "out.lods")]
 
 
+def _truncated_imagery(folder: Path) -> list[str]:
+    data = np.random.default_rng(3).integers(0, 255, (3, 200, 200), dtype=np.uint16)
+    path = folder / "ortho.tif"
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=200,
+        height=200,
+        count=3,
+        dtype="uint16",
+        crs="EPSG:32617",
+        transform=Affine(2.0, 0.0, EAST, 0.0, -2.0, NORTH),
+    ) as dst:
+        dst.write(data)
+    path.write_bytes(path.read_bytes()[:40_000])
+    return ["render", _dem(folder), "--imagery", str(path), "-o", str(folder / "out.png")]
+
+
+def _text_dem(folder: Path) -> list[str]:
+    (folder / "dem.tif").write_text("elevation,100\n")
+    return ["render", str(folder / "dem.tif"), "-o", str(folder / "out.png")]
+
+
 CASES = {
+    "truncated 16-bit orthophoto": (_truncated_imagery, "ortho.tif: cannot be read"),
+    "a DEM that is a text file": (_text_dem, "dem.tif: not a raster"),
     "pixels of 1 mm": (_millimetre_pixels, "ask for level 27"),
     "imagery cache that is a file": (_cache_is_a_file, "cache"),
     "UTM metres labelled EPSG:4326": (_metres_labelled_degrees, "CRS is probably wrong"),

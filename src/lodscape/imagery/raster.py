@@ -70,7 +70,12 @@ class RasterImagery:
             )
             #: Web Mercator metres per pixel at the raster's middle.
             self.resolution_merc = _merc_resolution(src)
-            self._stretch = _stretch(src, self._bands) if src.dtypes[0] != "uint8" else None
+            try:
+                self._stretch = _stretch(src, self._bands) if src.dtypes[0] != "uint8" else None
+            except ImageryError:
+                raise
+            except Exception as exc:  # a damaged or truncated file fails at its first read
+                raise ImageryError(f"{self.name}: cannot be read ({_cause(exc)})") from None
             self.size = (src.width, src.height)
             #: A large raster with no overviews: its coarse levels read all of it, slowly.
             self.needs_overviews = max(src.width, src.height) > 4096 and not src.overviews(1)
@@ -105,8 +110,7 @@ class RasterImagery:
             raise
         except Exception as exc:  # a damaged block, a read error: name the file and the tile
             raise ImageryError(
-                f"{self.name}: tile {z}/{x}/{y} could not be read ({type(exc).__name__}: {exc})",
-                "read",
+                f"{self.name}: tile {z}/{x}/{y} could not be read ({_cause(exc)})", "read"
             ) from None
         return b"" if rgba is None else rgba.tobytes()
 
@@ -267,6 +271,13 @@ def _band_plan(src: Any) -> tuple[list[int], NDArray[np.uint8] | None]:
     if len(colour) >= 3:
         return colour[:3], None
     return colour[:1] or [0], None
+
+
+def _cause(exc: BaseException) -> str:
+    """GDAL's own reason, in one line (rasterio's "Read failed. See previous exception" chains
+    it as the cause)."""
+    cause = exc.__cause__ or exc.__context__ or exc
+    return " ".join(str(cause).split())
 
 
 def _stretch(src: Any, bands: list[int]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:

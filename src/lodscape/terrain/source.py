@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import threading
 import warnings
 from collections.abc import Iterator, Sequence
@@ -621,7 +622,8 @@ class RasterSource(_GridSource):
         except Exception as exc:  # rasterio/GDAL raise several unrelated classes here
             if not self.path.startswith("/vsi") and not os.path.exists(self.path):
                 raise SourceError(f"{name}: no such file") from None
-            reason = _one_line(exc).replace(f"'{self.path}' ", "").replace(self.path, "file")
+            # the message names the file, as the error's start does already
+            reason = re.sub(r"^.*?'" + re.escape(self.path) + r"'\s*", "", _one_line(exc))
             raise SourceError(f"{name}: not a raster that GDAL can read ({reason})") from None
         try:
             self._init_dataset(name, band)
