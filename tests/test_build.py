@@ -256,6 +256,32 @@ def test_processes_and_dask_make_the_same_tiles_as_threads(
     assert _tiles(dask) == want
 
 
+def _descendants(pid: int) -> set[int]:
+    """Every process under ``pid`` (Linux /proc; empty elsewhere)."""
+    parents: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    out: set[int] = set()
+    frontier = {pid}
+    while frontier:
+        frontier = {c for c, p in parents.items() if p in frontier} - out
+        out |= frontier
+    return out
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, dead and not yet reaped by init, does not)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
 def test_a_killed_build_resumes_without_redoing_tiles(tmp_path: Path) -> None:
     big = write_dem(
         str(tmp_path / "big.tif"),
@@ -280,6 +306,7 @@ def test_a_killed_build_resumes_without_redoing_tiles(tmp_path: Path) -> None:
     ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     done = 0
+    children: set[int] = set()
     deadline = time.monotonic() + 120
     try:
         while time.monotonic() < deadline and proc.poll() is None:
@@ -293,10 +320,18 @@ def test_a_killed_build_resumes_without_redoing_tiles(tmp_path: Path) -> None:
                 if done and 0 < done < total // 2:
                     break
     finally:
+        children = _descendants(proc.pid)
         proc.send_signal(signal.SIGKILL)
         proc.wait()
     assert proc.returncode == -signal.SIGKILL, "the build finished before it could be killed"
     assert done
+    if sys.platform.startswith("linux"):
+        # the pool's worker and multiprocessing's resource tracker end with the build
+        assert children, "the build's worker process was not seen"
+        gone = time.monotonic() + 15
+        while time.monotonic() < gone and any(_alive(c) for c in children):
+            time.sleep(0.2)
+        assert not [c for c in children if _alive(c)], "a worker outlived the killed build"
     with pytest.raises(TilesetError, match="stopped at"):
         TilesetProvider(out)
     with closing(sqlite3.connect(out)) as db:

@@ -46,7 +46,12 @@ class PoolExecutor:
         self.workers = workers
         self.label = f"{'processes' if processes else 'threads'} ×{workers}"
         self._pool: Executor = (
-            ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+            ProcessPoolExecutor(
+                workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_die_with_parent,
+                initargs=(os.getpid(),),
+            )
             if processes
             else ThreadPoolExecutor(workers, thread_name_prefix="lodscape-build")
         )
@@ -72,6 +77,24 @@ class PoolExecutor:
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _die_with_parent(parent: int) -> None:
+    """In a pool worker: end this process when the build that started it is gone (a SIGKILLed
+    build cannot shut its pool down; its workers, each holding a DEM open and hundreds of MB,
+    would otherwise live on, and multiprocessing's resource tracker with them). A daemon thread
+    polls the parent's pid, which changes when the orphan is re-parented; portable, and, unlike
+    PR_SET_PDEATHSIG, not tied to the parent thread that spawned the worker."""
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    if os.getppid() == parent:
+        threading.Thread(target=watch, name="lodscape-parent-watch", daemon=True).start()
 
 
 class DaskExecutor:
