@@ -6,9 +6,12 @@ from __future__ import annotations
 import asyncio
 import gzip
 import json
+import shutil
 import socket
 import sqlite3
 import struct
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -299,3 +302,175 @@ def test_cli_refuses_what_is_not_a_tileset(
     code, _, err = run_cli(["serve", str(tmp_path / "none.lods")], capsys)
     assert code == 2
     assert "no such file" in err
+
+
+def _digits(n: int, zero: int) -> str:
+    """``n`` written with the digits of another script (``zero`` is its 0's code point)."""
+    return "".join(chr(zero + int(d)) for d in str(n))
+
+
+def test_a_tile_has_one_name(server: str, site: Path) -> None:
+    """Only ASCII digits without leading zeros name a tile (fullwidth, Arabic-Indic and
+    Devanagari digits, and 01126 for 1126, aliased real tiles)."""
+    z, x, y = _some_tile(site, "terrain")
+    with httpx.Client(base_url=server) as c:
+        assert c.get(f"/{z}/{x}/{y}.terrain").status_code == 200
+        for zero in (0xFF10, 0x0660, 0x0966):
+            alias = httpx.URL(server + f"/{_digits(z, zero)}/{x}/{y}.terrain")
+            assert c.get(alias).status_code == 404, hex(zero)
+        assert c.get(f"/{z}/0{x}/{y}.terrain").status_code == 404
+        assert c.get(f"/0{z}/{x}/{y}.terrain").status_code == 404
+        assert c.get("/0/0/0.terrain").status_code == 200  # a lone 0 is a number
+
+
+@pytest.mark.parametrize(
+    ("accept", "gzipped"),
+    [
+        ("gzip", True),
+        ("gzip;q=0.5, identity", True),
+        ("*", True),
+        ("gzip;q=0", False),
+        ("gzip; q=0.000", False),
+        ("nogzip", False),
+        ("deflate, br", False),
+        ("identity", False),
+        ("*;q=0", False),
+        ("x-gzip", True),
+    ],
+)
+def test_accept_encoding_is_read_with_its_q_values(
+    server: str, site: Path, accept: str, gzipped: bool
+) -> None:
+    z, x, y = _some_tile(site, "terrain")
+    with httpx.Client(base_url=server) as c:
+        for path in ("/layer.json", f"/{z}/{x}/{y}.terrain"):
+            r = c.get(path, headers={"Accept-Encoding": accept})
+            assert r.status_code == 200
+            assert (r.headers.get("content-encoding") == "gzip") == gzipped, (path, accept)
+
+
+def test_etags_name_the_bytes_sent_and_conditionals_are_honoured(server: str, site: Path) -> None:
+    z, x, y = _some_tile(site, "terrain")
+    with httpx.Client(base_url=server) as c:
+        for path in ("/layer.json", f"/{z}/{x}/{y}.terrain"):
+            gz = c.get(path, headers={"Accept-Encoding": "gzip"})
+            plain = c.get(path, headers={"Accept-Encoding": "identity"})
+            assert gz.headers["etag"] != plain.headers["etag"], path  # two bodies, two tags
+            tag = gz.headers["etag"]
+            for inm in (tag, f"W/{tag}", f'"other", {tag}', "*", f'W/"x", W/{tag}'):
+                r = c.get(path, headers={"Accept-Encoding": "gzip", "If-None-Match": inm})
+                assert r.status_code == 304, (path, inm)
+                assert r.headers["vary"] == "Accept-Encoding"
+                assert r.headers["etag"] == tag
+            # the plain body's client holding the gzip body's tag gets the plain body
+            r = c.get(path, headers={"Accept-Encoding": "identity", "If-None-Match": tag})
+            assert r.status_code == 200
+            assert r.content == plain.content
+            r = c.get(path, headers={"Accept-Encoding": "gzip", "If-None-Match": '"other"'})
+            assert r.status_code == 200
+
+
+def test_preflight_only_for_routes_that_exist(server: str) -> None:
+    with httpx.Client(base_url=server) as c:
+        ok = c.options("/3/1/2.terrain", headers={"Origin": "http://example.org"})
+        assert ok.status_code == 204
+        assert ok.headers["access-control-allow-origin"] == "*"
+        for path in ("/nothing", "/3/1/2.png", "/imagery/3/1/x.png", "/site.lods"):
+            assert c.options(path).status_code == 404, path
+
+
+def _city_add_paused(tileset: Path) -> subprocess.Popen[bytes]:
+    """``city add`` stopped (SIGSTOP) in the middle of its transaction, its page cache made tiny
+    so that its pages spill to the file (a big city's do): in rollback-journal mode that is an
+    exclusive lock that every reader waits on."""
+    code = (
+        "import os, signal, sqlite3, sys, shapely\n"
+        "from lodscape.cli import main\n"
+        "connect = sqlite3.connect\n"
+        "def small_cache(*a, **k):\n"
+        "    db = connect(*a, **k)\n"
+        "    db.execute('PRAGMA cache_size=1')\n"
+        "    return db\n"
+        "sqlite3.connect = small_cache\n"
+        "real, calls = shapely.to_wkb, [0]\n"
+        "def to_wkb(*a, **k):\n"
+        "    calls[0] += 1\n"
+        "    if calls[0] == 20:\n"
+        "        sys.stdout.write('paused\\n'); sys.stdout.flush()\n"
+        "        os.kill(os.getpid(), signal.SIGSTOP)\n"
+        "    return real(*a, **k)\n"
+        "shapely.to_wkb = to_wkb\n"
+        "main(['city', 'add', sys.argv[1], sys.argv[2], '--name', 'second'])\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(tileset), str(sample_city_path())],
+        stdout=subprocess.PIPE,
+    )
+    assert proc.stdout is not None
+    assert proc.stdout.readline() == b"paused\n"
+    return proc
+
+
+def _serve_process(tileset: Path, port: int) -> subprocess.Popen[str]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "lodscape.cli", "serve", str(tileset), "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    assert line.startswith("serving "), (line, proc.stderr.read() if proc.poll() else "")
+    return proc
+
+
+def test_serve_as_a_process_never_waits_for_a_writer(site: Path, tmp_path: Path) -> None:
+    """``lodscape serve`` on a real port while ``city add`` holds its write transaction open:
+    every request answers at once (it waited 5 s, then 500 "database is locked", and even the
+    in-memory layer.json queued behind); a malformed request logs one line, no traceback."""
+    copy = tmp_path / "site.lods"
+    shutil.copy(site, copy)
+    port = _free_port()
+    server = _serve_process(copy, port)
+    writer = None
+    try:
+        base = f"http://127.0.0.1:{port}"
+        z, x, y = _some_tile(copy, "terrain")
+        with httpx.Client(base_url=base, timeout=5.0) as c:
+            assert c.get(f"/{z}/{x}/{y}.terrain").status_code == 200
+            writer = _city_add_paused(copy)
+            for path in ("/layer.json", f"/{z}/{x}/{y}.terrain", "/imagery.json", "/"):
+                t = time.perf_counter()
+                r = c.get(path)
+                assert r.status_code == 200, (path, r.status_code)
+                assert time.perf_counter() - t < 1.0, path
+        with socket.create_connection(("127.0.0.1", port)) as raw:
+            raw.sendall(b"GET /layer.json HTTP/1.1\r\nHost: x\r\nContent-Length: nope\r\n\r\n")
+            assert b" 400 " in raw.recv(100).split(b"\r\n")[0]
+    finally:
+        if writer is not None:
+            writer.kill()
+            writer.communicate()
+        server.terminate()
+        _, err = server.communicate(timeout=30)
+    assert "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err  # the malformed request, in one line
+    assert lines[0].startswith("lodscape serve: "), err
+    assert "Content-Length" in lines[0], err
+
+
+def test_serve_says_serving_only_once_it_listens(
+    site: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from _synthetic import run_cli
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        code, out, err = run_cli(["serve", str(site), "--port", str(port)], capsys)
+    assert code == 2
+    assert "serving" not in out
+    assert err.count("\n") == 1, err
+    assert f"127.0.0.1:{port}" in err, err

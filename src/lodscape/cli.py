@@ -1082,8 +1082,12 @@ def serve(
 
     if not 0 < port < 65536:
         raise LodscapeError(f"--port must be within 1..65535, got {port}")
-    typer.echo(f"serving {tileset} on http://{host}:{port}/ (Ctrl-C stops)")
-    run(tileset, host, port)
+    run(
+        tileset,
+        host,
+        port,
+        ready=lambda url: typer.echo(f"serving {tileset} on {url} (Ctrl-C stops)"),
+    )
 
 
 @app.command()

@@ -10,10 +10,16 @@ Routes:
   1.1, when the tileset holds a city (made at the first request, then kept): groups of box
   models, each replaced by its full buildings up close.
 
-Every answer carries CORS headers and an ETag (a ``If-None-Match`` that matches gets 304);
-JSON and glTF are gzipped when the client accepts it. A path that is not one of these exactly,
-with numbers in range, is 404: the routes match digits only, so nothing outside the tileset can
-be named.
+Every answer carries CORS headers and a strong ETag of the bytes sent (the gzipped and the
+plain body differ, and so do their tags; ``If-None-Match`` with a list, weak tags or ``*`` is
+honoured with 304, which carries ``Vary`` too). JSON and glTF are gzipped when the client's
+``Accept-Encoding`` allows gzip (q-values read: ``gzip;q=0`` refuses it). A path that is not one
+of these exactly, with ASCII numbers in range and without leading zeros, is 404: nothing outside
+the tileset can be named, and no tile has two names.
+
+SQLite reads run on a pool of threads, each with its own read-only connection, never on the
+event loop: a request never waits for another's read, and a writer (``city add`` keeps a
+write-ahead log) never blocks the readers.
 """
 
 from __future__ import annotations
@@ -22,10 +28,14 @@ import asyncio
 import gzip
 import hashlib
 import json
+import logging
+import sqlite3
+import sys
 import threading
 from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from lodscape.store.export import cesium_layer
 from lodscape.store.manifest import connect_readonly
@@ -42,6 +52,10 @@ CORS = {
 }
 #: Deepest level any route accepts (Web Mercator tiles stop being meaningful well before).
 MAX_ZOOM = 30
+#: Threads reading the tileset (each with its own SQLite connection).
+READERS = 8
+
+T = TypeVar("T")
 
 
 class TileService:
@@ -52,15 +66,34 @@ class TileService:
         provider = TilesetProvider(self.path)  # refuses what is not a complete tileset
         self.manifest = provider.manifest
         self._provider = provider
-        self._db = connect_readonly(self.path)
+        self._local = threading.local()
         self._lock = threading.Lock()
-        layer, self._flat = cesium_layer(self._db, self.manifest, self.path.stem)
+        self._connections: list[sqlite3.Connection] = []
+        self._pool = ThreadPoolExecutor(READERS, thread_name_prefix="lodscape-serve")
+        layer, self._flat = cesium_layer(self._db(), self.manifest, self.path.stem)
         self.layer = json.dumps(layer, indent=1).encode()
         self._tiles3d: tuple[bytes, list[bytes]] | None = None
         self.has_city = bool(provider.cities())
 
+    def _db(self) -> sqlite3.Connection:
+        """This thread's read-only connection."""
+        db: sqlite3.Connection | None = getattr(self._local, "db", None)
+        if db is None:
+            db = self._local.db = connect_readonly(self.path)
+            with self._lock:
+                self._connections.append(db)
+        return db
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` on a reader thread, awaited from the event loop."""
+        return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+
     def close(self) -> None:
-        self._db.close()
+        self._pool.shutdown(wait=True)
+        with self._lock:
+            for db in self._connections:
+                db.close()
+            self._connections.clear()
         self._provider.close()
 
     def terrain(self, z: int, x: int, tms: int) -> bytes | None:
@@ -70,31 +103,36 @@ class TileService:
         flat = self._flat.get((z, x, tms))
         if flat is not None:
             return gzip.compress(flat, mtime=0)
-        with self._lock:
-            row = self._db.execute(
+        row = (
+            self._db()
+            .execute(
                 "SELECT data FROM terrain WHERE z = ? AND x = ? AND y = ?",
                 (z, x, (1 << z) - 1 - tms),
-            ).fetchone()
+            )
+            .fetchone()
+        )
         return None if row is None else bytes(row[0])
 
     def imagery(self, z: int, x: int, y: int) -> bytes | None:
         """PNG of imagery tile z/x/y (OSM rows), or None."""
         if not (0 <= z <= MAX_ZOOM and 0 <= x < (1 << z) and 0 <= y < (1 << z)):
             return None
-        with self._lock:
-            row = self._db.execute(
+        row = (
+            self._db()
+            .execute(
                 "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
                 "AND tile_row = ?",
                 (z, x, (1 << z) - 1 - y),
-            ).fetchone()
+            )
+            .fetchone()
+        )
         return None if row is None else bytes(row[0])
 
     def tilejson(self, base: str) -> dict[str, object]:
         """The imagery's TileJSON, its tiles under ``base`` (scheme and host)."""
         from lodscape.store.export import imagery_tilejson
 
-        with self._lock:
-            return imagery_tilejson(self._db, self.path.stem, base + "/imagery/{z}/{x}/{y}.png")
+        return imagery_tilejson(self._db(), self.path.stem, base + "/imagery/{z}/{x}/{y}.png")
 
     def tiles3d(self) -> tuple[bytes, list[bytes]] | None:
         """(tileset.json, glb contents) of the stored cities, or None without a city."""
@@ -111,6 +149,44 @@ class TileService:
             return self._tiles3d
 
 
+def accepts_gzip(header: str) -> bool:
+    """Whether an ``Accept-Encoding`` header allows gzip (RFC 9110 §12.5.3: q-values, ``*``,
+    ``identity``; ``gzip;q=0`` refuses it, ``nogzip`` does not name it)."""
+    gz = star = None
+    for part in header.split(","):
+        name, _, params = part.strip().partition(";")
+        name = name.strip().lower()
+        q = 1.0
+        for param in params.split(";"):
+            key, _, value = param.strip().partition("=")
+            if key.strip().lower() == "q":
+                try:
+                    q = float(value)
+                except ValueError:
+                    q = 0.0
+        if name in ("gzip", "x-gzip"):
+            gz = q if gz is None else max(gz, q)
+        elif name == "*":
+            star = q
+    if gz is not None:
+        return gz > 0.0
+    return star is not None and star > 0.0
+
+
+def etag_matches(header: str, etag: str) -> bool:
+    """Whether ``If-None-Match`` names ``etag``: ``*``, or a list of (weak or strong) tags,
+    compared weakly as RFC 9110 §13.1.2 has it for GET."""
+    if header.strip() == "*":
+        return True
+    tags = [t.strip() for t in header.split(",")]
+    return any(t.removeprefix("W/") == etag for t in tags if t)
+
+
+#: Route numbers: ASCII digits, no leading zero (``\d`` takes any Unicode digit, and ``int``
+#: reads fullwidth and Devanagari ones: ``/１２/…`` and ``/12/01126/…`` named real tiles).
+_NUMBER = r"(?:0|[1-9][0-9]{0,9})"
+
+
 def make_app(service: TileService) -> Any:
     """The aiohttp application serving ``service``."""
     from aiohttp import web
@@ -120,6 +196,12 @@ def make_app(service: TileService) -> Any:
     @web.middleware
     async def cors(request: web.Request, handler: Handler) -> web.StreamResponse:
         if request.method == "OPTIONS":
+            # a preflight for a route that exists; any other path is 404 as for GET
+            match = await request.app.router.resolve(
+                request.clone(method="GET")  # type: ignore[no-untyped-call]
+            )
+            if match.http_exception is not None:
+                raise web.HTTPNotFound(headers=CORS)
             return web.Response(status=204, headers=CORS)
         try:
             response = await handler(request)
@@ -137,20 +219,27 @@ def make_app(service: TileService) -> Any:
         gzipped: bool = False,
         compress: bool = False,
     ) -> web.Response:
-        etag = '"' + hashlib.sha1(body).hexdigest()[:20] + '"'
-        headers = {"ETag": etag, "Cache-Control": "public, max-age=3600"}
-        if request.headers.get("If-None-Match") == etag:
-            return web.Response(status=304, headers=headers)
-        accepts = "gzip" in request.headers.get("Accept-Encoding", "")
+        gz = accepts_gzip(request.headers.get("Accept-Encoding", ""))
+        encoded = False
         if gzipped:
-            if accepts:
-                headers["Content-Encoding"] = "gzip"
+            if gz:
+                encoded = True
             else:
                 body = ungzip(body)
-        elif compress and accepts and len(body) > 512:
+        elif compress and gz and len(body) > 512:
             body = gzip.compress(body, mtime=0)
+            encoded = True
+        # a strong tag names the bytes sent: the gzipped and the plain body have their own
+        etag = '"' + hashlib.sha1(body).hexdigest()[:20] + ('-gz"' if encoded else '"')
+        headers = {
+            "ETag": etag,
+            "Cache-Control": "public, max-age=3600",
+            "Vary": "Accept-Encoding",
+        }
+        if etag_matches(request.headers.get("If-None-Match", ""), etag):
+            return web.Response(status=304, headers=headers)
+        if encoded:
             headers["Content-Encoding"] = "gzip"
-        headers["Vary"] = "Accept-Encoding"
         return web.Response(body=body, headers=headers, content_type=content_type)
 
     def ints(request: web.Request, *names: str) -> list[int]:
@@ -176,37 +265,37 @@ def make_app(service: TileService) -> Any:
 
     async def terrain(request: web.Request) -> web.Response:
         z, x, y = ints(request, "z", "x", "y")
-        data = service.terrain(z, x, y)
+        data = await service.run(service.terrain, z, x, y)
         if data is None:
             raise web.HTTPNotFound()
         return reply(request, data, "application/vnd.quantized-mesh", gzipped=True)
 
     async def imagery(request: web.Request) -> web.Response:
         z, x, y = ints(request, "z", "x", "y")
-        data = service.imagery(z, x, y)
+        data = await service.run(service.imagery, z, x, y)
         if data is None:
             raise web.HTTPNotFound()
         return reply(request, data, "image/png")
 
     async def tilejson(request: web.Request) -> web.Response:
-        body = json.dumps(service.tilejson(f"{request.scheme}://{request.host}")).encode()
-        return reply(request, body, "application/json", compress=True)
+        made = await service.run(service.tilejson, f"{request.scheme}://{request.host}")
+        return reply(request, json.dumps(made).encode(), "application/json", compress=True)
 
     async def tileset(request: web.Request) -> web.Response:
-        made = await asyncio.get_running_loop().run_in_executor(None, service.tiles3d)
+        made = await service.run(service.tiles3d)
         if made is None:
             raise web.HTTPNotFound()
         return reply(request, made[0], "application/json", compress=True)
 
     async def content(request: web.Request) -> web.Response:
         (i,) = ints(request, "i")
-        made = await asyncio.get_running_loop().run_in_executor(None, service.tiles3d)
+        made = await service.run(service.tiles3d)
         if made is None or not 0 <= i < len(made[1]):
             raise web.HTTPNotFound()
         return reply(request, made[1][i], "model/gltf-binary", compress=True)
 
     app = web.Application(middlewares=[cors])
-    num = r"{%s:\d{1,10}}"
+    num = "{%s:" + _NUMBER + "}"
     app.router.add_get("/", index)
     app.router.add_get("/layer.json", layer)
     app.router.add_get(f"/{num % 'z'}/{num % 'x'}/{num % 'y'}.terrain", terrain)
@@ -217,12 +306,64 @@ def make_app(service: TileService) -> Any:
     return app
 
 
-def run(path: str | Path, host: str = "127.0.0.1", port: int = 8000) -> None:
-    """Serve the tileset until interrupted."""
+class _OneLine(logging.Formatter):
+    """aiohttp's server errors (a malformed request, a client gone mid-answer) as one line on
+    stderr, without the traceback aiohttp attaches."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        reason = ""
+        if record.exc_info and record.exc_info[1] is not None:
+            exc = record.exc_info[1]
+            reason = f": {type(exc).__name__}: {' '.join(str(exc).split())}"[:300]
+        return f"lodscape serve: {record.getMessage()}{reason}"
+
+    def formatException(self, ei: Any) -> str:
+        return ""
+
+
+def _quiet_server_logs() -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_OneLine())
+    for name in ("aiohttp.server", "aiohttp.web", "aiohttp.internal"):
+        log = logging.getLogger(name)
+        log.handlers[:] = [handler]
+        log.propagate = False
+
+
+def run(
+    path: str | Path,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    *,
+    ready: Callable[[str], None] | None = None,
+) -> None:
+    """Serve the tileset until interrupted; ``ready(url)`` once the port is bound (not before:
+    a bad file or a busy port fails first, and nothing says "serving")."""
     from aiohttp import web
 
-    service = TileService(path)
+    from lodscape.errors import LodscapeError
+
+    service = TileService(path)  # a file that is not a complete tileset fails here
+    _quiet_server_logs()
+
+    async def main() -> None:
+        runner = web.AppRunner(make_app(service), access_log=None)
+        await runner.setup()
+        try:
+            await web.TCPSite(runner, host, port, backlog=1024).start()
+        except OSError as exc:
+            raise LodscapeError(
+                f"cannot listen on {host}:{port} ({exc.strerror or exc}); "
+                "is another server there? choose another --port"
+            ) from None
+        if ready is not None:
+            ready(f"http://{host}:{port}/")
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await runner.cleanup()
+
     try:
-        web.run_app(make_app(service), host=host, port=port, print=None)
+        asyncio.run(main())
     finally:
         service.close()
