@@ -1,13 +1,14 @@
 """``lodscape serve`` under load on loopback: requests per second and errors.
 
-    python bench/bench_serve.py [--requests 20000] [--concurrency 64]
+    python bench/bench_serve.py [--requests 20000] [--concurrency 64] [--connections 64 500]
 
 A tileset built from a 1025² fBm DEM (10 m, UTM 17N), served by ``lodscape serve`` in its own
 process; a Python client (httpx, asyncio) in this process asks for a mix of routes: terrain
 tiles of every level (gzipped, as Cesium asks), imagery tiles, layer.json and absent tiles
 (404). Reported:
 requests/s, errors (anything but the expected status), and latency percentiles. Where wrk is
-installed (Debian: wrk), the same server under wrk over the routes that exist.
+installed (Debian: wrk), the same server under wrk over the routes that exist, once per
+``--connections`` count (the goal: p99 under 1 s at 500 connections).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--requests", type=int, default=20000)
     ap.add_argument("--concurrency", type=int, default=64)
+    ap.add_argument("--connections", type=int, nargs="+", default=[64, 500])
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         dem = write_dem(
@@ -85,7 +87,8 @@ def main() -> None:
                 _load(base, routes, args.requests, args.concurrency)
             )
             if shutil.which("wrk"):
-                print(_wrk(base, [p for p, want in routes if want == 200], Path(tmp)))
+                for n in args.connections:
+                    print(_wrk(base, [p for p, want in routes if want == 200], Path(tmp), n))
         finally:
             server.terminate()
             server.wait(10)
@@ -99,9 +102,9 @@ def main() -> None:
     assert ok + errors == args.requests
 
 
-def _wrk(base: str, paths: list[str], tmp: Path) -> str:
-    """The same server under wrk (2 threads, 64 connections, 10 s) over the routes that
-    exist, gzip accepted: what the server does when the client is not Python."""
+def _wrk(base: str, paths: list[str], tmp: Path, connections: int) -> str:
+    """The same server under wrk (2 threads, ``connections`` connections, 10 s) over the routes
+    that exist, gzip accepted: what the server does when the client is not Python."""
     script = tmp / "routes.lua"
     listed = ",".join(f'"{p}"' for p in paths)
     script.write_text(
@@ -110,7 +113,8 @@ def _wrk(base: str, paths: list[str], tmp: Path) -> str:
         "end\n"
     )
     out = subprocess.run(
-        ["wrk", "-t2", "-c64", "-d10s", "--latency", "-s", str(script), base],
+        ["wrk", "-t2", f"-c{connections}", "-d10s", "--latency", "--timeout", "10s"]
+        + ["-s", str(script), base],
         capture_output=True,
         text=True,
         check=True,
@@ -121,7 +125,7 @@ def _wrk(base: str, paths: list[str], tmp: Path) -> str:
         if line.strip().startswith(("Requests/sec", "Non-2xx", "Socket errors", "50%", "99%"))
         or "requests in" in line
     ]
-    return "wrk: " + "; ".join(keep) + ("" if "Non-2xx" in out else "; 0 non-2xx")
+    return f"wrk, {connections} connections: " + "; ".join(keep) + ("" if "Non-2xx" in out else "; 0 non-2xx")
 
 
 async def _load(

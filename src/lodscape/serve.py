@@ -37,6 +37,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, TypeVar
 
+from lodscape._lru import ByteLRU
 from lodscape.store.export import cesium_layer
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import ungzip
@@ -53,7 +54,10 @@ CORS = {
 #: Deepest level any route accepts (Web Mercator tiles stop being meaningful well before).
 MAX_ZOOM = 30
 #: Threads reading the tileset (each with its own SQLite connection).
-READERS = 8
+READERS = 4
+#: Tile bytes kept in memory, answered from the event loop without a thread hop (a tileset's
+#: tiles never change once built; a city add touches only the city's tables).
+HOT_BYTES = 64 << 20
 
 T = TypeVar("T")
 
@@ -70,6 +74,7 @@ class TileService:
         self._lock = threading.Lock()
         self._connections: list[sqlite3.Connection] = []
         self._pool = ThreadPoolExecutor(READERS, thread_name_prefix="lodscape-serve")
+        self._hot: ByteLRU[tuple[str, int, int, int], bytes | None] = ByteLRU()
         layer, self._flat = cesium_layer(self._db(), self.manifest, self.path.stem)
         self.layer = json.dumps(layer, indent=1).encode()
         self._tiles3d: tuple[bytes, list[bytes]] | None = None
@@ -87,6 +92,17 @@ class TileService:
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """``fn(*args)`` on a reader thread, awaited from the event loop."""
         return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+
+    async def tile(self, kind: str, z: int, x: int, y: int) -> bytes | None:
+        """``terrain`` (TMS row) or ``imagery`` (OSM row) bytes, from memory where they were read
+        lately, else from a reader thread. Event loop only (the memory is not locked)."""
+        key = (kind, z, x, y)
+        if key in self._hot:
+            return self._hot.get(key)
+        data = await self.run(self.terrain if kind == "terrain" else self.imagery, z, x, y)
+        self._hot.put(key, data, 64 + (0 if data is None else len(data)))
+        self._hot.shrink(HOT_BYTES)
+        return data
 
     def close(self) -> None:
         self._pool.shutdown(wait=True)
@@ -265,14 +281,14 @@ def make_app(service: TileService) -> Any:
 
     async def terrain(request: web.Request) -> web.Response:
         z, x, y = ints(request, "z", "x", "y")
-        data = await service.run(service.terrain, z, x, y)
+        data = await service.tile("terrain", z, x, y)
         if data is None:
             raise web.HTTPNotFound()
         return reply(request, data, "application/vnd.quantized-mesh", gzipped=True)
 
     async def imagery(request: web.Request) -> web.Response:
         z, x, y = ints(request, "z", "x", "y")
-        data = await service.run(service.imagery, z, x, y)
+        data = await service.tile("imagery", z, x, y)
         if data is None:
             raise web.HTTPNotFound()
         return reply(request, data, "image/png")
