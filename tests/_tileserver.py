@@ -4,7 +4,9 @@ Each tile is a flat colour made from z/x/y (so a picture shows which tile it cam
 are set per tile with ``server.faults[(z, x, y)] = [...]`` (consumed one per request) or for every
 tile with ``server.default_fault``: "404", "500", "slow" (sleeps ``server.delay`` seconds),
 "truncated" (promises more bytes than it sends), "truncated-png" (a whole answer holding half
-a PNG), "garbage" (200 with a body that is no image).
+a PNG), "garbage" (200 with a body that is no image), "trickle" (the headers at once, then the
+body 64 bytes every ``server.delay`` seconds), "trickle-headers" (the headers themselves a line
+every ``server.delay`` seconds), "bomb" (a valid PNG of 12000² pixels, ~20 KB).
 Responses carry an ETag and Cache-Control: max-age=``server.max_age``; If-None-Match gets 304.
 """
 
@@ -25,6 +27,20 @@ __all__ = ["TileServer", "tile_colour"]
 def tile_colour(z: int, x: int, y: int) -> tuple[int, int, int]:
     h = hashlib.sha1(f"{z}/{x}/{y}".encode()).digest()
     return h[0], h[1], h[2]
+
+
+_BOMB: list[bytes] = []
+
+
+def _bomb() -> bytes:
+    """A whole PNG of 12000×12000 one-bit pixels: small on the wire, 576 MB as RGBA."""
+    if not _BOMB:
+        from PIL import Image
+
+        buf = io.BytesIO()
+        Image.new("1", (12000, 12000)).save(buf, format="PNG")
+        _BOMB.append(buf.getvalue())
+    return _BOMB[0]
 
 
 def _png(colour: tuple[int, int, int], size: int = 256) -> bytes:
@@ -78,6 +94,31 @@ class TileServer:
                     return
                 if fault == "garbage":
                     body = b"<html>this is not an image</html>"
+                if fault == "bomb":
+                    body = _bomb()
+                if fault == "trickle-headers":
+                    self.wfile.write(b"HTTP/1.1 200 OK\r\n")
+                    for i in range(1000):
+                        time.sleep(server.delay)
+                        try:
+                            self.wfile.write(f"X-Slow-{i}: x\r\n".encode())
+                            self.wfile.flush()
+                        except OSError:
+                            return
+                    return
+                if fault == "trickle":
+                    self.send_response(200)
+                    self.send_header("Content-Type", "image/png")
+                    self.send_header("Content-Length", str(len(body)))
+                    self.end_headers()
+                    for i in range(0, len(body), 64):
+                        try:
+                            self.wfile.write(body[i : i + 64])
+                            self.wfile.flush()
+                        except OSError:
+                            return
+                        time.sleep(server.delay)
+                    return
                 self.send_response(200)
                 self.send_header("Content-Type", "image/png")
                 self.send_header("ETag", etag)

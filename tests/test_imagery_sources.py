@@ -216,9 +216,63 @@ def test_a_misbehaving_server_never_stalls_or_crashes_a_flight(
         assert len(rows) == 60
         assert sum(r["failed"] for r in rows) > 0
         assert sum(r["retried"] for r in rows) > 0
+        # the HTTP client's own retries (one per request here) are in the statistics too
+        assert rows[-1]["http_retries"] > 0
+        assert rows[-1]["http_requests"] >= 2 * rows[-1]["http_retries"] > 0
         assert all(r["stall_ms"] == 0 for r in rows[1:])
         # the server heals: its tiles arrive on retry
         server.default_fault = None
         healed = fly(scene, iter(cams), 30.0)
-        assert sum(r["fetched"] for r in healed) > 0
+        assert sum(r["fetched"] for r in healed) > 0, [
+            (r["failed"], r["imagery_failed"], r["requested"], r["http_requests"])
+            for r in healed[::10]
+        ]
     assert took < 60
+
+
+@pytest.mark.parametrize("fault", ["trickle", "trickle-headers"])
+def test_a_trickling_server_costs_a_tile_its_deadline_not_minutes(
+    server: TileServer, fault: str
+) -> None:
+    """64 bytes every 0.3 s (under any per-read timeout): the tile fails as a timeout once its
+    total deadline is spent, and is not retried past it."""
+    server.default_fault = fault
+    server.delay = 0.3
+    src = HttpSource(server.template, timeout=5.0, deadline=1.5, retries=3, backoff=0.01)
+    t = time.perf_counter()
+    with pytest.raises(ImageryError) as info:
+        src.fetch(4, 3, 2)
+    took = time.perf_counter() - t
+    assert info.value.kind == "timeout", str(info.value)
+    assert took < 1.5 + 2 * server.delay + 0.5, took
+    assert server.count(4, 3, 2) == 1
+
+
+def test_a_decompression_bomb_is_refused_from_its_header(
+    server: TileServer, tmp_path: Path
+) -> None:
+    """A 12000² PNG of ~20 KB: refused before decoding (576 MB as RGBA), counted as its own
+    kind of failure, not retried, never cached."""
+    import tracemalloc
+
+    server.default_fault = "bomb"
+    cache = TileCache(tmp_path / "cache.sqlite")
+    src = HttpSource(server.template, cache=cache, retries=3, backoff=0.01)
+    tracemalloc.start()
+    try:
+        with pytest.raises(ImageryError) as info:
+            src.fetch(5, 1, 1)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert info.value.kind == "too-large"
+    assert "12000×12000" in str(info.value)
+    assert peak < 50 << 20, peak
+    assert server.count(5, 1, 1) == 1
+    assert cache.get(src.url(5, 1, 1)) is None
+    # the same bytes in an MBTiles file or a folder are refused as well
+    from lodscape.imagery.sources import decode_image
+
+    body = src._client.get(src.url(5, 1, 1)).content
+    with pytest.raises(ImageryError, match="12000"):
+        decode_image(body, 256)

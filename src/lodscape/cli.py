@@ -720,12 +720,30 @@ def fly(
         )
         _mode_notice(scene)
     if not quiet:
-        after = [r for r in rows if r["time_s"] >= 1.0] or rows
-        typer.echo(
-            f"wrote {output}: {len(rows)} frames; after the first second "
-            f"{sum(r['fallback_max'] > 1 for r in after)} fell back more than one level, "
-            f"{sum(r['over_budget'] for r in after)} went over {1000 / fps:.1f} ms"
-        )
+        typer.echo(_flight_summary(output, rows, fps))
+
+
+def _flight_summary(output: Path, rows: list[dict[str, float]], fps: float) -> str:
+    """One line on a flight: every frame counted, frame 0 (the one that waits for the first
+    tiles) named, and the same counts after the first second."""
+    after = [r for r in rows if r["time_s"] >= 1.0]
+
+    def counts(rs: list[dict[str, float]]) -> str:
+        fell = sum(r["fallback_max"] > 1 for r in rs)
+        over = sum(r["over_budget"] for r in rs)
+        return f"{fell} fell back more than one level, {over} went over {1000 / fps:.1f} ms"
+
+    first = rows[0]
+    line = (
+        f"wrote {output}: {len(rows)} frames; frame 0 took {first['frame_cpu_ms']:.0f} ms "
+        f"(stalled {first['stall_ms']:.0f} ms); of all frames {counts(rows)}"
+    )
+    if after:
+        line += f"; after the first second {counts(after)}"
+    retries = max(r.get("http_retries", 0) for r in rows)
+    if retries:
+        line += f"; the imagery server needed {int(retries)} retries"
+    return line
 
 
 def _numbers(text: str, count: int, usage: str) -> list[float]:

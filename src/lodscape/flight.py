@@ -230,6 +230,9 @@ STAT_COLUMNS = (
     # imagery layers: tiles drawn with an ancestor's layer tile or none, failed layer tiles
     "layer_fallbacks",
     "imagery_failed",
+    # a tile server's HTTP requests and the HTTP client's own retries, since the flight began
+    "http_requests",
+    "http_retries",
 )
 
 #: The columns of ``fly --globe --stats``.

@@ -288,6 +288,11 @@ class Scene:
             return {}
         fails = self.imagery_failures()
         out = {"imagery_failed": sum(fails.values()), "imagery_missed": loader.missed}
+        # a tile server's own requests and retries (timeouts, 5xx, cut-short bodies), which the
+        # streamer's counts of tiles never see
+        fetchers = [layer.fetcher for layer in self.provider.layers]
+        out["http_requests"] = sum(int(getattr(f, "requests", 0)) for f in fetchers)
+        out["http_retries"] = sum(int(getattr(f, "retried", 0)) for f in fetchers)
         out.update((f"imagery_{k.replace('-', '_')}", n) for k, n in sorted(fails.items()))
         return out
 

@@ -20,8 +20,10 @@ import sqlite3
 import threading
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +42,11 @@ __all__ = [
 ]
 
 USER_AGENT = "lodscape/0.1 (terrain engine; +https://pypi.org/project/lodscape/)"
+#: The most pixels an imagery tile may have (4096²): a PNG of 12000² is 450 KB on the wire and
+#: 576 MB decoded. Larger tiles are refused from their header, before decoding.
+MAX_TILE_PIXELS = 4096 * 4096
+#: The largest imagery tile body taken over HTTP.
+MAX_TILE_BYTES = 32 << 20
 
 
 class ImageryError(LodscapeError):
@@ -83,13 +90,38 @@ class ImageryFetcher(Protocol):
     def close(self) -> None: ...
 
 
-def _check_image(data: bytes, what: str) -> bytes:
-    """The bytes, if Pillow reads them as a whole image; else ImageryError."""
+def _open_image(data: bytes, what: str) -> Any:
+    """Pillow's lazy image of ``data`` (only its header read), refused when it is larger than
+    ``MAX_TILE_PIXELS``: a decompression bomb never reaches the decoder."""
+    import warnings
+
     from PIL import Image
 
     try:
-        with Image.open(io.BytesIO(data)) as im:
+        with warnings.catch_warnings():
+            # the size is judged below, against a tile's limit, not Pillow's 89 M pixels
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(io.BytesIO(data))
+    except Image.DecompressionBombError as exc:
+        raise ImageryError(f"{what}: {exc}; not decoded", "too-large") from None
+    w, h = im.size
+    if w * h > MAX_TILE_PIXELS:
+        im.close()
+        raise ImageryError(
+            f"{what}: a tile of {w}×{h} pixels (the most taken is {MAX_TILE_PIXELS:,} pixels, "
+            "4096²); not decoded",
+            "too-large",
+        )
+    return im
+
+
+def _check_image(data: bytes, what: str) -> bytes:
+    """The bytes, if Pillow reads them as a whole image of a sane size; else ImageryError."""
+    try:
+        with _open_image(data, what) as im:
             im.load()
+    except ImageryError:
+        raise
     except Exception as exc:  # Pillow raises several unrelated classes on bad data
         raise ImageryError(
             f"{what}: not an image ({type(exc).__name__}: {exc})", "not-image"
@@ -99,10 +131,11 @@ def _check_image(data: bytes, what: str) -> bytes:
 
 def decode_image(data: bytes, size: int) -> NDArray[np.uint8]:
     """An encoded tile (PNG, JPEG, WebP; RGB, RGBA, grey or palette) as (size, size, 4) RGBA,
-    its transparency kept; resampled with a Lanczos filter when its size differs."""
+    its transparency kept; resampled with a Lanczos filter when its size differs. A tile over
+    ``MAX_TILE_PIXELS`` is refused before decoding (ImageryError "too-large")."""
     from PIL import Image
 
-    with Image.open(io.BytesIO(data)) as im:
+    with _open_image(data, "imagery tile") as im:
         rgba = im.convert("RGBA")
         if rgba.size != (size, size):
             rgba = rgba.resize((size, size), Image.Resampling.LANCZOS)
@@ -170,6 +203,75 @@ def _expires(headers: Mapping[str, str], now: float, default: float) -> float:
     return now + default
 
 
+class _Overdue(Exception):
+    """A request still going at its tile's deadline."""
+
+
+#: The monotonic time by which this thread's request must be over (``at``), where one is set.
+_DEADLINE = threading.local()
+
+
+def _bounded(timeout: float | None) -> float | None:
+    """A socket operation's timeout cut to this thread's request deadline."""
+    at: float | None = getattr(_DEADLINE, "at", None)
+    if at is None:
+        return timeout
+    left = at - time.monotonic()
+    if left <= 0.0:
+        import httpcore
+
+        raise httpcore.ReadTimeout("the tile's deadline passed")
+    return left if timeout is None else min(timeout, left)
+
+
+class _DeadlineStream:
+    """A network stream whose every read and write ends by the thread's request deadline, so a
+    server trickling its headers a line at a time cannot hold the request thread past it."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def read(self, max_bytes: int, timeout: float | None = None) -> bytes:
+        return bytes(self._stream.read(max_bytes, _bounded(timeout)))
+
+    def write(self, buffer: bytes, timeout: float | None = None) -> None:
+        self._stream.write(buffer, _bounded(timeout))
+
+    def close(self) -> None:
+        self._stream.close()
+
+    def start_tls(self, *args: Any, **kwargs: Any) -> _DeadlineStream:
+        return _DeadlineStream(self._stream.start_tls(*args, **kwargs))
+
+    def get_extra_info(self, info: str) -> Any:
+        return self._stream.get_extra_info(info)
+
+
+class _DeadlineBackend:
+    """httpcore's network backend with ``_DeadlineStream`` connections."""
+
+    def __init__(self, backend: Any) -> None:
+        self._backend = backend
+
+    def connect_tcp(self, *args: Any, **kwargs: Any) -> _DeadlineStream:
+        return _DeadlineStream(self._backend.connect_tcp(*args, **kwargs))
+
+    def connect_unix_socket(self, *args: Any, **kwargs: Any) -> _DeadlineStream:
+        return _DeadlineStream(self._backend.connect_unix_socket(*args, **kwargs))
+
+    def sleep(self, seconds: float) -> None:
+        self._backend.sleep(seconds)
+
+
+def _bound_by_deadlines(client: Any) -> None:
+    """Give the client's connection pool ``_DeadlineBackend`` (httpx exposes no setting for a
+    total deadline; where its internals differ, the request threads' wait still bounds a tile)."""
+    pool = getattr(getattr(client, "_transport", None), "_pool", None)
+    backend = getattr(pool, "_network_backend", None)
+    if backend is not None:
+        pool._network_backend = _DeadlineBackend(backend)  # type: ignore[union-attr]
+
+
 class HttpSource:
     """An XYZ URL template, e.g. ``https://{s}.tile.example.org/{z}/{x}/{y}.png``."""
 
@@ -212,6 +314,8 @@ class HttpSource:
             headers={"User-Agent": USER_AGENT},
             follow_redirects=True,
         )
+        _bound_by_deadlines(self._client)
+        self._requests = ThreadPoolExecutor(max_connections, thread_name_prefix="lodscape-http")
         self.requests = 0
         self.retried = 0
 
@@ -249,7 +353,13 @@ class HttpSource:
             self.requests += 1
             tries += 1
             try:
-                r = self._client.get(url, headers=headers)
+                r, data = self._get(url, headers, start)
+            except _Overdue:
+                last, kind = (
+                    f"no whole answer in {self.deadline:g} s (a trickling server)",
+                    "timeout",
+                )
+                break  # the tile's time is up: no retry can finish sooner
             except httpx.TimeoutException:
                 last, kind = f"no answer in {self.timeout:g} s", "timeout"
                 continue
@@ -259,6 +369,9 @@ class HttpSource:
                 continue
             except httpx.TransportError as exc:
                 last, kind = f"connection failed ({exc})", "unreachable"
+                continue
+            except httpx.HTTPError as exc:  # a body that cannot be decoded (bad gzip…)
+                last, kind = f"body unreadable ({exc})", "cut-short"
                 continue
             if r.status_code == 304 and cached is not None:
                 expires = _expires(r.headers, time.time(), self.default_max_age)
@@ -272,15 +385,15 @@ class HttpSource:
                 continue
             if r.status_code != 200:
                 raise ImageryError(f"{url}: HTTP {r.status_code}", "http")
-            try:
-                data = bytes(r.content)
-            except httpx.HTTPError as exc:
-                last, kind = f"body cut short ({exc})", "cut-short"
-                continue
+            if data is None:
+                last, kind = f"a body over {MAX_TILE_BYTES >> 20} MiB", "too-large"
+                break
             try:
                 _check_image(data, url)
             except ImageryError as exc:
                 last, kind = str(exc).split(": ", 1)[-1], exc.kind
+                if kind == "too-large":
+                    break  # the same tile again would be as large
                 continue
             if self.cache is not None:
                 self.cache.put(
@@ -294,6 +407,59 @@ class HttpSource:
         tried = "after 1 try" if tries == 1 else f"after {tries} tries"
         raise ImageryError(f"{url}: {last} {tried}", kind)
 
+    def _get(self, url: str, headers: dict[str, str], start: float) -> tuple[Any, bytes | None]:
+        """One GET: the response and its whole body (None when it is over ``MAX_TILE_BYTES``);
+        ``_Overdue`` when the tile's deadline passes first.
+
+        httpx's timeouts bound each read, so a server that trickles a few bytes every few
+        seconds would hold a tile for minutes: with a deadline, the request runs on one of the
+        source's request threads and is waited for only until the deadline (the body is read
+        chunk by chunk and dropped there too; a request stuck in trickling headers ends with its
+        per-read timeout or the server, on its thread, while the tile has already failed)."""
+        if self.deadline is None:
+            return self._request(url, headers, start, self.timeout)
+        left = self.deadline - (time.monotonic() - start)
+        if left <= 0.0:
+            raise _Overdue()
+        job = self._requests.submit(self._request, url, headers, start, min(self.timeout, left))
+        try:
+            return job.result(timeout=left)
+        except FutureTimeout:
+            job.cancel()
+            raise _Overdue() from None
+
+    def _request(
+        self, url: str, headers: dict[str, str], start: float, timeout: float
+    ) -> tuple[Any, bytes | None]:
+        import httpx
+
+        _DEADLINE.at = None if self.deadline is None else start + self.deadline
+        try:
+            return self._stream(url, headers, start, timeout)
+        except httpx.TimeoutException:
+            if self.deadline is not None and time.monotonic() - start >= self.deadline:
+                raise _Overdue() from None
+            raise
+        finally:
+            _DEADLINE.at = None
+
+    def _stream(
+        self, url: str, headers: dict[str, str], start: float, timeout: float
+    ) -> tuple[Any, bytes | None]:
+        with self._client.stream("GET", url, headers=headers, timeout=timeout) as r:
+            chunks: list[bytes] = []
+            size = 0
+            for chunk in r.iter_bytes():
+                chunks.append(chunk)
+                size += len(chunk)
+                if size > MAX_TILE_BYTES:
+                    return r, None
+                if self.deadline is not None and time.monotonic() - start > self.deadline:
+                    raise _Overdue()
+            if self.deadline is not None and time.monotonic() - start > self.deadline:
+                raise _Overdue()
+            return r, b"".join(chunks)
+
     def decode(self, data: bytes, size: int) -> NDArray[np.uint8]:
         return decode_image(data, size)
 
@@ -301,6 +467,7 @@ class HttpSource:
         return True
 
     def close(self) -> None:
+        self._requests.shutdown(wait=False, cancel_futures=True)
         self._client.close()
         if self.cache is not None:
             self.cache.close()
