@@ -238,7 +238,7 @@ def test_fly_writes_a_video_and_statistics(
         for c in cams:
             f.write(f"{c.lon},{c.lat},{c.alt}\n")
     video, stats = tmp_path / "flight.mp4", tmp_path / "stats.csv"
-    code, _out, err = run_cli(
+    code, out, err = run_cli(
         [
             "fly",
             str(tileset),
@@ -254,18 +254,24 @@ def test_fly_writes_a_video_and_statistics(
             str(video),
             "--stats",
             str(stats),
-            "-q",
         ],
         capsys,
     )
     assert code == 0, err
+    # the summary counts every frame and names frame 0 (the one that waits for the first tiles)
+    summary = out.strip().splitlines()[-1]
+    assert summary.startswith(f"wrote {video}: "), summary
+    assert "frame 0 took " in summary
+    assert "of all frames " in summary
     # (read_frames leaves its pipes to the garbage collector; counting runs ffmpeg to the end)
     frames, seconds = imageio_ffmpeg.count_frames_and_secs(str(video))
     assert seconds == pytest.approx(frames / 24, abs=0.1)
     with stats.open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == frames > 10
-    assert {"fallback_max", "gpu_bytes", "cache_hits", "failed"} <= set(rows[0])
+    assert {"fallback_max", "gpu_bytes", "cache_hits", "failed", "http_retries"} <= set(rows[0])
+    took = float(rows[0]["frame_cpu_ms"])
+    assert f"frame 0 took {took:.0f} ms" in summary
     for args, message in [
         (["--path", str(tmp_path / "nope.csv")], "no such file"),
         (["--orbit", "1,2,3"], "--orbit"),
