@@ -16,10 +16,13 @@ the radii ahead of the heading and shrinks them behind it; the selection of a hi
 reaches farther, so they grow with altitude.
 
 A clock decides when a job's result may be used. ``RealClock`` uses results when they are ready;
-``SimClock`` (flights rendered offline) gives the workers exactly the time they would have had
-in real time at the requested frame rate, however long the offline frames take: a job's result
-is used only once the simulated time passes its start (the simulated time its worker slot freed)
-plus its measured duration.
+``SimClock`` (flights rendered offline) gives the workers the time they would have had in real
+time at the requested frame rate, however long the offline frames take: a job's result is used
+only once the simulated time passes its start (the simulated time its worker slot freed) plus
+its cost. The cost is the source's declared one (``source.cost(key)``, seconds) where it has one,
+else the worker thread's CPU time for the fetch and the decode: never wall time, so a loaded
+machine (threads waiting for a core, the GIL) does not slow a simulated flight, and a source
+with declared costs gives the same flight statistics on any machine.
 """
 
 from lodscape.stream.streamer import (

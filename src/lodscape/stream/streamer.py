@@ -23,7 +23,8 @@ Stage = Literal["memory", "cache"]
 
 
 class Source(Protocol):
-    """What the streamer reads: a Provider's two halves."""
+    """What the streamer reads: a Provider's two halves. A source may also declare what a key
+    costs on a simulated clock, ``cost(key) -> seconds`` (see the package docstring)."""
 
     def fetch(self, key: int) -> bytes: ...
 
@@ -211,11 +212,16 @@ class Streamer:
         self, key: int, cached: bytes | None, decode: bool
     ) -> tuple[bytes | None, Made | None, float]:
         """On a worker: fetch (unless cached) and decode (if asked); returns what it made and
-        how long that took."""
-        t = time.perf_counter()
+        what it cost: the source's declared cost, else this thread's CPU seconds (not wall time:
+        see the package docstring)."""
+        t = time.thread_time()
         data = cached if cached is not None else self.source.fetch(key)
         made = self._decode(key, data) if decode else None
-        return (None if cached is not None else data), made, time.perf_counter() - t
+        took = time.thread_time() - t
+        declared = getattr(self.source, "cost", None)
+        if declared is not None:
+            took = float(declared(key))
+        return (None if cached is not None else data), made, took
 
     def _decode(self, key: int, data: bytes) -> Made:
         made = self.source.decode(key, data)
