@@ -1,17 +1,82 @@
 """A naive recursive selection, one tile per Python call: the baseline for tests and benchmarks.
 
 It applies the rules of ``lodscape.lod.select`` tile by tile, depth first, with no residency; the
-vectorised selection must return the same tiles and grids.
+vectorised selection must return the same tiles and grids. Its geometry is its own: each tile's
+box, distance and frustum test are made here from the textbook formulas (spherical Mercator,
+WGS84 to ECEF, the local east-north-up frame, clip-space corners through the camera's OpenGL
+matrices), not from ``select.tile_boxes``, so a culling or distance bug there is caught.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from lodscape.geo.keys import grid_of, tile_id_of
 from lodscape.geo.tiles import Tile, tile_id
 from lodscape.lod.camera import Camera
-from lodscape.lod.select import Selection, SelectOptions, TreeLike, tile_boxes
+from lodscape.lod.select import Selection, SelectOptions, TreeLike
+
+_A = 6378137.0  # WGS84 semi-major axis
+_E2 = (1.0 / 298.257223563) * (2.0 - 1.0 / 298.257223563)  # first eccentricity squared
+_HALF = math.pi * _A  # half the Web Mercator square's side
+#: The box's margin, a share of the tile's ground size (the selection's rule).
+_MARGIN = 1e-3
+
+
+def _ecef(lon: np.ndarray, lat: np.ndarray, h: np.ndarray | float) -> np.ndarray:
+    lam, phi = np.radians(lon), np.radians(lat)
+    n = _A / np.sqrt(1.0 - _E2 * np.sin(phi) ** 2)
+    return np.stack(
+        [
+            (n + h) * np.cos(phi) * np.cos(lam),
+            (n + h) * np.cos(phi) * np.sin(lam),
+            (n * (1.0 - _E2) + h) * np.sin(phi),
+        ],
+        axis=-1,
+    )
+
+
+def _box(
+    camera: Camera, z: int, x: int, y: int, lo_h: float, hi_h: float
+) -> tuple[bool, float, float]:
+    """(in the view, distance to the nearest point of the box, ground size) of one tile: its
+    lattice at both heights, boxed with a margin in the ENU frame at the tile's centre."""
+    side = 2.0 * _HALF / 2**z
+    left, top = -_HALF + x * side, _HALF - y * side
+    right, bottom = left + side, top - side
+    # enough lattice points that the Earth's curve between them stays inside the margin
+    n = min(2 + math.ceil(math.sqrt(side / (8.0 * _A * _MARGIN))), 33)
+    f = np.linspace(0.0, 1.0, n)
+    mx, my = np.meshgrid(left + f * side, bottom + f * side)
+    lon = np.degrees(mx / _A)
+    lat = np.degrees(2.0 * np.arctan(np.exp(my / _A)) - math.pi / 2.0)
+    clon = math.degrees((left + right) / 2.0 / _A)
+    clat = math.degrees(2.0 * math.atan(math.exp((bottom + top) / 2.0 / _A)) - math.pi / 2.0)
+    sl, cl = math.sin(math.radians(clon)), math.cos(math.radians(clon))
+    sp, cp = math.sin(math.radians(clat)), math.cos(math.radians(clat))
+    enu = np.array([[-sl, cl, 0.0], [-sp * cl, -sp * sl, cp], [cp * cl, cp * sl, sp]])
+    eye = _ecef(np.array(camera.lon), np.array(camera.lat), camera.alt)
+    pts = np.concatenate([_ecef(lon, lat, lo_h), _ecef(lon, lat, hi_h)]).reshape(-1, 3)
+    local = (pts - eye) @ enu.T
+    ground = side * cp
+    lo = local.min(axis=0) - _MARGIN * ground
+    hi = local.max(axis=0) + _MARGIN * ground
+    gap = np.maximum(lo, 0.0) + np.maximum(-hi, 0.0)
+    dist = float(math.sqrt(float(gap @ gap)))
+    # the box's eight corners in clip space: outside when all are beyond one clip plane
+    corners = np.array(
+        [[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])]
+    )
+    view = corners @ enu @ camera.rotation.T
+    clip = np.c_[view, np.ones(8)] @ camera.projection().T
+    w = clip[:, 3]
+    outside = any(
+        bool(np.all(w + sign * clip[:, axis] < 0.0)) for axis in range(3) for sign in (1.0, -1.0)
+    )
+    return not outside, dist, ground
+
 
 __all__ = ["select_reference"]
 
@@ -48,10 +113,9 @@ def select_reference(
         st = tree.level(z).stats(np.array([x]), np.array([y]))
         if not st.exists[0]:
             return None
-        box = tile_boxes(camera, z, np.array([x]), np.array([y]), st.min_h, st.max_h)
-        eff = max(float(box.dist_near[0]), near)
-        ground = float(box.ground[0])
-        return bool(box.inside[0]), True, ground * d / eff, st.error[:, 0], ground
+        inside, dist, ground = _box(camera, z, x, y, float(st.min_h[0]), float(st.max_h[0]))
+        eff = max(dist, near)
+        return inside, True, ground * d / eff, st.error[:, 0], ground
 
     def visit(z: int, x: int, y: int) -> None:
         m = metrics(z, x, y)
