@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -204,3 +205,16 @@ def write_ortho(
         interp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue]
         dst.colorinterp = interp + ([ColorInterp.alpha] if alpha is not None else [])
     return path
+
+
+def sky_share(png: str | os.PathLike[str]) -> float:
+    """The share of a rendered picture's pixels that are the sky's colour (``lodscape.scene.SKY``,
+    within 2 levels): what a picture that shows the data must have little of."""
+    from PIL import Image
+
+    from lodscape.scene import SKY
+
+    with Image.open(png) as im:
+        rgb = np.asarray(im.convert("RGB")).astype(int)
+    sky = np.all(np.abs(rgb - np.array(SKY) * 255) <= 2, axis=2)
+    return float(sky.mean())

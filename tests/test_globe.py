@@ -241,12 +241,24 @@ def test_cli_globe(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "globe.png"
     code, text, err = run_cli(["globe", "--size", "160x120", "-o", str(out)], capsys)
     assert code == 0, err
-    assert out.exists()
-    assert "triangles" in text
+    import re
+
+    from PIL import Image
+
+    triangles = int(re.search(r"triangles: *([\d,]+)", text)[1].replace(",", ""))  # type: ignore[index]
+    assert triangles > 100, text
+    with Image.open(out) as im:
+        rgb = np.asarray(im.convert("RGB")).astype(int)
+    # from 20,000 km straight down the Earth fills the middle of the picture, space the corners
+    assert rgb[60, 80].sum() > 60, rgb[60, 80]
+    assert rgb[0, 0].sum() < rgb[60, 80].sum()
+    thin = tmp_path / "thin.png"
     code, text, err = run_cli(
-        ["globe", "--mode", "thinning", "--size", "160x120", "-o", str(out), "-q"], capsys
+        ["globe", "--mode", "thinning", "--size", "160x120", "-o", str(thin), "-q"], capsys
     )
     assert code == 0, err
+    with Image.open(thin) as im:
+        assert np.asarray(im.convert("RGB")).astype(int)[60, 80].sum() > 60
     code, _, err = run_cli(["globe", "--mode", "wrong", "-o", str(out)], capsys)
     assert code == 2
     assert "sse or thinning" in err
