@@ -6,8 +6,19 @@ import lodscape
 
 
 def test_exported_members_resolve() -> None:
+    import inspect
+
+    assert lodscape.__all__ == sorted(set(lodscape.__all__))
     for name in lodscape.__all__:
-        assert getattr(lodscape, name) is not None, name
+        value = getattr(lodscape, name)  # raises for a name that does not resolve
+        if name == "__version__":
+            assert isinstance(value, str)
+            assert value[0].isdigit()
+            continue
+        # every other export is lodscape's own class or function, documented
+        assert inspect.isclass(value) or inspect.isfunction(value), name
+        assert value.__module__.startswith("lodscape."), (name, value.__module__)
+        assert (value.__doc__ or "").strip(), name
     public = {n for n in dir(lodscape) if not n.startswith("_")}
     # sub-packages may show up once imported; nothing else is public by accident
     assert public - set(lodscape.__all__) <= {

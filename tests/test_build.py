@@ -371,6 +371,11 @@ def test_points_are_triangulated_and_built(tmp_path: Path) -> None:
     xyz = tmp_path / "survey.xyz"
     xyz.write_text("".join(f"{a} {b} {c}\n" for a, b, c in zip(x, y, z, strict=True)))
     build([xyz], tmp_path / "xyz.lods", BuildOptions(crs="EPSG:32617", resolution=10.0))
+    # the same points as XYZ make the same terrain as the CSV
+    with lodscape.open(out) as a, lodscape.open(tmp_path / "xyz.lods") as b:
+        assert b.tree.height_range == pytest.approx(a.tree.height_range)
+        assert b.provider.bounds_merc == pytest.approx(a.provider.bounds_merc)
+        assert b.tree.zmax == a.tree.zmax
 
 
 def _corrupt(tmp_path: Path, dem: str) -> Path:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import lodscape
-from _synthetic import fbm_heights, run_cli, write_dem
+from _synthetic import fbm_heights, run_cli, sky_share, write_dem
 from lodscape import Camera, SceneOptions
 from lodscape.geo.tiles import tiles_array
 from lodscape.store.provider import FractalProvider
@@ -291,35 +291,30 @@ def test_cli_detail_and_procedural(
 ) -> None:
     from pathlib import Path
 
-    out = Path(str(tmp_path)) / "d.png"
+    import rasterio
+
     lon, lat = (float(v) for v in _lonlat_centre(dem))
-    code, _, err = run_cli(
-        [
-            "render",
-            dem,
-            "-o",
-            str(out),
-            "--size",
-            "160x90",
-            "--detail",
-            "fractal",
-            "--sigma",
-            "2",
-            "--seed",
-            "4",
-            "--lon",
-            str(lon),
-            "--lat",
-            str(lat),
-            "--alt",
-            "2000",
-            "--pitch",
-            "-40",
-        ],
-        capsys,
-    )
-    assert code == 0, err
-    assert out.stat().st_size > 0
+    with rasterio.open(dem) as src:
+        top = float(src.read(1).max())
+    # low over the highest ground: the DEM's 30 m cells are magnified, detail is added
+    view = ["--size", "160x90", "--lon", str(lon), "--lat", str(lat), "--alt", str(top + 150)]
+    view += ["--pitch", "-40", "--no-ellipsoid", "-q"]
+    pictures = {}
+    for name, extra in (
+        ("fractal", ["--detail", "fractal", "--sigma", "2", "--seed", "4"]),
+        ("none", []),
+    ):
+        out = Path(str(tmp_path)) / f"{name}.png"
+        code, _, err = run_cli(["render", dem, "-o", str(out), *view, *extra], capsys)
+        assert code == 0, err
+        from PIL import Image
+
+        with Image.open(out) as im:
+            pictures[name] = np.asarray(im.convert("RGB")).astype(int)
+    # looking down at the DEM: all terrain, and the fractal detail changes its surface
+    assert sky_share(Path(str(tmp_path)) / "fractal.png") < 0.05
+    changed = np.abs(pictures["fractal"] - pictures["none"]).sum(axis=2) > 10
+    assert changed.mean() > 0.01, changed.mean()
     proc = Path(str(tmp_path)) / "p.png"
     code, _, err = run_cli(["demo", "--procedural", "--size", "96x64", "-o", str(proc)], capsys)
     assert code == 0, err

@@ -170,17 +170,28 @@ def test_render_drapes_server_imagery(
             server.template,
             "--imagery-cache",
             str(tmp_path),
+            "--no-ellipsoid",
         ],
         capsys,
     )
     assert code == 0, err
     from PIL import Image
 
-    rgb = np.asarray(Image.open(out))
-    colours = {tuple(int(c) for c in px) for px in rgb.reshape(-1, 3)}
-    served = {tile_colour(*map(int, p.rstrip(".png").split("/")[-3:])) for p, _ in server.requests}
-    # the picture is made of the server's flat tile colours (filtering blends a few edges)
-    assert sum(c in served for c in colours) >= 2
+    with Image.open(out) as im:
+        rgb = np.asarray(im.convert("RGB")).reshape(-1, 3).astype(int)
+    served = np.array(
+        [tile_colour(*map(int, p.rstrip(".png").split("/")[-3:])) for p, _ in server.requests]
+    )
+    # the ground is made of the server's flat tile colours: lit, so each pixel is one of them
+    # scaled (the same hue); filtering blends the edges between tiles
+    from lodscape.scene import SKY
+
+    ground = rgb[np.abs(rgb - np.array(SKY) * 255).max(axis=1) > 2]
+    unit = ground / np.maximum(np.linalg.norm(ground, axis=1, keepdims=True), 1.0)
+    ref = served / np.linalg.norm(served, axis=1, keepdims=True)
+    same_hue = (unit @ ref.T).max(axis=1) > 0.995
+    assert len(ground) > 0.3 * len(rgb)
+    assert same_hue.mean() > 0.9, same_hue.mean()
     assert (tmp_path / "imagery-cache.sqlite").exists()
 
 
@@ -209,9 +220,7 @@ def test_a_misbehaving_server_never_stalls_or_crashes_a_flight(
             Camera(lon + 0.0001 * i, lat, hi + 800, pitch=-40, width=96, height=64)
             for i in range(60)
         ]
-        t = time.perf_counter()
         rows = fly(scene, iter(cams), 30.0)
-        took = time.perf_counter() - t
         # every frame drawn (no exception), failures counted and retried, nothing waited on
         assert len(rows) == 60
         assert sum(r["failed"] for r in rows) > 0
@@ -223,11 +232,13 @@ def test_a_misbehaving_server_never_stalls_or_crashes_a_flight(
         # the server heals: its tiles arrive on retry
         server.default_fault = None
         healed = fly(scene, iter(cams), 30.0)
-        assert sum(r["fetched"] for r in healed) > 0, [
+        assert sum(r["fetched"] for r in healed) > 0
+        # while it failed, the layer's tiles were drawn from what there was (ancestors or none)
+        assert max(r["layer_fallbacks"] for r in rows) > 0
+        assert max(r["imagery_failed"] for r in rows) > 0, [
             (r["failed"], r["imagery_failed"], r["requested"], r["http_requests"])
             for r in healed[::10]
         ]
-    assert took < 60
 
 
 @pytest.mark.parametrize("fault", ["trickle", "trickle-headers"])
