@@ -84,8 +84,11 @@ def _finish(proc: subprocess.Popen[str]) -> tuple[str, str]:
 SKY = np.array([135, 179, 230])
 
 
-def _screenshot_until(env: dict[str, str], shots: Path, ok: Callable[[np.ndarray], bool]) -> None:
-    """Press P until a screenshot passes ``ok`` (within 45 s); the screenshots are removed."""
+def _screenshot_until(
+    env: dict[str, str], shots: Path, ok: Callable[[np.ndarray], bool]
+) -> np.ndarray:
+    """Press P until a screenshot passes ``ok`` (within 45 s) and return it; the screenshots
+    are removed."""
     from PIL import Image
 
     deadline = time.monotonic() + 45.0
@@ -102,7 +105,7 @@ def _screenshot_until(env: dict[str, str], shots: Path, ok: Callable[[np.ndarray
             rgb = np.asarray(Image.open(new).convert("RGB")).astype(np.int16)
             new.unlink()
             if ok(rgb):
-                return
+                return rgb
         assert time.monotonic() < deadline, "the view never showed what was awaited"
         time.sleep(0.5)
 
@@ -152,9 +155,37 @@ def test_viewer_flies_takes_a_screenshot_and_closes(display: str, tmp_path: Path
         time.sleep(0.3)
         _xdo(env, "mouseup", "1")
         time.sleep(0.5)
-        # each toggle twice (wireframe, level colours, culling, fractal detail): the picture
-        # ends as it began, and every key's path has run
-        for key in ("t", "t", "l", "l", "c", "c", "g", "g"):
+        # wireframe (T: its lines over the surface) and level colours (L) each change the
+        # picture, and pressed again give it back; culling (C) and fractal detail (G) toggle
+        # twice: every key's path runs
+        # once the view has settled (two screenshots alike: the tiles have streamed in)
+        last: list[np.ndarray] = []
+
+        def settled(rgb: np.ndarray) -> bool:
+            same = bool(last) and float((np.abs(rgb - last[-1]).sum(axis=2) > 60).mean()) < 0.01
+            last.append(rgb)
+            return same
+
+        base = _screenshot_until(env, shots, settled)
+
+        def changed(rgb: np.ndarray) -> float:
+            return float((np.abs(rgb - base).sum(axis=2) > 60).mean())
+
+        seen: list[float] = []
+
+        def record(rgb: np.ndarray) -> float:
+            seen.append(changed(rgb))
+            return seen[-1]
+
+        for key in ("t", "l"):
+            try:
+                _xdo(env, "key", key)
+                _screenshot_until(env, shots, lambda rgb: record(rgb) > 0.02)
+                _xdo(env, "key", key)
+                _screenshot_until(env, shots, lambda rgb: record(rgb) < 0.005)
+            except AssertionError:
+                raise AssertionError(f"key {key}: changed shares {seen}") from None
+        for key in ("c", "c", "g", "g"):
             _xdo(env, "key", key)
             time.sleep(0.4)
         for key in ("p", "k", "Escape"):

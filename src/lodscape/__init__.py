@@ -6,7 +6,13 @@ loads on first use of ``lodscape.open`` or ``lodscape.Scene``.
 
 from __future__ import annotations
 
+import os as _os
 import typing as _typing
+
+#: GDAL's block cache, in MB, unless the user chose one: GDAL's own default is 5 % of the RAM
+#: (1.2 GB on a 24 GB machine), which a flight over new ground fills a block at a time, so the
+#: process grows for the whole flight. Set before GDAL first reads it (at its first raster).
+_os.environ.setdefault("GDAL_CACHEMAX", "256")
 
 from lodscape.errors import CameraError, LodscapeError, SourceError
 from lodscape.lod.camera import Camera
