@@ -8,6 +8,8 @@ a PNG), "garbage" (200 with a body that is no image), "trickle" (the headers at 
 body 64 bytes every ``server.delay`` seconds), "trickle-headers" (the headers themselves a line
 every ``server.delay`` seconds), "bomb" (a valid PNG of 12000² pixels, ~20 KB).
 Responses carry an ETag and Cache-Control: max-age=``server.max_age``; If-None-Match gets 304.
+With ``server.dated`` they carry Last-Modified and Expires (``server.max_age`` from now) instead,
+and If-Modified-Since gets 304.
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ class TileServer:
         self.default_fault: str | None = None
         self.delay = 0.5
         self.max_age = 3600
+        self.dated = False
         self.requests: list[tuple[str, dict[str, str]]] = []
         self.lock = threading.Lock()
         server = self
@@ -86,6 +89,9 @@ class TileServer:
                     return
                 body = _png(tile_colour(*key))
                 etag = '"' + hashlib.sha1(body).hexdigest()[:16] + '"'
+                if server.dated:
+                    self._dated(body)
+                    return
                 if self.headers.get("If-None-Match") == etag:
                     self.send_response(304)
                     self.send_header("ETag", etag)
@@ -132,6 +138,25 @@ class TileServer:
                     self.wfile.write(body[: len(body) // 2])
                     self.close_connection = True
                     return
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def _dated(self, body: bytes) -> None:
+                """Validators by date: Last-Modified (a fixed day) and Expires."""
+                from email.utils import formatdate
+
+                modified = "Mon, 02 Nov 2026 10:00:00 GMT"
+                expires = formatdate(time.time() + server.max_age, usegmt=True)
+                if self.headers.get("If-Modified-Since") == modified:
+                    self.send_response(304)
+                    self.send_header("Expires", expires)
+                    self.end_headers()
+                    return
+                self.send_response(200)
+                self.send_header("Content-Type", "image/png")
+                self.send_header("Last-Modified", modified)
+                self.send_header("Expires", expires)
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 self.wfile.write(body)

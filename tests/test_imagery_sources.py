@@ -70,6 +70,30 @@ def test_a_stale_tile_is_revalidated_with_its_etag(server: TileServer, tmp_path:
     src.close()
 
 
+def test_caching_by_expires_and_last_modified(server: TileServer, tmp_path: Path) -> None:
+    """A server with dates instead of tags: fresh until Expires (no request), then revalidated
+    with If-Modified-Since, a 304 keeping the cached tile and refreshing its expiry."""
+    server.dated = True
+    server.max_age = 3600
+    cache = TileCache(tmp_path / "c.sqlite")
+    src = HttpSource(server.template, cache=cache)
+    first = src.fetch(4, 5, 6)
+    assert src.fetch(4, 5, 6) == first
+    assert server.count(4, 5, 6) == 1  # fresh by its Expires
+    _, etag, modified, expires = cache.get(src.url(4, 5, 6))  # type: ignore[misc]
+    assert etag is None
+    assert modified == "Mon, 02 Nov 2026 10:00:00 GMT"
+    assert 3500 < expires - time.time() < 3700
+    # made stale: revalidated by date, answered 304, the same bytes kept
+    cache.put(src.url(4, 5, 6), first, None, modified, time.time() - 1.0)
+    assert src.fetch(4, 5, 6) == first
+    assert server.count(4, 5, 6) == 2
+    assert server.requests[-1][1]["If-Modified-Since"] == modified
+    assert "If-None-Match" not in server.requests[-1][1]
+    assert cache.get(src.url(4, 5, 6))[3] > time.time() + 3500  # type: ignore[index]
+    src.close()
+
+
 @pytest.mark.parametrize("fault", ["500", "truncated", "garbage", "slow"])
 def test_transient_faults_are_retried_then_succeed(server: TileServer, fault: str) -> None:
     server.delay = 0.6
