@@ -296,12 +296,14 @@ def test_cli_refuses_what_is_not_a_tileset(
 
     junk = tmp_path / "junk.lods"
     junk.write_bytes(b"junk")
-    code, _, err = run_cli(["serve", str(junk), "--port", "8765"], capsys)
+    code, out, err = run_cli(["serve", str(junk), "--port", "8765"], capsys)
     assert code == 2
     assert err.count("\n") == 1
-    code, _, err = run_cli(["serve", str(tmp_path / "none.lods")], capsys)
+    assert "serving" not in out  # said only once it listens
+    code, out, err = run_cli(["serve", str(tmp_path / "none.lods")], capsys)
     assert code == 2
     assert "no such file" in err
+    assert "serving" not in out
 
 
 def _digits(n: int, zero: int) -> str:
