@@ -12,7 +12,7 @@ import inspect
 import math
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -710,7 +710,7 @@ def fly(
         Progress(*columns, disable=quiet) as bar,
     ):
         task = bar.add_task("frames", total=len(cams))
-        rows = flight.fly(
+        flown = flight.fly(
             scene,
             iter(cams),
             fps,
@@ -720,15 +720,15 @@ def fly(
         )
         _mode_notice(scene)
     if not quiet:
-        typer.echo(_flight_summary(output, rows, fps))
+        typer.echo(_flight_summary(output, flown, fps))
 
 
-def _flight_summary(output: Path, rows: list[dict[str, float]], fps: float) -> str:
+def _flight_summary(output: Path, rows: Sequence[dict[str, float]], fps: float) -> str:
     """One line on a flight: every frame counted, frame 0 (the one that waits for the first
     tiles) named, and the same counts after the first second."""
     after = [r for r in rows if r["time_s"] >= 1.0]
 
-    def counts(rs: list[dict[str, float]]) -> str:
+    def counts(rs: Sequence[dict[str, float]]) -> str:
         fell = sum(r["fallback_max"] > 1 for r in rs)
         over = sum(r["over_budget"] for r in rs)
         return f"{fell} fell back more than one level, {over} went over {1000 / fps:.1f} ms"
