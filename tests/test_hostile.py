@@ -153,7 +153,39 @@ def _text_dem(folder: Path) -> list[str]:
     return ["render", str(folder / "dem.tif"), "-o", str(folder / "out.png")]
 
 
+def _camera_not_json(folder: Path) -> list[str]:
+    (folder / "cam.json").write_text("{lon: 1, lat: 2")
+    return [
+        "render",
+        _dem(folder),
+        "--camera",
+        str(folder / "cam.json"),
+        "-o",
+        str(folder / "o.png"),
+    ]
+
+
+def _route_of_a_point(folder: Path) -> list[str]:
+    (folder / "route.geojson").write_text('{"type": "Point", "coordinates": [-78.7, 36.6, 900]}')
+    return [
+        "fly",
+        _dem(folder),
+        "--path",
+        str(folder / "route.geojson"),
+        "-o",
+        str(folder / "o.mp4"),
+    ]
+
+
+def _route_with_words(folder: Path) -> list[str]:
+    (folder / "route.csv").write_text("lon,lat,alt\n-78.7,36.6,900\n-78.7,north,900\n")
+    return ["fly", _dem(folder), "--path", str(folder / "route.csv"), "-o", str(folder / "o.mp4")]
+
+
 CASES = {
+    "a camera file that is not JSON": (_camera_not_json, "cam.json"),
+    "a route that is a GeoJSON point": (_route_of_a_point, "route.geojson"),
+    "a route with a word for a number": (_route_with_words, "route.csv"),
     "truncated 16-bit orthophoto": (_truncated_imagery, "ortho.tif: cannot be read"),
     "a DEM that is a text file": (_text_dem, "dem.tif: not a raster"),
     "pixels of 1 mm": (_millimetre_pixels, "ask for level 27"),
