@@ -218,3 +218,14 @@ def sky_share(png: str | os.PathLike[str]) -> float:
         rgb = np.asarray(im.convert("RGB")).astype(int)
     sky = np.all(np.abs(rgb - np.array(SKY) * 255) <= 2, axis=2)
     return float(sky.mean())
+
+
+def changed_share(a: str | os.PathLike[str], b: str | os.PathLike[str], levels: int = 30) -> float:
+    """The share of pixels whose colours differ by more than ``levels`` (summed over R, G, B)
+    between two pictures of the same size."""
+    from PIL import Image
+
+    with Image.open(a) as ia, Image.open(b) as ib:
+        pa = np.asarray(ia.convert("RGB")).astype(int)
+        pb = np.asarray(ib.convert("RGB")).astype(int)
+    return float((np.abs(pa - pb).sum(axis=2) > levels).mean())

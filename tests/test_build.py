@@ -438,17 +438,23 @@ def test_bad_inputs_fail_clearly_and_leave_nothing(
     assert not Path(str(out) + "-wal").exists()
 
 
-def test_a_full_disk_fails_in_one_line_and_resumes(dem: str, tmp_path: Path) -> None:
-    """A write limit (RLIMIT_FSIZE) stands in for a full disk: the build stops with one line and
-    exit status 2, keeps what it committed, and finishes when run again."""
-    out = tmp_path / "full.lods"
+def _build_on_a_full_disk(dem: str, out: Path, limit: int) -> subprocess.CompletedProcess[str]:
+    """``lodscape build`` in a process that may write files of at most ``limit`` bytes (the
+    write limit, RLIMIT_FSIZE, stands in for a full disk)."""
     code = (
         "import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
-        "resource.setrlimit(resource.RLIMIT_FSIZE, (400_000, 400_000)); "
+        f"resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit})); "
         "from lodscape.cli import main; "
         f"main(['build', {dem!r}, '-o', {str(out)!r}, '-q', '--workers', '1'])"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+
+
+def test_a_full_disk_fails_in_one_line_and_resumes(dem: str, tmp_path: Path) -> None:
+    """A full disk mid-build: the build stops with one line and exit status 2, keeps what it
+    committed, and finishes when run again."""
+    out = tmp_path / "full.lods"
+    proc = _build_on_a_full_disk(dem, out, 400_000)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().count("\n") == 0
     assert "full" in proc.stderr or "cannot write" in proc.stderr
@@ -464,14 +470,7 @@ def test_a_full_disk_fails_in_one_line_and_resumes(dem: str, tmp_path: Path) -> 
 def test_a_full_disk_at_the_first_write_leaves_no_file(dem: str, tmp_path: Path) -> None:
     """The disk full before the tileset's first page: one line that says so, and no empty SQLite
     file that readers would then call "not a lodscape tileset"."""
-    out = tmp_path / "full.lods"
-    code = (
-        "import resource, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
-        "resource.setrlimit(resource.RLIMIT_FSIZE, (2_000, 2_000)); "
-        "from lodscape.cli import main; "
-        f"main(['build', {dem!r}, '-o', {str(out)!r}, '-q', '--workers', '1'])"
-    )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    proc = _build_on_a_full_disk(dem, tmp_path / "full.lods", 2_000)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().count("\n") == 0, proc.stderr
     # a real full disk reads "the disk is full"; the size limit standing in for it, an I/O error

@@ -23,9 +23,14 @@ def _dem(folder: Path, crs: str = "EPSG:32617") -> str:
     return write_dem(str(folder / "dem.tif"), h, crs=crs, west=EAST, north=NORTH, res=RES)
 
 
-def _header_only(folder: Path) -> list[str]:
-    (folder / "route.csv").write_text("lon,lat,alt\n")
-    return ["fly", _dem(folder), "--path", str(folder / "route.csv"), "-o", str(folder / "out.mp4")]
+def _route(name: str, text: str) -> Callable[[Path], list[str]]:
+    """A flight along a route file ``name`` holding ``text``."""
+
+    def case(folder: Path) -> list[str]:
+        (folder / name).write_text(text)
+        return ["fly", _dem(folder), "--path", str(folder / name), "-o", str(folder / "o.mp4")]
+
+    return case
 
 
 def _bad_depth(folder: Path) -> list[str]:
@@ -75,21 +80,26 @@ def _absurd(value: float) -> Callable[[Path], list[str]]:
     return case
 
 
-def _three_bands(folder: Path) -> list[str]:
-    h = fbm_heights(33, seed=2)
-    path = folder / "dem.tif"
+def _bands(path: Path, data: np.ndarray, res: float) -> Path:
+    """A GeoTIFF of (bands, rows, cols) ``data`` at ``res`` metres in UTM 17N."""
     with rasterio.open(
         path,
         "w",
         driver="GTiff",
-        width=33,
-        height=33,
-        count=3,
-        dtype="float32",
+        width=data.shape[2],
+        height=data.shape[1],
+        count=data.shape[0],
+        dtype=data.dtype,
         crs="EPSG:32617",
-        transform=Affine(RES, 0.0, EAST, 0.0, -RES, NORTH),
+        transform=Affine(res, 0.0, EAST, 0.0, -res, NORTH),
     ) as dst:
-        dst.write(np.stack([h, h, h]))
+        dst.write(data)
+    return path
+
+
+def _three_bands(folder: Path) -> list[str]:
+    h = fbm_heights(33, seed=2).astype(np.float32)
+    path = _bands(folder / "dem.tif", np.stack([h, h, h]), RES)
     return ["build", str(path), "-o", str(folder / "out.lods")]
 
 
@@ -131,19 +141,7 @@ def _millimetre_pixels(folder: Path) -> list[str]:
 
 def _truncated_imagery(folder: Path) -> list[str]:
     data = np.random.default_rng(3).integers(0, 255, (3, 200, 200), dtype=np.uint16)
-    path = folder / "ortho.tif"
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=200,
-        height=200,
-        count=3,
-        dtype="uint16",
-        crs="EPSG:32617",
-        transform=Affine(2.0, 0.0, EAST, 0.0, -2.0, NORTH),
-    ) as dst:
-        dst.write(data)
+    path = _bands(folder / "ortho.tif", data, 2.0)
     path.write_bytes(path.read_bytes()[:40_000])
     return ["render", _dem(folder), "--imagery", str(path), "-o", str(folder / "out.png")]
 
@@ -165,33 +163,22 @@ def _camera_not_json(folder: Path) -> list[str]:
     ]
 
 
-def _route_of_a_point(folder: Path) -> list[str]:
-    (folder / "route.geojson").write_text('{"type": "Point", "coordinates": [-78.7, 36.6, 900]}')
-    return [
-        "fly",
-        _dem(folder),
-        "--path",
-        str(folder / "route.geojson"),
-        "-o",
-        str(folder / "o.mp4"),
-    ]
-
-
-def _route_with_words(folder: Path) -> list[str]:
-    (folder / "route.csv").write_text("lon,lat,alt\n-78.7,36.6,900\n-78.7,north,900\n")
-    return ["fly", _dem(folder), "--path", str(folder / "route.csv"), "-o", str(folder / "o.mp4")]
-
-
 CASES = {
     "a camera file that is not JSON": (_camera_not_json, "cam.json"),
-    "a route that is a GeoJSON point": (_route_of_a_point, "route.geojson"),
-    "a route with a word for a number": (_route_with_words, "route.csv"),
+    "a route that is a GeoJSON point": (
+        _route("route.geojson", '{"type": "Point", "coordinates": [-78.7, 36.6, 900]}'),
+        "route.geojson",
+    ),
+    "a route with a word for a number": (
+        _route("route.csv", "lon,lat,alt\n-78.7,36.6,900\n-78.7,north,900\n"),
+        "route.csv",
+    ),
     "truncated 16-bit orthophoto": (_truncated_imagery, "ortho.tif: cannot be read"),
     "a DEM that is a text file": (_text_dem, "dem.tif: not a raster"),
     "pixels of 1 mm": (_millimetre_pixels, "ask for level 27"),
     "imagery cache that is a file": (_cache_is_a_file, "cache"),
     "UTM metres labelled EPSG:4326": (_metres_labelled_degrees, "CRS is probably wrong"),
-    "route with a header only": (_header_only, "route.csv"),
+    "route with a header only": (_route("route.csv", "lon,lat,alt\n"), "route.csv"),
     "depth of an unknown type": (_bad_depth, "out.xyz"),
     "globe camera at height 0": (_globe_at_zero, "under the ground"),
     "negative flight duration": (_orbit("--duration", "-1"), "--duration"),
