@@ -112,9 +112,9 @@ def _wrk(base: str, paths: list[str], tmp: Path, connections: int) -> str:
         '  return wrk.format("GET", paths[(i % #paths) + 1], {["Accept-Encoding"] = "gzip"})\n'
         "end\n"
     )
+    argv = ["wrk", "-t2", f"-c{connections}", "-d10s", "--latency", "--timeout", "10s"]
     out = subprocess.run(
-        ["wrk", "-t2", f"-c{connections}", "-d10s", "--latency", "--timeout", "10s"]
-        + ["-s", str(script), base],
+        [*argv, "-s", str(script), base],
         capture_output=True,
         text=True,
         check=True,
@@ -125,7 +125,11 @@ def _wrk(base: str, paths: list[str], tmp: Path, connections: int) -> str:
         if line.strip().startswith(("Requests/sec", "Non-2xx", "Socket errors", "50%", "99%"))
         or "requests in" in line
     ]
-    return f"wrk, {connections} connections: " + "; ".join(keep) + ("" if "Non-2xx" in out else "; 0 non-2xx")
+    return (
+        f"wrk, {connections} connections: "
+        + "; ".join(keep)
+        + ("" if "Non-2xx" in out else "; 0 non-2xx")
+    )
 
 
 async def _load(
