@@ -239,3 +239,16 @@ def test_polar_and_global_dems_get_an_overview(
     rgb = np.asarray(Image.open(out).convert("RGB")).astype(int)
     sky = np.all(np.abs(rgb - np.array(SKY) * 255) <= 2, axis=2)
     assert (~sky).mean() > 0.02  # the terrain is in the picture
+
+
+def test_gdal_messages_stay_out_of_the_terminal(capsys: pytest.CaptureFixture[str]) -> None:
+    """rasterio hands GDAL's messages to Python's logging, whose last-resort handler printed
+    them ("ERROR 4: …") above lodscape's own one-line error; the command line silences them."""
+    import logging
+
+    from lodscape.cli import _quiet_gdal
+
+    _quiet_gdal()
+    logging.getLogger("rasterio._env").error("ERROR 4: `x.tif' not recognized")
+    logging.getLogger("rasterio._err").warning("TIFFReadDirectory: unknown field")
+    assert capsys.readouterr().err == ""

@@ -1360,8 +1360,22 @@ def _usage_errors() -> tuple[type[Exception], ...]:
 _USAGE_ERRORS = _usage_errors()
 
 
+def _quiet_gdal() -> None:
+    """GDAL's own messages (rasterio hands them to Python's logging, whose last-resort handler
+    prints them as "ERROR 4: …" lines) stay out of the terminal: lodscape turns the failures
+    that matter into its own one-line errors, naming the input."""
+    import logging
+
+    for name in ("rasterio", "fiona", "pyogrio"):
+        log = logging.getLogger(name)
+        if not log.handlers:
+            log.addHandler(logging.NullHandler())
+        log.propagate = False
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: one-line errors, exit status 2 on bad input."""
+    _quiet_gdal()
     try:
         rv = app(args=argv, standalone_mode=False, prog_name="lodscape")
     except (typer.Abort, KeyboardInterrupt):
