@@ -79,8 +79,8 @@ def main() -> None:
     rest = [(f, r) for f, r in rss if f > n]
     print(f"{len(rows):,} frames, {args.loops} loops of {n:,} frames")
     if len(first) > 1:
-        print(f"first loop (new ground): {(first[-1] - first[0]) / (len(first) - 1) * 2:+.2f} MB")
-        print("  per 1,000 frames")
+        grew = (first[-1] - first[0]) / (len(first) - 1) * 2
+        print(f"first loop (new ground): {grew:+.2f} MB per 1,000 frames")
     if len(rest) > 1:
         slope = (rest[-1][1] - rest[0][1]) / (rest[-1][0] - rest[0][0]) * 1000
         print(f"later loops (the same ground): {slope:+.2f} MB per 1,000 frames")
