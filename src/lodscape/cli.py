@@ -1172,6 +1172,10 @@ def _globe(source: str | None, options: Any) -> Any:
 
     spec: SourceSpec | None = None if source is None else parse_source(source)
     terrain = None if spec is None or spec.kind == "none" else open_scene(spec.text)
+    if spec is not None and spec.kind == "procedural":
+        from dataclasses import replace
+
+        options = replace(options, earth="procedural")  # an invented planet, asked for
     try:
         return Globe(terrain, options)
     except BaseException:

