@@ -168,3 +168,28 @@ def test_heights_in_a_tile_are_its_triangles(built: Path) -> None:
         k = hit[0]
         want = wa[k] * h[a[k]] + wb[k] * h[b[k]] + wc[k] * h[c[k]]
         assert got[i] == pytest.approx(want, abs=1e-6)
+
+
+def test_names_with_uri_characters(
+    built: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A "?", "#", "%" or space in a folder's or file's name (SQLite's URIs read them as the
+    query, the fragment or an escape: the reader opened another file, or none)."""
+    from lodscape.imagery.sources import MBTilesSource
+
+    folder = tmp_path / "survey? 50%#2"
+    folder.mkdir()
+    odd = folder / "site #1.lods"
+    shutil.copy(built, odd)
+    code, out, err = _run(["info", str(odd)], capsys)
+    assert code == 0, err
+    assert "quantized-mesh-1.0" in out
+    source = MBTilesSource(odd)
+    assert source.max_zoom >= source.min_zoom
+    z = source.max_zoom
+    with closing(sqlite3.connect(odd)) as db:
+        x, row = db.execute(
+            "SELECT tile_column, tile_row FROM tiles WHERE zoom_level = ? LIMIT 1", (z,)
+        ).fetchone()
+    assert source.fetch(z, x, (1 << z) - 1 - row)[:8] == b"\x89PNG\r\n\x1a\n"
+    source.close()

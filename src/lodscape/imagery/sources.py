@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import LodscapeError, SourceError
+from lodscape.store.manifest import readonly_uri
 
 __all__ = [
     "DirectorySource",
@@ -481,7 +482,7 @@ class MBTilesSource:
         if not os.path.exists(self.name):
             raise ImageryError(f"{self.name}: no such file")
         self._local = threading.local()
-        uri = f"file:{Path(self.name).resolve().as_posix()}?mode=ro"
+        uri = readonly_uri(self.name)
         try:
             with sqlite3.connect(uri, uri=True) as db:
                 lo, hi = db.execute("SELECT MIN(zoom_level), MAX(zoom_level) FROM tiles").fetchone()
@@ -496,9 +497,8 @@ class MBTilesSource:
     def fetch(self, z: int, x: int, y: int) -> bytes:
         db = getattr(self._local, "db", None)
         if db is None:
-            uri = f"file:{Path(self.name).resolve().as_posix()}?mode=ro"
             try:
-                db = self._local.db = sqlite3.connect(uri, uri=True)
+                db = self._local.db = sqlite3.connect(readonly_uri(self.name), uri=True)
                 row = db.execute(
                     "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
                     "AND tile_row = ?",

@@ -24,6 +24,7 @@ __all__ = [
     "hold_for_writing",
     "is_tileset",
     "read_manifest",
+    "readonly_uri",
 ]
 
 _MAGIC = b"SQLite format 3\x00"
@@ -74,7 +75,15 @@ def connect_readonly(path: str | os.PathLike[str]) -> sqlite3.Connection:
                 f"{path}: a write to it was interrupted and its journal ({journal.name}) needs "
                 f"write access to undo ({exc})"
             ) from None
-    return sqlite3.connect(f"file:{p.as_posix()}?mode=ro", uri=True, check_same_thread=False)
+    return sqlite3.connect(readonly_uri(p), uri=True, check_same_thread=False)
+
+
+def readonly_uri(path: str | os.PathLike[str]) -> str:
+    """SQLite's read-only URI of ``path``, percent-encoded: a "?", "#" or "%" in a folder's or
+    file's name would otherwise end the path early, or name another file."""
+    from urllib.parse import quote
+
+    return f"file:{quote(Path(path).resolve().as_posix())}?mode=ro"
 
 
 def fold_wal(db: sqlite3.Connection) -> None:
