@@ -163,7 +163,27 @@ def _camera_not_json(folder: Path) -> list[str]:
     ]
 
 
+def _points(name: str, text: str) -> Callable[[Path], list[str]]:
+    """A build from a point file ``name`` holding ``text`` (UTM 17N)."""
+
+    def case(folder: Path) -> list[str]:
+        (folder / name).write_text(text)
+        return ["build", str(folder / name), "--crs", "EPSG:32617", "-o", str(folder / "o.lods")]
+
+    return case
+
+
 CASES = {
+    "a LAS file that is not one": (_points("survey.las", "garbage\n"), "survey.las"),
+    "points with an infinite height": (
+        _points("survey.csv", "x,y,z\n1,2,inf\n3,4,5\n6,7,8\n"),
+        "row 2",
+    ),
+    "XYZ points of two columns": (_points("survey.xyz", "1 2\n3 4\n5 6\n"), "survey.xyz"),
+    "a CSV separated by semicolons": (
+        _points("survey.csv", "x;y;z\n700000;4060000;100\n700100;4060000;110\n"),
+        "survey.csv",
+    ),
     "a camera file that is not JSON": (_camera_not_json, "cam.json"),
     "a route that is a GeoJSON point": (
         _route("route.geojson", '{"type": "Point", "coordinates": [-78.7, 36.6, 900]}'),
