@@ -224,7 +224,7 @@ def test_the_terrains_own_imagery_is_draped_where_it_has_data(dem: str) -> None:
     cam = Camera(-78.7, 36.53, 6000.0, pitch=-30, heading=10, width=240, height=150)
     pictures = {}
     for imagery in (True, False):
-        g = Globe(lodscape.open(dem), GlobeOptions(imagery=imagery))
+        g = Globe(lodscape.open(dem), GlobeOptions(imagery=imagery, terrain_tiles=False))
         try:
             pictures[imagery] = g.render(cam)[0].astype(int)
         finally:
@@ -295,8 +295,13 @@ def test_render_on_the_globe(dem: str, tmp_path: Path, capsys: pytest.CaptureFix
     view += ["--heading", "30", "--size", "200x150", "-o", str(out), "--depth", str(depth)]
     code, text, err = run_cli(["render", dem, "--globe", *view], capsys)
     assert code == 0, err
-    # the data's edge drops to the ellipsoid, a cliff no split flattens: the facets along it
-    # stop at the relief of the data they hold (10,715 facets when they followed the cliff)
+    assert int(text.split("terrain_pixels:")[1].split()[0]) > 1000  # drawn by its own tiles
+    # the globe's facets with the data's heights: its edge drops to the ellipsoid, a cliff no
+    # split flattens; the facets along it stop at the relief of the data they hold (10,715
+    # facets when they followed the cliff)
+    own = [*view[:-4], "-o", str(tmp_path / "own.png"), "--no-terrain-tiles"]
+    code, text, err = run_cli(["globe", dem, *own], capsys)
+    assert code == 0, err
     facets = int(text.split("triangles:")[1].split()[0])
     assert 100 < facets < 3000
     rgb = np.asarray(Image.open(out))
@@ -369,3 +374,37 @@ def test_without_the_blue_marble_the_earth_is_plain_and_says_so(
     invented = Globe(None, GlobeOptions(earth="procedural")).base_image()
     assert len(np.unique(invented.reshape(-1, 3)[::97], axis=0)) > 100
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.gl
+@pytest.mark.parametrize("alt", [2.0e6, 1.0e5, 1500.0], ids=["orbit", "100 km", "1.5 km"])
+def test_the_terrains_tiles_meet_the_globe_without_a_gap(dem: str, alt: float) -> None:
+    """From orbit to a kilometre and a half over the data's west edge, looking down across it:
+    the terrain's own tiles where it has data, the Earth elsewhere, and not one pixel of the
+    magenta background between them."""
+    from lodscape.geo.tiles import merc_to_lonlat
+    from lodscape.globe import Globe, GlobeOptions
+
+    magenta = (1.0, 0.0, 1.0)
+    scene = lodscape.open(dem, lodscape.SceneOptions(background=magenta))
+    b = scene.provider.bounds_merc
+    west, lat = (float(v) for v in merc_to_lonlat(b.left, (b.bottom + b.top) / 2.0))
+    g = Globe(scene, GlobeOptions(background=magenta))
+    try:
+        top = scene.tree.height_range[1]
+        pitch = -90.0 if alt > 1e6 else -60.0  # from orbit straight down: no space in view
+        cam = Camera(
+            west, lat, max(alt, top + 600.0), heading=90.0, pitch=pitch, width=240, height=160
+        )
+        rgb, dist = g.render(cam)
+        drawn = g.last["terrain_pixels"]
+    finally:
+        g.close()
+    pink = np.all(rgb == np.array([255, 0, 255]), axis=2)
+    assert not pink.any(), (alt, int(pink.sum()))
+    assert np.isfinite(dist).all()
+    # the data's own tiles are in the picture (from orbit its 10 km are a pixel or so), and so
+    # is the Earth beside them
+    assert drawn > 0 or alt > 1e6
+    if alt < 1e4:  # close to the edge: the data fills a good part of the view, not all of it
+        assert 0.1 * rgb.shape[0] * rgb.shape[1] < drawn < 0.95 * rgb.shape[0] * rgb.shape[1]

@@ -1140,10 +1140,18 @@ def globe(
     extra: Annotated[int, typer.Option(help="thinning: levels added in the thinning area.")] = 2,
     blocks: Annotated[int, typer.Option(help="thinning: blocks in the thinning area.")] = 4,
     block_level: Annotated[int, typer.Option(help="thinning: the blocks' QTM level.")] = 4,
+    terrain_tiles: Annotated[
+        bool,
+        typer.Option(
+            help="Draw SOURCE's own terrain tiles where it has data (its meshes and imagery "
+            "at their own resolution); --no-terrain-tiles: the globe's facets take its "
+            "heights and drape its imagery instead."
+        ),
+    ] = True,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
 ) -> None:
     """Render the whole Earth on the octahedral QTM grid (paper 002), from orbit down to a few
-    kilometres: heights from SOURCE where it covers, the ellipsoid elsewhere."""
+    hundred metres: SOURCE's own terrain tiles where it covers, the Earth elsewhere."""
     from lodscape.globe import GlobeOptions
 
     w, h = _size(size)
@@ -1156,6 +1164,7 @@ def globe(
             extra=extra,
             blocks=blocks,
             block_level=block_level,
+            terrain_tiles=terrain_tiles,
         )
         camera = Camera(lon, lat, alt, heading=heading, pitch=pitch, fov_y=fov, width=w, height=h)
     except ValueError as exc:

