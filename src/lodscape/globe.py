@@ -245,7 +245,9 @@ class Globe:
         t1 = time.perf_counter()
         if self._renderer is None:  # once: the context and the images (not a frame's)
             self._renderer = GlobeRenderer(self.base_image(), self.options.background, self._ctx)
-            if self.terrain is not None and self.options.imagery:
+            # the drape, and where the terrain's tiles are laid in, what marks the data's pixels
+            # (a surface below the ellipsoid, the Dead Sea, is behind the globe's)
+            if self.terrain is not None and (self.options.imagery or self._draws_tiles):
                 from lodscape.imagery.globe import regional_image
 
                 region = regional_image(self.terrain.provider)
