@@ -28,8 +28,8 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape._sqlite import readonly_uri
 from lodscape.errors import LodscapeError, SourceError
-from lodscape.store.manifest import readonly_uri
 
 __all__ = [
     "DirectorySource",

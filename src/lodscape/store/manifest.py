@@ -14,6 +14,7 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
+from lodscape._sqlite import readonly_uri
 from lodscape.errors import LodscapeError
 
 __all__ = [
@@ -24,7 +25,6 @@ __all__ = [
     "hold_for_writing",
     "is_tileset",
     "read_manifest",
-    "readonly_uri",
 ]
 
 _MAGIC = b"SQLite format 3\x00"
@@ -76,14 +76,6 @@ def connect_readonly(path: str | os.PathLike[str]) -> sqlite3.Connection:
                 f"write access to undo ({exc})"
             ) from None
     return sqlite3.connect(readonly_uri(p), uri=True, check_same_thread=False)
-
-
-def readonly_uri(path: str | os.PathLike[str]) -> str:
-    """SQLite's read-only URI of ``path``, percent-encoded: a "?", "#" or "%" in a folder's or
-    file's name would otherwise end the path early, or name another file."""
-    from urllib.parse import quote
-
-    return f"file:{quote(Path(path).resolve().as_posix())}?mode=ro"
 
 
 def fold_wal(db: sqlite3.Connection) -> None:
