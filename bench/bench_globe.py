@@ -14,6 +14,12 @@ medians; both versions give the same facets (checked on every move).
 
 With ``--frames``: whole frames along the same descent (selection, mesh without cracks, draw
 and read-back, headless on EGL), median milliseconds and frames per second.
+
+With ``--flight``: a descent from orbit to the street over the embedded sample DEM in one scene
+(the globe, the sample's own terrain tiles laid in where it has data), at a steady screen-space
+speed (the altitude falls by the same share each frame, so the ground crosses the screen at
+about the same pace): per frame the globe's facets, the pixels its terrain tiles drew, the
+selection and the whole frame; the worst frame and the medians.
 """
 
 from __future__ import annotations
@@ -34,6 +40,9 @@ def main() -> None:
     ap.add_argument("--moves", type=int, default=40)
     ap.add_argument("--size", default="1280x720")
     ap.add_argument("--frames", action="store_true", help="also time whole rendered frames")
+    ap.add_argument(
+        "--flight", type=int, default=0, metavar="N", help="also an N-frame descent over the sample"
+    )
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
     lat, lon = 45.0, 10.0
@@ -108,6 +117,64 @@ def main() -> None:
             f"whole frames along it ({renderer}): median {m:.1f} ms ({1000 / m:.0f} fps): "
             f"selection and mesh {statistics.median(select):.1f} ms, draw and read-back "
             f"{statistics.median(draw):.1f} ms"
+        )
+    if args.flight:
+        _descent(args.flight, w, h)
+
+
+def _descent(n: int, w: int, h: int) -> None:
+    """Orbit to street over the sample DEM: ``n`` frames, the altitude a geometric series from
+    2,000 km to 1.5 km above its highest ground, looking at the DEM's middle from the south,
+    straight down at first, 40° down at the end."""
+    import lodscape
+    from lodscape.data import sample_dem_path
+    from lodscape.globe import Globe, GlobeOptions
+
+    scene = lodscape.open(sample_dem_path())
+    g = Globe(scene, GlobeOptions())
+    try:
+        lon, lat = -84.25, 36.59
+        top = scene.tree.height_range[1]
+        alts = np.geomspace(2.0e6, top + 1500.0, n)
+        rows = []
+        g.render(Camera(lon, lat, 2.0e6, pitch=-90.0, width=w, height=h))  # context, images
+        for i, alt in enumerate(alts):
+            f = i / max(n - 1, 1)
+            down = np.radians(90.0 - 50.0 * f)  # the view's angle below the horizon
+            back = float(alt) / np.tan(down) / 111_000.0 if f > 0 else 0.0
+            target = (lon, lat, top * 0.5)
+            cam = (
+                Camera(lon, lat, float(alt), pitch=-90.0, width=w, height=h)
+                if f == 0
+                else Camera.looking_at(lon, lat - back, float(alt), target, width=w, height=h)
+            )
+            t = time.perf_counter()
+            g.render(cam)
+            rows.append(
+                (
+                    float(alt),
+                    (time.perf_counter() - t) * 1e3,
+                    g.last["select_ms"],
+                    g.last["triangles"],
+                    g.last["terrain_pixels"],
+                )
+            )
+    finally:
+        g.close()
+    whole = [r[1] for r in rows]
+    worst = max(rows, key=lambda r: r[1])
+    print(
+        f"\ndescent over the sample, {n} frames from 2,000 km to {alts[-1]:,.0f} m, {w}×{h}: "
+        f"frame median {statistics.median(whole):.0f} ms, worst {worst[1]:.0f} ms (at "
+        f"{worst[0] / 1e3:,.1f} km); selection median {statistics.median(r[2] for r in rows):.1f}"
+        f" ms; globe facets up to {max(r[3] for r in rows):,}; the sample's own tiles drew "
+        f"pixels in {sum(r[4] > 0 for r in rows)} frames, "
+        f"{rows[-1][4] / (w * h):.0%} of the last"
+    )
+    for alt, ms, sel, facets, px in [*rows[:: max(1, n // 8)], rows[-1]]:
+        print(
+            f"    {alt / 1e3:>9,.1f} km: {ms:6.0f} ms, selection {sel:5.1f} ms, {facets:>5,} "
+            f"facets, terrain pixels {px / (w * h):4.0%}"
         )
 
 
