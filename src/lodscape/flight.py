@@ -415,6 +415,12 @@ def _video_writer(path: Path, width: int, height: int, fps: float) -> tuple[Any,
             f"an MP4 (H.264, 4:2:0) needs an even width and height, got {width}x{height}"
         )
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    # imageio-ffmpeg starts ffmpeg with preexec_fn=os.setpgrp (to keep Ctrl-C from it), which
+    # runs Python between fork and exec: with other threads alive (the stream's workers, an
+    # imagery server's requests) the child can hang for good on a lock one of them held (its
+    # issue #58; seen here in CI). Without it ffmpeg shares Ctrl-C, and the unfinished file is
+    # removed as before.
+    os.environ.setdefault("IMAGEIO_FFMPEG_NO_PREVENT_SIGINT", "1")
     writer = imageio_ffmpeg.write_frames(
         str(tmp),
         (width, height),
