@@ -251,7 +251,8 @@ def test_a_misbehaving_server_never_stalls_or_crashes_a_flight(
         assert sum(r["retried"] for r in rows) > 0
         # the HTTP client's own retries (one per request here) are in the statistics too
         assert rows[-1]["http_retries"] > 0
-        assert rows[-1]["http_requests"] >= 2 * rows[-1]["http_retries"] > 0
+        # (each failed tile: a request, a retry, its request; the last may still be in its pause)
+        assert rows[-1]["http_requests"] > rows[-1]["http_retries"] > 0
         assert all(r["stall_ms"] == 0 for r in rows[1:])
         # the server heals: its tiles arrive on retry
         server.default_fault = None
