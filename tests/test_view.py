@@ -234,3 +234,52 @@ def test_viewer_shows_the_globe(display: str, tmp_path: Path) -> None:
     lit = rgb.sum(axis=2) > 30
     assert 0.1 < lit.mean() < 0.9
     assert not lit[0, 0]
+
+
+def test_viewer_lays_the_terrains_tiles_into_the_globe(display: str, tmp_path: Path) -> None:
+    """``view DEM --globe``: the window shows what ``render DEM --globe`` does from the same
+    camera, the DEM's own tiles laid into the globe (not the globe's facets draped)."""
+    env = {**os.environ, "DISPLAY": display}
+    dem = tmp_path / "dem.tif"
+    write_dem(
+        str(dem),
+        fbm_heights(129, seed=5, relief=600.0),
+        crs="EPSG:4326",
+        west=10.0,
+        north=46.1,
+        res=1e-3,
+    )
+    camera = tmp_path / "cam.json"
+    view = ["--lon", "10.064", "--lat", "45.93", "--alt", "9000", "--pitch", "-45"]
+    still = tmp_path / "still.png"
+    from lodscape.cli import main
+
+    main(["render", str(dem), "--globe", *view, "--size", "240x180", "-o", str(still), "-q"])
+    camera.write_text(
+        json.dumps({"lon": 10.064, "lat": 45.93, "alt": 9000.0, "heading": 0.0, "pitch": -45.0})
+    )
+    shots = tmp_path / "shots"
+    proc = _viewer(
+        env,
+        str(dem),
+        "--globe",
+        "--camera",
+        str(camera),
+        "--size",
+        "240x180",
+        "--screenshots",
+        str(shots),
+    )
+    from PIL import Image
+
+    want = np.asarray(Image.open(still).convert("RGB")).astype(np.int16)
+    try:
+        assert _xdo(env, "search", "--sync", "--name", "lodscape")
+        got = _screenshot_until(
+            env, shots, lambda rgb: float((np.abs(rgb - want).sum(axis=2) > 60).mean()) < 0.02
+        )
+        _xdo(env, "key", "Escape")
+    finally:
+        _, err = _finish(proc)
+    assert proc.returncode == 0, err
+    assert float((np.abs(got - want).sum(axis=2) > 60).mean()) < 0.02

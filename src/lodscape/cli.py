@@ -310,14 +310,6 @@ class TerrainFlags:
             nodata=self.nodata,
         )
 
-    def refuse_for_globe(self) -> None:
-        """--globe draws the QTM globe with its own image: refuse what it would ignore."""
-        if self.city is not None or self.imagery or self.ground != "tint" or self.detail != "none":
-            raise LodscapeError(
-                "--globe draws the QTM globe with its own image: no --city, --imagery, "
-                "--ground or --detail"
-            )
-
 
 _TERRAIN_FLAGS = [
     inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=ann)
@@ -549,7 +541,6 @@ def render(
     w, h = _size(size)
     _check_outputs(output, depth)
     if globe:
-        terrain.refuse_for_globe()
         if camera_file is not None and (lon is not None or lat is not None or alt is not None):
             raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
         if (lon is None) != (lat is None) or (lon is None) != (alt is None):
@@ -572,6 +563,7 @@ def render(
             depth,
             quiet,
             lambda terrain: _globe_camera(terrain, camera_file, pose, w, h, fov),
+            terrain,
         )
         return
     with terrain.open(source, terrain.options()) as scene:
@@ -680,14 +672,23 @@ def fly(
     if globe:
         from lodscape.globe import GlobeOptions
 
-        terrain.refuse_for_globe()
-        earth = _globe(source, GlobeOptions(max_sse=terrain.max_sse, background=(0.0, 0.0, 0.0)))
+        earth = _globe(
+            source,
+            GlobeOptions(max_sse=terrain.max_sse, background=(0.0, 0.0, 0.0)),
+            terrain,
+            options,
+            clock=SimClock(),
+        )
+        columns = (
+            TextColumn("[bold]flying"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
+        )
         try:
-            with Progress(
-                TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), disable=quiet
-            ) as bar:
+            with Progress(*columns, disable=quiet) as bar:
                 task = bar.add_task("frames", total=len(cams))
-                rows = flight.fly_globe(
+                rows = flight.fly(
                     earth,
                     iter(cams),
                     fps,
@@ -699,9 +700,9 @@ def fly(
             earth.close()
         if not quiet:
             typer.echo(
-                f"wrote {output}: {len(rows)} frames over the globe; facets per frame up to "
-                f"{max(r['triangles'] for r in rows):,}, levels to "
-                f"{max(r['max_level'] for r in rows)}"
+                _flight_summary(output, rows, fps)
+                + f"; globe facets per frame up to {max(r['facets'] for r in rows):,}, levels "
+                f"to {max(r['max_level'] for r in rows)}"
             )
         return
     columns = (TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
@@ -729,7 +730,9 @@ def _flight_summary(output: Path, rows: Sequence[dict[str, float]], fps: float) 
     after = [r for r in rows if r["time_s"] >= 1.0]
 
     def counts(rs: Sequence[dict[str, float]]) -> str:
-        fell = sum(r["fallback_max"] > 1 for r in rs)
+        # a terrain tile drawn from a coarser one, or (the globe) an imagery tile from an
+        # ancestor more than one level up
+        fell = sum(r["fallback_max"] > 1 or r.get("imagery_fallbacks", 0) > 0 for r in rs)
         over = sum(r["over_budget"] for r in rs)
         return f"{fell} fell back more than one level, {over} went over {1000 / fps:.1f} ms"
 
@@ -1036,9 +1039,8 @@ def view(
 
     w, h = _size(size)
     if globe:
-        terrain.refuse_for_globe()
         _view_globe(
-            source, camera_file, save_camera, screenshots, w, h, fov, terrain.max_sse, exit_after
+            source, camera_file, save_camera, screenshots, w, h, fov, terrain, budget_mb, exit_after
         )
         return
     fractal = terrain.fractal(source)
@@ -1174,22 +1176,54 @@ def globe(
     _render_globe(source, options, output, None, quiet, lambda _: camera)
 
 
-def _globe(source: str | None, options: Any) -> Any:
-    """The QTM globe over SOURCE's heights (None, "-" or "none": the ellipsoid alone), for
-    ``globe`` and every command's --globe."""
+def _globe(
+    source: str | None,
+    options: Any,
+    flags: TerrainFlags | None = None,
+    scene_options: SceneOptions | None = None,
+    *,
+    clock: Clock | None = None,
+) -> Any:
+    """The QTM globe over SOURCE (None, "-" or "none": the ellipsoid alone), for ``globe`` and
+    every command's --globe: SOURCE opened with the terrain FLAGS (its imagery layers, city,
+    ground) draws its own tiles where it has data, and the imagery layers stream over the
+    whole globe. With ``clock``, frames stream on it (flights, the viewer)."""
+    from dataclasses import replace
+
     from lodscape.globe import Globe
+    from lodscape.sources import _open_layers
 
+    flags = flags or TerrainFlags()
     spec: SourceSpec | None = None if source is None else parse_source(source)
-    terrain = None if spec is None or spec.kind == "none" else open_scene(spec.text)
+    options = replace(options, imagery_timeout=flags.imagery_timeout)
     if spec is not None and spec.kind == "procedural":
-        from dataclasses import replace
-
         options = replace(options, earth="procedural")  # an invented planet, asked for
+    if spec is None or spec.kind == "none":
+        if flags.city is not None:
+            raise LodscapeError("--city on the globe needs SOURCE (a DEM, a tileset, or flat)")
+        if flags.ground != "tint" or flags.landcover is not None or flags.detail != "none":
+            raise LodscapeError(
+                "--ground, --landcover and --detail colour a terrain: give SOURCE (a DEM or a "
+                "tileset) for the globe to draw them on"
+            )
+        layers = _open_layers(
+            flags.imagery or [], flags.imagery_cache, flags.imagery_maxzoom, flags.imagery_timeout
+        )
+        stream = None
+        if clock is not None:
+            stream = (scene_options or flags.options(256.0)).stream
+        try:
+            return Globe(None, options, layers=layers, clock=clock, stream=stream)
+        except BaseException:
+            for layer in layers:
+                layer.close()
+            raise
+    opts = scene_options or flags.options()
+    terrain = flags.open(spec.text, opts, clock=clock)
     try:
         return Globe(terrain, options)
     except BaseException:
-        if terrain is not None:
-            terrain.close()
+        terrain.close()
         raise
 
 
@@ -1229,11 +1263,12 @@ def _render_globe(
     depth_path: Path | None,
     quiet: bool,
     camera: Callable[[Scene | None], Camera],
+    flags: TerrainFlags | None = None,
 ) -> None:
     """One view of the QTM globe (``globe``, ``render --globe``): heights from SOURCE (None,
     "-" or "none": the ellipsoid), the camera made from the terrain opened."""
 
-    g = _globe(source, options)
+    g = _globe(source, options, flags)
     terrain = g.terrain
     try:
         rgb, dist = g.render(camera(terrain))
@@ -1256,18 +1291,21 @@ def _view_globe(
     w: int,
     h: int,
     fov: float,
-    max_sse: float,
+    flags: TerrainFlags,
+    budget_mb: float,
     exit_after: float | None,
 ) -> None:
-    """``view --globe``: the QTM globe in the window (SOURCE "-" or "none": no heights)."""
+    """``view --globe``: the QTM globe in the window (SOURCE "-" or "none": no heights), its
+    tiles and imagery streaming as you fly."""
     from lodscape.globe import GlobeOptions
+    from lodscape.stream import RealClock
     from lodscape.view import view as run_view
 
     try:
-        options = GlobeOptions(max_sse=max_sse, background=(0.0, 0.0, 0.0))
+        options = GlobeOptions(max_sse=flags.max_sse, background=(0.0, 0.0, 0.0))
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None
-    g = _globe(source, options)
+    g = _globe(source, options, flags, flags.options(budget_mb), clock=RealClock())
     camera = _globe_camera(g.terrain, camera_file, None, w, h, fov)
     done = run_view(
         {"plain": g},

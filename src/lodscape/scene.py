@@ -275,6 +275,10 @@ class Scene:
             self._strict_imagery()
         return rgb, depth
 
+    def frame_stats(self) -> dict[str, float]:
+        """The last frame's figures by name (``FrameStats.as_dict``); empty before the first."""
+        return {} if self.last is None else dict(self.last.as_dict())
+
     def imagery_failures(self) -> dict[str, int]:
         """Failed imagery tiles by kind, all layers together, since the scene opened."""
         out: dict[str, int] = {}

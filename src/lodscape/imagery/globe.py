@@ -107,7 +107,7 @@ def regional_image(
     mosaic = np.zeros((ny * ts, nx * ts, 4), np.uint8)
     have = tree.level(z)
     xs, ys = np.meshgrid(np.arange(x0, x1 + 1), np.arange(y0, y1 + 1))
-    ok, _ = have.index(xs.ravel(), ys.ravel())
+    ok = np.asarray(have.stats(xs.ravel(), ys.ravel()).exists, bool)  # any tree's levels
     for x, y in zip(xs.ravel()[ok], ys.ravel()[ok], strict=True):  # tens of tiles, once
         img = provider.texture(tile_texture_key(Tile(int(x), int(y), z)))
         if img.ndim != 3 or img.shape[2] not in (3, 4):

@@ -26,18 +26,17 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.geo.frames import ecef_to_geodetic
 from lodscape.lod.camera import Camera
-from lodscape.lod.view import FramePlan
 from lodscape.stream.gpu import GpuResources, GpuStage, Made
 from lodscape.stream.streamer import Clock, Source, Streamer, StreamOptions, StreamStats
 
-__all__ = ["LoadReport", "Loader"]
+__all__ = ["LoadReport", "Loader", "Plan"]
 
 #: Seconds (on the loader's clock) between predictions of where the camera is going.
 PREDICT_EVERY = 0.15
@@ -45,6 +44,23 @@ PREDICT_EVERY = 0.15
 Stage = Literal["memory", "cache"]
 #: The keys a fitted camera would draw, or None where it cannot be (under the ground).
 Predict = Callable[[Camera], "list[int] | None"]
+
+
+class Plan(Protocol):
+    """What the loader needs of a frame's plan (``lod.view.FramePlan`` for the terrain, the
+    globe's imagery tiles for the globe)."""
+
+    @property
+    def camera(self) -> Camera: ...
+
+    @property
+    def required(self) -> list[int]: ...
+
+    @property
+    def loads(self) -> NDArray[np.uint64]: ...
+
+    @property
+    def drawn(self) -> frozenset[int]: ...
 
 
 @dataclass(frozen=True)
@@ -121,7 +137,7 @@ class Loader:
         s.stats.uploaded += n
         self._begun = (n, (time.perf_counter() - t0) * 1e3)
 
-    def serve(self, plan: FramePlan, *, blocking: bool) -> LoadReport:
+    def serve(self, plan: Plan, *, blocking: bool) -> LoadReport:
         """Bring what ``plan`` requires onto the GPU, and (streaming) ask for its loads and the
         prefetch's; ``begin`` uploads them in the frames that follow."""
         t0 = time.perf_counter()
@@ -179,7 +195,7 @@ class Loader:
             if made is not None:
                 yield key, made
 
-    def finish(self, plan: FramePlan) -> None:
+    def finish(self, plan: Plan) -> None:
         """After the frame is drawn: what it drew stays, the rest fits the GPU budget."""
         self.gpu.drawn(plan.drawn)
         self.gpu.evict(plan.drawn)
