@@ -28,6 +28,20 @@ def test_csv_routes_with_and_without_times(tmp_path: Path) -> None:
     assert r.at(15.0)[2] == pytest.approx(1100.0)
 
 
+def test_a_pitch_column_sets_each_cameras_pitch(tmp_path: Path) -> None:
+    """From orbit straight down to the street looking ahead: the route says how far down."""
+    p = tmp_path / "r.csv"
+    p.write_text("lon,lat,alt,time,pitch\n-84.25,34,400000,0,-90\n-84.25,36.3,1400,10,-10\n")
+    r = read_route(p, speed=100.0)
+    pitches = [c.pitch for c in cameras(r, 1.0, 64, 48, pitch=-15.0)]
+    assert pitches[0] == -90.0
+    assert pitches[5] == pytest.approx(-50.0)
+    assert pitches[-1] == -10.0
+    # without one, the flight's pitch all along
+    p.write_text("lon,lat,alt,time\n-84.25,34,400000,0\n-84.25,36.3,1400,10\n")
+    assert {c.pitch for c in cameras(read_route(p, 100.0), 1.0, 64, 48, pitch=-15.0)} == {-15.0}
+
+
 def test_geojson_lines(tmp_path: Path) -> None:
     p = tmp_path / "r.geojson"
     coords = [[7.0, 46.5, 3000], [7.05, 46.5, 3000], [7.05, 46.52, 3200]]
@@ -71,6 +85,8 @@ def test_orbits_look_at_their_centre_and_lines_go_straight() -> None:
         ("lon,lat,alt\n1,2,3\n", ".csv", "at least two"),
         ("lon,lat,alt\n1,2,3\nx,2,3\n", ".csv", "row 3"),
         ("lon,lat,alt,time\n1,2,3,5\n1.1,2,3,5\n", ".csv", "increase"),
+        ("lon,lat,alt,pitch\n1,2,3,-95\n1.1,2,3,0\n", ".csv", "pitch must be within"),
+        ("lon,lat,alt,pitch\n1,2,3,nan\n1.1,2,3,0\n", ".csv", "pitch must be within"),
         ('{"type": "Point", "coordinates": [1, 2]}', ".geojson", "LineString"),
         ('{"type": "LineString", "coordinates": [[1, 2], [3, 4]]}', ".geojson", "altitude"),
         ("{nope", ".geojson", "not JSON"),

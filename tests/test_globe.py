@@ -144,7 +144,7 @@ def test_no_cracks_from_orbit_to_five_kilometres(dem: str) -> None:
     }
     found = {}
     for extend in (True, False):
-        opts = GlobeOptions(background=(1.0, 0.0, 1.0), extend=extend, imagery=False)
+        opts = GlobeOptions(background=(1.0, 0.0, 1.0), sky=None, extend=extend, imagery=False)
         g = Globe(lodscape.open(dem), opts)
         try:
             for name, cam in views.items():
@@ -192,7 +192,7 @@ def test_no_cracks_at_random_views(dem: str) -> None:
     from lodscape.globe import Globe, GlobeOptions
 
     rng = np.random.default_rng(11)
-    opts = GlobeOptions(background=(1.0, 0.0, 1.0), imagery=False)  # geometry alone
+    opts = GlobeOptions(background=(1.0, 0.0, 1.0), sky=None, imagery=False)  # geometry alone
     for terrain in (lodscape.open(dem), None):
         g = Globe(terrain, opts)
         try:
@@ -393,7 +393,7 @@ def test_the_terrains_tiles_meet_the_globe_without_a_gap(dem: str, alt: float) -
     scene = lodscape.open(dem, lodscape.SceneOptions(background=magenta))
     b = scene.provider.bounds_merc
     west, lat = (float(v) for v in merc_to_lonlat(b.left, (b.bottom + b.top) / 2.0))
-    g = Globe(scene, GlobeOptions(background=magenta))
+    g = Globe(scene, GlobeOptions(background=magenta, sky=None))  # magenta all the way down
     try:
         top = scene.tree.height_range[1]
         pitch = -90.0 if alt > 1e6 else -60.0  # from orbit straight down: no space in view
@@ -412,3 +412,16 @@ def test_the_terrains_tiles_meet_the_globe_without_a_gap(dem: str, alt: float) -
     assert drawn > 0 or alt > 1e6
     if alt < 1e4:  # close to the edge: the data fills a good part of the view, not all of it
         assert 0.1 * rgb.shape[0] * rgb.shape[1] < drawn < 0.95 * rgb.shape[0] * rgb.shape[1]
+
+
+def test_the_sky_near_the_ground_and_space_from_orbit() -> None:
+    from lodscape.globe import SKY_HIGH, SKY_LOW, background_at
+    from lodscape.scene import SKY
+
+    o = lodscape.globe.GlobeOptions(background=(0.0, 0.0, 0.0))
+    assert background_at(o, 1500.0) == SKY
+    assert background_at(o, 2.0e6) == (0.0, 0.0, 0.0)
+    mid = background_at(o, (SKY_LOW + SKY_HIGH) / 2.0)
+    assert all(0.0 < m < s for m, s in zip(mid, SKY, strict=True))
+    # asked for: space all the way down
+    assert background_at(lodscape.globe.GlobeOptions(sky=None), 10.0) == (0.02, 0.02, 0.06)

@@ -47,6 +47,9 @@ class Route:
     alt: F64
     #: A point every camera looks at (an orbit's centre), or None to look along the path.
     target: tuple[float, float, float] | None = None
+    #: Degrees below the horizon (negative) at each point, from a route's pitch column, or
+    #: None: the flight's --pitch all along.
+    pitch: F64 | None = None
 
     @property
     def duration(self) -> float:
@@ -73,8 +76,8 @@ def _timed(lon: F64, lat: F64, alt: F64, speed: float, name: str) -> F64:
 
 
 def read_route(path: str | os.PathLike[str], speed: float) -> Route:
-    """A CSV (lon,lat,alt header, optional time column in seconds) or a GeoJSON line
-    (coordinates [lon, lat, alt]) as a route."""
+    """A CSV (lon,lat,alt header, optional time column in seconds and pitch column in degrees)
+    or a GeoJSON line (coordinates [lon, lat, alt]) as a route."""
     name = os.fspath(path)
     try:
         text = Path(name).read_text(encoding="utf-8-sig")
@@ -82,11 +85,14 @@ def read_route(path: str | os.PathLike[str], speed: float) -> Route:
         raise LodscapeError(f"{name}: no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise LodscapeError(f"{name}: cannot read ({exc})") from None
+    pitch = None
     if name.lower().endswith((".geojson", ".json")):
         lon, lat, alt = _geojson(text, name)
         times = None
     else:
-        lon, lat, alt, times = _csv(text, name)
+        lon, lat, alt, times, pitch = _csv(text, name)
+        if pitch is not None and not (np.abs(pitch) <= 90.0).all():
+            raise LodscapeError(f"{name}: pitch must be within -90..90 degrees")
     if lon.size < 2:
         raise LodscapeError(f"{name}: a route needs at least two points")
     if np.any(np.abs(lat) > 90.0) or not np.isfinite(np.stack([lon, lat, alt])).all():
@@ -97,10 +103,10 @@ def read_route(path: str | os.PathLike[str], speed: float) -> Route:
         times = times - times[0]
         if np.any(np.diff(times) <= 0.0):
             raise LodscapeError(f"{name}: the time column must increase from row to row")
-    return Route(times, lon, lat, alt)
+    return Route(times, lon, lat, alt, pitch=pitch)
 
 
-def _csv(text: str, name: str) -> tuple[F64, F64, F64, F64 | None]:
+def _csv(text: str, name: str) -> tuple[F64, F64, F64, F64 | None, F64 | None]:
     rows = list(csv.reader(text.splitlines()))
     if not rows:
         raise LodscapeError(f"{name}: empty route")
@@ -111,21 +117,21 @@ def _csv(text: str, name: str) -> tuple[F64, F64, F64, F64 | None]:
             f"{name}: the header needs lon, lat and alt columns (missing {', '.join(missing)})"
         )
     cols = [header.index(c) for c in ("lon", "lat", "alt")]
-    tcol = header.index("time") if "time" in header else None
+    extra = [c for c in ("time", "pitch") if c in header]
+    cols += [header.index(c) for c in extra]
     values = []
     for number, row in enumerate(rows[1:], start=2):
         if not any(c.strip() for c in row):
             continue
         try:
-            values.append(
-                [float(row[c]) for c in cols] + ([float(row[tcol])] if tcol is not None else [])
-            )
+            values.append([float(row[c]) for c in cols])
         except (ValueError, IndexError):
             raise LodscapeError(f"{name}: row {number}: {','.join(row)!r} is not numbers") from None
     if not values:
         raise LodscapeError(f"{name}: the route has no points (a header and no rows)")
     a = np.array(values, dtype=np.float64)
-    return a[:, 0], a[:, 1], a[:, 2], (a[:, 3] if tcol is not None else None)
+    named = {c: a[:, 3 + i] for i, c in enumerate(extra)}
+    return a[:, 0], a[:, 1], a[:, 2], named.get("time"), named.get("pitch")
 
 
 def _geojson(text: str, name: str) -> tuple[F64, F64, F64]:
@@ -188,7 +194,8 @@ def cameras(
     fov: float = 60.0,
     duration: float | None = None,
 ) -> Iterator[Camera]:
-    """One camera per frame: along the route, looking where it goes (or at its target)."""
+    """One camera per frame: along the route, looking where it goes (or at its target), at the
+    route's own pitch where it has one, else ``pitch``."""
     end = route.duration if duration is None else min(duration, route.duration)
     frames = max(1, math.floor(end * fps) + 1)
     for i in range(frames):
@@ -206,9 +213,8 @@ def cameras(
         a, b = (here, ahead) if ahead != here else (route.at(max(t - 1.0, 0.0)), here)
         e, n, _ = enu_basis(lon, lat) @ (geodetic_to_ecef(*b) - geodetic_to_ecef(*a))
         heading = math.degrees(math.atan2(e, n)) % 360.0
-        yield Camera(
-            lon, lat, alt, heading=heading, pitch=pitch, fov_y=fov, width=width, height=height
-        )
+        p = pitch if route.pitch is None else float(np.interp(t, route.times, route.pitch))
+        yield Camera(lon, lat, alt, heading=heading, pitch=p, fov_y=fov, width=width, height=height)
 
 
 STAT_COLUMNS = (

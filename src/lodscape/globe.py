@@ -15,6 +15,7 @@ from lodscape.errors import CameraError
 from lodscape.geo.frames import WGS84_A
 from lodscape.lod.camera import Camera
 from lodscape.lod.globe import GlobeMesh, Selection, by_error, mesh, screen_error, thinning
+from lodscape.scene import SKY
 
 __all__ = ["Globe", "GlobeOptions"]
 
@@ -177,6 +178,9 @@ class GlobeOptions:
     extra: int = 2
     blocks: int = 4
     background: tuple[float, float, float] = (0.02, 0.02, 0.06)
+    #: The sky low down, blended into ``background`` (space) from ``SKY_LOW`` to ``SKY_HIGH``
+    #: metres up; None: space all the way down.
+    sky: tuple[float, float, float] | None = SKY
     #: Remove cracks between levels (vertex extension); off only to show what it removes.
     extend: bool = True
     #: Drape the terrain's own imagery (its tint, or a tileset's imagery) over its data.
@@ -199,6 +203,25 @@ class GlobeOptions:
             raise ValueError(f"globe earth is earth or procedural, got {self.earth!r}")
         if not self.max_sse > 0:
             raise ValueError(f"Expected a positive max_sse, got {self.max_sse}")
+
+
+#: Below this altitude (m) the globe's background is the sky; above ``SKY_HIGH``, space.
+SKY_LOW, SKY_HIGH = 12_000.0, 100_000.0
+
+
+def background_at(options: GlobeOptions, alt: float) -> tuple[float, float, float]:
+    """The background from ``alt`` metres up: the sky near the ground, space from high up, a
+    smooth blend between."""
+    if options.sky is None:
+        return options.background
+    t = min(max((alt - SKY_LOW) / (SKY_HIGH - SKY_LOW), 0.0), 1.0)
+    t = t * t * (3.0 - 2.0 * t)
+    sky, space = options.sky, options.background
+    return (
+        sky[0] + (space[0] - sky[0]) * t,
+        sky[1] + (space[1] - sky[1]) * t,
+        sky[2] + (space[2] - sky[2]) * t,
+    )
 
 
 @dataclass
@@ -416,6 +439,7 @@ class Globe:
                 if region is not None:
                     self._renderer.set_region(*region)
         t2 = time.perf_counter()
+        self._renderer.background = background_at(self.options, camera.alt)
         tiles = self._draws_tiles
         wanted = self._renderer.read_back  # a window leaves the picture on the GPU
         if tiles:
