@@ -234,7 +234,7 @@ def _descent(n: int, w: int, h: int, imagery: str | None, fps: float) -> None:
     )
     print(
         f"    fell back more than one level (terrain tiles, or imagery from an ancestor two or "
-        f"more up) in {sum(fell)} frames, {sum(fell[int(fps):])} after the first second; "
+        f"more up) in {sum(fell)} frames, {sum(fell[int(fps) :])} after the first second; "
         f"imagery tiles missing (none resident yet) in "
         f"{sum(r['imagery_missing'] > 0 for r in rows)} frames"
     )
