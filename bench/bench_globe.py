@@ -4,9 +4,10 @@ recursive version of the same rule.
 
     python bench/bench_globe.py [--moves 40] [--size 1280x720] [--frames]
 
-Experiment: base level 7 (32,768 facets), thinning area +2 levels (level 9) over the blocks
-nearest the viewpoint (QTM level 4, the paper's T = 2·4^(6-2) = 512 blocks), against the whole
-of level 9 (524,288 facets, the paper's figure). Then, from a camera looking at that place, the
+Experiment: base level 7 (32,768 facets) with the block nearest the viewpoint (QTM level 4,
+the paper's T = 2·4^(6-2) = 512 blocks) refined three levels: 32,704 level-7 and 4,096 level-10
+facets, the paper's 36,800, against the whole of level 9 (524,288 facets, the paper's figure);
+then one and four blocks at +2. Then, from a camera looking at that place, the
 screen-space mode with its error bound set to the thinning selection's own largest error.
 
 Updates: a descent from 20,000 km to 5 km (and on along the ground), one selection per move,
@@ -59,11 +60,19 @@ def main() -> None:
     lat, lon = 45.0, 10.0
     full = facet_count(9)
     print(f"whole level 9: {full:,} facets (the paper: 524,288)")
-    for blocks in (1, 4):
-        sel = thinning(lat, lon, base=7, block_level=4, extra=2, blocks=blocks)
+    # the paper's figure: the nearest block (QTM level 4, 64 level-7 facets) refined three
+    # levels, 32,704 facets of level 7 and 4,096 of level 10
+    paper = thinning(lat, lon, base=7, block_level=4, extra=3, blocks=1)
+    print(
+        f"the paper's setting, base 7 + the nearest block at +3: {paper.count:,} facets "
+        f"(level 7: {len(paper.levels[7]):,}, level 10: {len(paper.levels[10]):,}; "
+        f"{paper.count / full:.1%} of level 9; the paper: 36,800)"
+    )
+    for blocks, extra in ((1, 3), (1, 2), (4, 2)):
+        sel = thinning(lat, lon, base=7, block_level=4, extra=extra, blocks=blocks)
         print(
-            f"base 7 + thinning area of {blocks} block(s) at +2: {sel.count:,} facets "
-            f"({sel.count / full:.1%} of level 9; the paper: 36,800)"
+            f"base 7 + thinning area of {blocks} block(s) at +{extra}: {sel.count:,} facets "
+            f"({sel.count / full:.1%} of level 9)"
         )
         for alt in (2.0e5, 2.0e4):
             cam = Camera(lon, lat - 0.5, alt, heading=0.0, pitch=-30.0, width=w, height=h)

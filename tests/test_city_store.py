@@ -142,6 +142,36 @@ def test_render_drapes_the_stored_city(
     assert changed > 0.05, changed
 
 
+@pytest.mark.gl
+def test_fly_from_orbit_down_to_the_stored_city(
+    fresh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One scene from 300 km straight down to 150 m over the city's streets: the globe, the
+    tileset's tiles and its stored city, no cut."""
+    import csv
+
+    code, _, err = run_cli(["city", "add", str(fresh), str(sample_city_path())], capsys)
+    assert code == 0, err
+    route = tmp_path / "descent.csv"
+    route.write_text(
+        "lon,lat,alt,time,pitch\n24.9395,59.9,300000,0,-90\n24.9395,60.150,2000,4,-40\n"
+        "24.9395,60.158,150,6,-20\n"
+    )
+    stats = tmp_path / "d.csv"
+    argv = ["fly", str(fresh), "--globe", "--path", str(route), "--fps", "2", "--size"]
+    argv += ["160x100", "-o", str(tmp_path / "d.mp4"), "--stats", str(stats), "-q"]
+    code, _, err = run_cli(argv, capsys)
+    assert code == 0, err
+    with stats.open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 13
+    assert int(rows[0]["terrain_pixels"]) < 0.01 * 160 * 100  # from orbit: a speck
+    assert int(rows[0]["facets"]) > 0
+    last = rows[-1]
+    assert int(last["terrain_pixels"]) > 0.5 * 160 * 100  # at street level: the tileset's
+    assert int(last["city_objects_drawn"]) > 50  # and its city
+
+
 def test_bad_inputs_are_one_line_errors(
     fresh: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -86,6 +86,10 @@ def test_children_tile_their_parent_and_points_find_their_facet() -> None:
 def test_the_papers_experiment() -> None:
     assert block_count(6) == 512 == qtm.facet_count(4)
     assert qtm.facet_count(9) == 524_288
+    # the paper's 36,800: the nearest block refined three levels
+    paper = thinning(45.0, 10.0, base=7, block_level=4, extra=3, blocks=1)
+    assert paper.count == 36_800
+    assert {k: len(v) for k, v in paper.levels.items()} == {7: 32_704, 10: 4_096}
     one = thinning(45.0, 10.0, base=7, block_level=4, extra=2, blocks=1)
     assert one.count == 32_768 - 64 + 1024
     four = thinning(45.0, 10.0, base=7, block_level=4, extra=2, blocks=4)

@@ -246,6 +246,8 @@ STAT_COLUMNS = (
     # a tile server's HTTP requests and the HTTP client's own retries, since the flight began
     "http_requests",
     "http_retries",
+    # the city's objects drawn (0 without a city)
+    "city_objects_drawn",
 )
 
 #: The columns of ``fly --globe --stats``: the terrain's (its tiles where they are drawn, and
@@ -269,7 +271,7 @@ GLOBE_COLUMNS = (
 
 class FlightRows(Sequence[dict[str, float]]):
     """A flight's per-frame statistics, one row of ``columns`` a frame, held as one float64
-    array (208 bytes a frame for the 26 columns; a dict a frame took 1.8 KB, which a long flight
+    array (216 bytes a frame for the 27 columns; a dict a frame took 1.8 KB, which a long flight
     kept growing by 50 KB a second). Rows read back as dicts, integer columns as ints."""
 
     def __init__(self, columns: tuple[str, ...]) -> None:
