@@ -22,7 +22,13 @@ same flight over the tileset alone.
 Reported: frames that fall back more than one level, frames whose CPU work (selection, stalls,
 uploads) exceeds the frame's 33.3 ms, and peak resident bytes, after the first second.
 
-    python bench/bench_flight.py [--work DIR] [--seconds 40]
+With ``--fast 600``, instead (paper 004's case, where prefetch must pay): 600 m/s with a 90°
+turn, the tileset on slow storage (``--storage-ms`` per read, charged on the simulated clock),
+flown with paper 004's radii (memory and cache areas all round, larger in front, pushed ahead
+by the speed) beside the velocity's predictions, with the velocity's alone, and with no
+prefetch: fallbacks over one level, frames over budget, stalls and bytes read.
+
+    python bench/bench_flight.py [--work DIR] [--seconds 40] [--fast 600 --storage-ms 40]
 """
 
 from __future__ import annotations
@@ -132,6 +138,99 @@ def run(
     }
 
 
+def turning_cameras(dem: Path, speed: float, seconds: float) -> list[Camera]:
+    """Fast, with a turn: east along the DEM's middle from its west quarter, a 90° turn to the
+    north over five seconds, then north; ``AGL`` above the ground (smoothed), looking along."""
+    src = RasterSource(dem)
+    b = src.bounds_merc
+    x0, y0 = b.left + (b.right - b.left) * 0.15, (b.top + b.bottom) / 2 - (b.top - b.bottom) * 0.3
+    dt = 1.0 / FPS
+    n = int(seconds * FPS)
+    turn_at, turn_s = 0.4 * seconds, 5.0
+    rate = (math.pi / 2) / turn_s  # rad/s
+    headings = np.empty(n)
+    xs, ys = np.empty(n), np.empty(n)
+    x, y, heading = x0, y0, math.pi / 2  # heading from north, clockwise: east
+    # Web Mercator metres stretch by 1/cos(lat): move by ground metres
+    (_, lat_mid) = merc_to_lonlat(x0, y0)
+    stretch = 1.0 / math.cos(math.radians(float(lat_mid)))
+    for i in range(n):
+        t = i * dt
+        if turn_at <= t < turn_at + turn_s:
+            heading -= rate * dt  # turning left, towards the north
+        xs[i], ys[i], headings[i] = x, y, heading
+        x += speed * dt * math.sin(heading) * stretch
+        y += speed * dt * math.cos(heading) * stretch
+    ground, _ = src.sample(xs, ys, 20.0)
+    src.close()
+    ground = np.where(np.isfinite(ground), ground, np.nanmax(ground))
+    ahead = np.convolve(np.pad(ground, (0, int(FPS))), np.ones(int(FPS)) / FPS, "valid")[:n]
+    alt = np.maximum(ground, ahead) + AGL
+    lons, lats = merc_to_lonlat(xs, ys)
+    return [
+        Camera(
+            float(lo),
+            float(la),
+            float(a),
+            heading=float(np.degrees(h)) % 360.0,
+            pitch=-15.0,
+            width=640,
+            height=360,
+        )
+        for lo, la, a, h in zip(lons, lats, alt, headings, strict=True)
+    ]
+
+
+class SlowStorage:
+    """A tileset on slow storage (a network disk, a busy server): every read is charged
+    ``latency`` seconds on the simulated clock (``cost``), whatever the machine does."""
+
+    def __init__(self, base: Provider, latency: float) -> None:
+        self._base = base
+        self.latency = latency
+
+    def cost(self, key: int) -> float:
+        return self.latency
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._base, name)
+
+
+def fast_flights(tileset: Path, dem: Path, speed: float, latency_ms: float, seconds: float) -> None:
+    """Paper 004's radii where prefetch must pay: a fast flight with a turn over slow storage,
+    staged with the radii, with the velocity's predictions alone, and with no prefetch."""
+    cams = turning_cameras(dem, speed, seconds)
+    print(
+        f"-- fast: {len(cams)} frames at {FPS:.0f} fps, {speed:.0f} m/s with a 90° turn over "
+        f"5 s, {AGL:.0f} m above the ground; storage {latency_ms:.0f} ms a read"
+    )
+    modes = [
+        ("radii + velocity", StreamOptions(cache_mb=BUDGET_MB, memory_mb=BUDGET_MB)),
+        ("velocity only", StreamOptions(cache_mb=BUDGET_MB, memory_mb=BUDGET_MB, radii=None)),
+        (
+            "no prefetch",
+            StreamOptions(cache_mb=BUDGET_MB, memory_mb=BUDGET_MB, radii=None, ahead=()),
+        ),
+    ]
+    for label, stream in modes:
+        opts = SceneOptions(gpu_budget_mb=BUDGET_MB, anisotropy=1.0, stream=stream)
+        provider = SlowStorage(TilesetProvider(tileset), latency_ms / 1000.0)
+        with lodscape.Scene(provider, opts, clock=SimClock()) as scene:  # type: ignore[arg-type]
+            rows = fly(scene, iter(cams), FPS)
+            provider._base.close()
+        after = [r for r in rows if r["time_s"] >= 1.0]
+        print(
+            f"{label:>25}: {len(after)} frames after the first second: "
+            f"{sum(r['fallback_max'] > 1 for r in after)} fall back > 1 level, "
+            f"{sum(r['over_budget'] for r in after)} over {1000 / FPS:.1f} ms, stalled "
+            f"{sum(r['stall_ms'] for r in after):.0f} ms in all; read "
+            f"{sum(r['fetched_bytes'] for r in rows) / 2**20:.1f} MiB in "
+            f"{sum(r['fetched'] for r in rows)} reads; areas at the end: "
+            f"{rows[-1]['area_memory']} chunks in memory's, {rows[-1]['area_cache']} in the "
+            f"cache's"
+        )
+
+
 def dataset(work: Path, n: int) -> tuple[Path, Path]:
     """The n² fBm DEM and its tileset in ``work``, made unless they are there already."""
     dem, tileset = work / f"fbm{n}.tif", work / f"fbm{n}.lods"
@@ -192,11 +291,23 @@ def main() -> None:
     ap.add_argument("--latency-ms", type=float, default=40.0, help="the imagery server's delay")
     ap.add_argument("--ortho", action="store_true", help="fly with an orthophoto 8x finer too")
     ap.add_argument("--dem", type=int, default=4097, help="the DEM's side (4097: issue 4's)")
+    ap.add_argument(
+        "--fast",
+        type=float,
+        default=0.0,
+        metavar="M_PER_S",
+        help="instead: a flight this fast with a turn over slow storage, radii against the "
+        "velocity alone and no prefetch (paper 004's case; 600 for issue 22's)",
+    )
+    ap.add_argument("--storage-ms", type=float, default=40.0, help="--fast: ms per read")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         dem, tileset = dataset(work, args.dem)
+        if args.fast:
+            fast_flights(tileset, dem, args.fast, args.storage_ms, min(args.seconds, 30.0))
+            return
         size = tileset.stat().st_size / 2**20
         cams = cameras(dem, args.seconds)
         print(

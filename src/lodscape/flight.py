@@ -248,6 +248,16 @@ STAT_COLUMNS = (
     "http_retries",
     # the city's objects drawn (0 without a city)
     "city_objects_drawn",
+    # bytes fetched from the source (disk, a server) this frame
+    "fetched_bytes",
+    # paper 004: chunks in the memory and cache areas at the last classification, and the
+    # resource units they hold by state (on disk, cached, in memory, on the GPU)
+    "area_memory",
+    "area_cache",
+    "units_disk",
+    "units_cached",
+    "units_memory",
+    "units_gpu",
 )
 
 #: The columns of ``fly --globe --stats``: the terrain's (its tiles where they are drawn, and
@@ -271,7 +281,7 @@ GLOBE_COLUMNS = (
 
 class FlightRows(Sequence[dict[str, float]]):
     """A flight's per-frame statistics, one row of ``columns`` a frame, held as one float64
-    array (216 bytes a frame for the 27 columns; a dict a frame took 1.8 KB, which a long flight
+    array (272 bytes a frame for the 34 columns; a dict a frame took 1.8 KB, which a long flight
     kept growing by 50 KB a second). Rows read back as dicts, integer columns as ints."""
 
     def __init__(self, columns: tuple[str, ...]) -> None:

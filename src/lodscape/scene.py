@@ -330,6 +330,7 @@ class Scene:
                 predict=self._predict,
                 optional=is_overlay if self.provider.layers else None,
                 imagery_wait=opts.imagery_timeout,
+                areas=self._areas,
             )
         return self._loader
 
@@ -339,6 +340,28 @@ class Scene:
             return self.view.predict(self.prepare(camera))
         except CameraError:
             return None
+
+    def _areas(
+        self, camera: Camera, velocity: NDArray[np.float64]
+    ) -> tuple[list[int], list[int], dict[str, int]] | None:
+        """On a worker: paper 004's memory and cache areas around ``camera`` moving at
+        ``velocity`` (``lod.radii``), as keys to prefetch."""
+        from lodscape.lod.radii import radii_for
+
+        stream = self._options.stream
+        if stream is None or stream.radii is None:
+            return None
+        try:
+            cam = self.prepare(camera)
+        except CameraError:
+            return None
+        ground = self.ground_height(cam.lon, cam.lat)
+        floor = self.tree.height_range[0] if ground is None else ground
+        assert cam.far is not None
+        radii = radii_for(
+            cam.position, cam.forward, velocity, cam.alt - floor, cam.far, stream.radii
+        )
+        return self.view.areas(cam, radii)
 
     def frames(
         self, cameras: Iterator[Camera]

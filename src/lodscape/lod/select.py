@@ -30,6 +30,7 @@ per tile and layer.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -281,6 +282,8 @@ class Boxes:
     dist_near: F64
     dist_far: F64
     ground: F64
+    #: Box centres relative to the camera, ECEF metres (N, 3).
+    centre: F64
 
 
 def tile_boxes(
@@ -329,7 +332,7 @@ def tile_boxes(
     s = centre @ planes[:, :3].T + planes[:, 3]
     r = np.einsum("ni,npi->np", half, np.abs(np.einsum("pj,nij->npi", planes[:, :3], basis)))
     inside = np.all(s + r >= 0.0, axis=1)
-    return Boxes(inside, dist_near, dist_far, ground)
+    return Boxes(inside, dist_near, dist_far, ground, centre)
 
 
 @dataclass(frozen=True, eq=False)
@@ -370,6 +373,7 @@ def select(
     previous: Selection | None = None,
     resident: U64 | None = None,
     texture_levels: tuple[int, ...] | None = None,
+    reach: Callable[[F64, F64], NDArray[np.bool_]] | None = None,
 ) -> Selection:
     """The tiles to draw for ``camera``.
 
@@ -377,7 +381,9 @@ def select(
     meshes and textures that can be drawn now; None means everything can. Wanted resources that
     are not resident come back as ``loads``, and are drawn meanwhile from their nearest resident
     ancestor, so no hole opens. ``texture_levels`` gives the finest level of the terrain's own
-    texture, then of each imagery layer (None: the tree's textures alone).
+    texture, then of each imagery layer (None: the tree's textures alone). ``reach`` (paper
+    004's areas, ``lod.radii.Radii.reach``) keeps the tiles within a radius all round instead
+    of those in the frustum, each at the level its distance asks for.
     """
     if camera.near is None or camera.far is None:
         raise ValueError("select needs a camera with near/far set (Camera.with_clip)")
@@ -405,8 +411,8 @@ def select(
             break
         st = st.take(ok)
         m = _metrics(camera, z, x, y, st)
-        culled += int((~m.boxes.inside).sum())
-        keep = m.boxes.inside
+        keep = m.boxes.inside if reach is None else reach(m.boxes.centre, m.boxes.dist_near)
+        culled += int((~keep).sum())
         x, y = x[keep], y[keep]
         lo_h, hi_h = st.min_h[keep], st.max_h[keep]
         ground, scale, err = m.boxes.ground[keep], m.scale[keep], m.err[:, keep]

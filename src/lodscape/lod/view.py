@@ -29,11 +29,12 @@ from numpy.typing import NDArray
 
 from lodscape.errors import CameraError
 from lodscape.geo.cones import CONE_SIZE
-from lodscape.geo.frames import WGS84_A
+from lodscape.geo.frames import WGS84_A, geodetic_to_ecef
 from lodscape.geo.keys import mesh_keys_zxy, texture_keys_zxy
-from lodscape.geo.tiles import Bbox, merc_to_lonlat
+from lodscape.geo.tiles import Bbox, bounds_array, merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.cull import backfacing
+from lodscape.lod.radii import Radii
 from lodscape.lod.select import (
     NO_TEXTURE,
     Selection,
@@ -203,6 +204,36 @@ class TerrainView:
         return [
             int(k) for k in np.concatenate([sel.texture_keys, sel.layer_keys.ravel(), sel.keys])
         ]
+
+    def areas(self, camera: Camera, radii: Radii) -> tuple[list[int], list[int], dict[str, int]]:
+        """Paper 004's areas for a fitted ``camera``: every chunk (a tile at the level its
+        distance asks for) within the cache radius all round, classified by the radii. Returns
+        the memory area's keys and the cache area's (nearest first, textures before meshes)
+        and how many chunks each area holds."""
+        sel = select(
+            self.options,
+            camera,
+            self.tree,
+            texture_levels=self.texture_levels,
+            reach=radii.reach("cache"),
+        )
+        if sel.count == 0:
+            return [], [], {"area_memory": 0, "area_cache": 0}
+        left, bottom, right, top = bounds_array(sel.z, sel.x, sel.y)
+        lon, lat = merc_to_lonlat((left + right) / 2.0, (bottom + top) / 2.0)
+        centre = geodetic_to_ecef(lon, lat, 0.0) - camera.position
+        area = radii.classify(centre, sel.dist_near)
+        order = np.argsort(sel.dist_near, kind="stable")
+        out: list[list[int]] = []
+        for a in (0, 1):
+            pick = order[area[order] == a]
+            keys = np.concatenate(
+                [sel.texture_keys[pick], sel.layer_keys[:, pick].ravel(), sel.keys[pick]]
+            )
+            keys = keys[keys != NO_TEXTURE]
+            out.append([int(k) for k in keys])
+        counts = {"area_memory": int((area == 0).sum()), "area_cache": int((area == 1).sum())}
+        return out[0], out[1], counts
 
     def facing(
         self,

@@ -44,6 +44,11 @@ PREDICT_EVERY = 0.15
 Stage = Literal["memory", "cache"]
 #: The keys a fitted camera would draw, or None where it cannot be (under the ground).
 Predict = Callable[[Camera], "list[int] | None"]
+#: Paper 004's areas for a camera moving at a velocity (m/s, ECEF): the memory area's keys, the
+#: cache area's, and how many chunks each holds; None where the camera cannot be.
+Areas = Callable[
+    [Camera, NDArray[np.float64]], "tuple[list[int], list[int], dict[str, int]] | None"
+]
 
 
 class Plan(Protocol):
@@ -90,6 +95,7 @@ class Loader:
         predict: Predict | None = None,
         optional: Callable[[int], bool] | None = None,
         imagery_wait: float = 10.0,
+        areas: Areas | None = None,
     ) -> None:
         self.options = options
         self.streamer = Streamer(source, options, clock, prepare=gpu.prepare, remote=optional)
@@ -102,9 +108,14 @@ class Loader:
         self.late = 0
         self.gpu = GpuStage(gpu, gpu_budget_bytes)
         self._predict = predict
+        self._areas = areas
+        #: The last classification's chunks per area and resource units per state.
+        self.units: dict[str, int] = {}
         self._motion: tuple[float, NDArray[np.float64]] | None = None
         self._predicted_at = -math.inf
-        self._predicted: Future[list[tuple[Stage, list[int]]]] | None = None
+        self._predicted: (
+            Future[tuple[list[tuple[Stage, list[int]]], dict[str, int] | None]] | None
+        ) = None
         self._before: StreamStats = self.streamer.stats.snapshot()
         #: The last plan's loads (most urgent first): what ``begin`` uploads first.
         self._wanted: list[int] = []
@@ -205,6 +216,7 @@ class Loader:
         stages = self.streamer.resident()
         return {
             **self.streamer.stats.since(self._before),
+            **self.units,
             "gpu_bytes": self.gpu.nbytes,
             "memory_bytes": stages["memory"],
             "cache_bytes": stages["cache"],
@@ -220,13 +232,19 @@ class Loader:
         pending = self._predicted
         if pending is not None and pending.done():
             self._predicted = None
-            for stage, keys in pending.result():
+            predicted, counts = pending.result()
+            for stage, keys in predicted:
                 self.streamer.request(keys, stage, on_gpu)
+            if counts is not None:
+                self.units = {**counts, **self._states(predicted)}
         now = self.clock.now()
         pos = cam.position
         last, self._motion = self._motion, (now, pos)
         ahead = self.options.ahead
-        if self._predict is None or last is None or not ahead or self._predicted is not None:
+        radii = self._areas is not None and self.options.radii is not None
+        if last is None or self._predicted is not None:
+            return
+        if not radii and (self._predict is None or not ahead):
             return
         # a few times a second is enough: the radii move little in a tenth of a second
         if now <= last[0] or now - self._predicted_at < PREDICT_EVERY:
@@ -241,15 +259,40 @@ class Loader:
         pos: NDArray[np.float64],
         velocity: NDArray[np.float64],
         ahead: tuple[float, ...],
-    ) -> list[tuple[Stage, list[int]]]:
-        assert self._predict is not None
+    ) -> tuple[list[tuple[Stage, list[int]]], dict[str, int] | None]:
+        """On a worker: the areas around the camera (paper 004's radii), then the selections of
+        the camera moved along its velocity; the keys to ask for by stage, most urgent first,
+        and the areas' chunk counts."""
         out: list[tuple[Stage, list[int]]] = []
-        for i, seconds in enumerate(ahead):
-            lon, lat, alt = ecef_to_geodetic(pos + velocity * seconds)
-            keys = self._predict(cam.moved(lon=float(lon), lat=float(lat), alt=float(alt)))
-            if keys is not None:  # None: the path would go under the ground
-                out.append(("memory" if i == 0 else "cache", keys))
-        return out
+        counts = None
+        if self._areas is not None and self.options.radii is not None:
+            got = self._areas(cam, velocity)
+            if got is not None:
+                memory, cache, counts = got
+                out += [("memory", memory), ("cache", cache)]
+        if self._predict is not None:
+            for i, seconds in enumerate(ahead):
+                lon, lat, alt = ecef_to_geodetic(pos + velocity * seconds)
+                keys = self._predict(cam.moved(lon=float(lon), lat=float(lat), alt=float(alt)))
+                if keys is not None:  # None: the path would go under the ground
+                    out.append(("memory" if i == 0 else "cache", keys))
+        return out, counts
+
+    def _states(self, predicted: list[tuple[Stage, list[int]]]) -> dict[str, int]:
+        """Paper 004's resource units (the keys the areas hold) by state: on disk (or a
+        server), in the cache stage, in memory, on the GPU (counted where each stands now)."""
+        s = self.streamer
+        n = {"units_disk": 0, "units_cached": 0, "units_memory": 0, "units_gpu": 0}
+        for key in {k for _, keys in predicted for k in keys}:
+            if key in self.gpu:
+                n["units_gpu"] += 1
+            elif key in s.memory:
+                n["units_memory"] += 1
+            elif key in s.cache:
+                n["units_cached"] += 1
+            else:
+                n["units_disk"] += 1
+        return n
 
     def close(self) -> None:
         self.streamer.close()

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from lodscape._lru import ByteLRU
 from lodscape.errors import LodscapeError
+from lodscape.lod.radii import RadiiOptions
 from lodscape.terrain.mesh import TileMesh
 
 __all__ = ["RealClock", "SimClock", "StreamOptions", "StreamStats", "Streamer"]
@@ -73,8 +74,12 @@ class StreamOptions:
     in_flight: int = 16
     #: Worker threads.
     workers: int = 4
-    #: Seconds ahead along the velocity the memory and cache radii look; () turns prefetch off.
+    #: Seconds ahead along the velocity the predicted selections look (memory, then cache);
+    #: () turns that prediction off.
     ahead: tuple[float, ...] = (1.0, 3.0)
+    #: Paper 004's memory and cache radii around the camera (``lod.radii``); None turns them
+    #: off (the velocity's predictions alone).
+    radii: RadiiOptions | None = field(default_factory=RadiiOptions)
     #: First retry delay after a failed fetch (doubling, up to ``max_backoff``), seconds.
     backoff: float = 0.25
     max_backoff: float = 8.0
@@ -100,6 +105,8 @@ class StreamStats:
     cache_hits: int = 0
     memory_hits: int = 0
     upload_ms: float = 0.0
+    #: Bytes fetched from the source (disk, a server), not from the cache stage.
+    fetched_bytes: int = 0
 
     def snapshot(self) -> StreamStats:
         return StreamStats(**self.__dict__)
@@ -212,14 +219,14 @@ class Streamer:
         self, key: int, cached: bytes | None, decode: bool
     ) -> tuple[bytes | None, Made | None, float]:
         """On a worker: fetch (unless cached) and decode (if asked); returns what it made and
-        what it cost: the source's declared cost, else this thread's CPU seconds (not wall time:
-        see the package docstring)."""
+        what it cost: the source's declared cost of a fetch, else (or when the bytes came from
+        the cache) this thread's CPU seconds (not wall time: see the package docstring)."""
         t = time.thread_time()
         data = cached if cached is not None else self.source.fetch(key)
         made = self._decode(key, data) if decode else None
         took = time.thread_time() - t
         declared = getattr(self.source, "cost", None)
-        if declared is not None:
+        if declared is not None and cached is None:  # a fetch's declared cost
             took = float(declared(key))
         return (None if cached is not None else data), made, took
 
@@ -267,6 +274,7 @@ class Streamer:
         self._failures.pop(key, None)
         if data is not None:
             self.stats.fetched += 1
+            self.stats.fetched_bytes += len(data)
             self._put_cache(key, data)
         else:
             self.stats.cache_hits += 1
@@ -313,6 +321,7 @@ class Streamer:
             data, made = job.result()
             if c is None and data is not None:
                 self.stats.fetched += 1
+                self.stats.fetched_bytes += len(data)
                 self._put_cache(keys[i], data)
             elif c is not None:
                 self.stats.cache_hits += 1
