@@ -210,6 +210,15 @@ EllipsoidOpt = Annotated[
         "outside the data and under its holes; --no-ellipsoid shows the sky there.",
     ),
 ]
+MorphOpt = Annotated[
+    bool,
+    typer.Option(
+        "--morph/--no-morph",
+        help="Geomorph between levels (the CPU terrain mode, in flights and the viewer): a tile "
+        "that replaces a coarser one glides from its surface to its own over 10 frames "
+        "instead of jumping.",
+    ),
+]
 BandOpt = Annotated[
     int | None,
     typer.Option("--band", min=1, help="The height band of a multi-band raster (1-based)."),
@@ -265,6 +274,7 @@ class TerrainFlags:
     band: int | None = None
     nodata: float | None = None
     ellipsoid: bool = True
+    morph: bool = True
 
     def fractal(self, source: str) -> Fractal | None:
         return _detail(source, self.detail, self.hurst, self.sigma, self.seed)
@@ -278,6 +288,7 @@ class TerrainFlags:
             imagery_timeout=self.imagery_timeout,
             imagery_strict=self.imagery_strict,
             ellipsoid=self.ellipsoid,
+            morph=self.morph,
         )
 
     def open(
@@ -334,6 +345,7 @@ _TERRAIN_FLAGS = [
         ("band", BandOpt, None),
         ("nodata", NodataOpt, None),
         ("ellipsoid", EllipsoidOpt, True),
+        ("morph", MorphOpt, True),
     )
 ]
 
@@ -363,6 +375,7 @@ def _scene_options(
     imagery_timeout: float = 10.0,
     imagery_strict: bool = False,
     ellipsoid: bool = True,
+    morph: bool = True,
 ) -> SceneOptions:
     """Scene options from flags; a value the engine refuses is a one-line usage error. With
     ``budget_mb``, a streaming scene with that many MiB each of GPU, memory and cache."""
@@ -382,6 +395,7 @@ def _scene_options(
             imagery_timeout=imagery_timeout,
             imagery_strict=imagery_strict,
             ellipsoid=ellipsoid,
+            morph=morph,
             **streaming,
         )
     except ValueError as exc:

@@ -73,6 +73,11 @@ class SceneOptions:
     #: Draw the ellipsoid (height 0, in the no-data grey) wherever no terrain is: the world
     #: outside the data and under its holes; False shows the background there.
     ellipsoid: bool = True
+    #: Geomorph between levels (the CPU terrain mode's grids, frame after frame): a tile that
+    #: replaces a coarser one glides from the surface it replaced to its own over
+    #: ``lod.view.MORPH_FRAMES`` frames instead of jumping. Streaming scenes only: one-shot
+    #: renders draw each tile's own surface.
+    morph: bool = True
 
     def __post_init__(self) -> None:
         if not self.gpu_budget_mb > 0.0:
@@ -163,6 +168,8 @@ class Scene:
             cull_backfacing=self._options.cull_backfacing,
             texture_levels=self.provider.texture_levels,
         )
+        # frame after frame (flights, the viewer): a one-shot render shows its own surfaces
+        self.view.morph = self._options.morph and self._options.stream is not None
         self.clock: Clock = clock or RealClock()
         self._renderer: Renderer | None = None
         self._loader: Loader | None = None
@@ -186,6 +193,7 @@ class Scene:
         the loader's stay those the scene was made with."""
         self._options = options
         self.view.cull_backfacing = options.cull_backfacing
+        self.view.morph = options.morph and options.stream is not None
 
     @property
     def streaming(self) -> bool:

@@ -117,7 +117,7 @@ def select_reference(
         eff = max(dist, near)
         return inside, True, ground * d / eff, st.error[:, 0], ground
 
-    def visit(z: int, x: int, y: int) -> None:
+    def visit(z: int, x: int, y: int, parent_k: int = -1) -> None:
         m = metrics(z, x, y)
         if m is None or not m[0]:
             return
@@ -147,11 +147,13 @@ def select_reference(
                 (2 * x, 2 * y + 1),
                 (2 * x + 1, 2 * y + 1),
             ):
-                visit(z + 1, cx, cy)
+                visit(z + 1, cx, cy, len(err) - 1 if k is None else k)
         else:
             k = len(err) - 1 if k is None else k
             if grid_before.get(tile_id(Tile(x, y, z))) == k + 1:
                 k += 1
+            if options.hold_parent_grid:
+                k = min(max(k, parent_k - 1), len(err) - 1)
             up = max(0, z - ztex)
             while up < z - tree.zmin and px * 2**up < options.merge * t:
                 up += 1

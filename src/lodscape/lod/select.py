@@ -160,6 +160,10 @@ class SelectOptions:
     #: default: each tile's exact box test already prunes, and the region costs more than the
     #: bounds it spares (bench/bench_detail.py).
     region: bool = False
+    #: A tile keeps at least its parent's resolution (the grid of half the segments its parent
+    #: would be drawn with): splitting never coarsens the ground, so it never jumps there. It
+    #: costs triangles where a rough parent splits into smooth children.
+    hold_parent_grid: bool = True
 
     def __post_init__(self) -> None:
         if not 0.0 < self.merge < self.split:
@@ -400,12 +404,14 @@ def select(
 
     view = region_view(camera) if options.region else None
     x, y = tree.roots()
+    # the grid each tile's parent would be drawn with (-1: the roots have no parent)
+    parent_k = np.full(x.size, -1, np.int64)
     for z in range(tree.zmin, zmax + 1):
         if x.size == 0:
             break
         st = tree.level(z).stats(x, y)
         ok = st.exists
-        x, y = x[ok], y[ok]
+        x, y, parent_k = x[ok], y[ok], parent_k[ok]
         visited += int(x.size)
         if x.size == 0:
             break
@@ -413,7 +419,7 @@ def select(
         m = _metrics(camera, z, x, y, st)
         keep = m.boxes.inside if reach is None else reach(m.boxes.centre, m.boxes.dist_near)
         culled += int((~keep).sum())
-        x, y = x[keep], y[keep]
+        x, y, parent_k = x[keep], y[keep], parent_k[keep]
         lo_h, hi_h = st.min_h[keep], st.max_h[keep]
         ground, scale, err = m.boxes.ground[keep], m.scale[keep], m.err[:, keep]
         px = ground * scale
@@ -434,8 +440,14 @@ def select(
                 refine[was] = rough | hold
         refined_ids.append(ids[refine])
         draw = ~refine
+        # the next level's tiles keep at least their parent's resolution (a child's grid of
+        # half its parent's segments is its parent's surface): a split never coarsens what is
+        # drawn, so it never jumps (and geomorphing glides where it refines)
+        next_parent_k = np.repeat(k[refine], 4)
         if previous is not None:
             k = _keep_finer_grid(ids, k, previous.keys)
+        if options.hold_parent_grid:
+            k = np.minimum(np.maximum(k, parent_k - 1), len(tree.grids) - 1)
         kd = k[draw]
         errd = err[kd, np.nonzero(draw)[0]].astype(np.float64)
         drawn.append(
@@ -451,6 +463,7 @@ def select(
                 errd,
             )
         )
+        parent_k = next_parent_k
         x = (2 * x[refine][:, None] + np.array([0, 1, 0, 1])).ravel()
         y = (2 * y[refine][:, None] + np.array([0, 0, 1, 1])).ravel()
         if view is not None and x.size >= _REGION_MIN:

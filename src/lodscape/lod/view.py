@@ -31,7 +31,7 @@ from lodscape.errors import CameraError
 from lodscape.geo.cones import CONE_SIZE
 from lodscape.geo.frames import WGS84_A, geodetic_to_ecef
 from lodscape.geo.keys import mesh_keys_zxy, texture_keys_zxy
-from lodscape.geo.tiles import Bbox, bounds_array, merc_to_lonlat
+from lodscape.geo.tiles import Bbox, bounds_array, merc_to_lonlat, tile_id_array
 from lodscape.lod.camera import Camera
 from lodscape.lod.cull import backfacing
 from lodscape.lod.radii import Radii
@@ -44,9 +44,18 @@ from lodscape.lod.select import (
     tile_boxes,
 )
 
-__all__ = ["DrawItem", "FramePlan", "MeshInfo", "TerrainView", "draw_items"]
+#: Frames a tile takes to glide from the surface it replaced to its own (a third of a second
+#: at 30 frames a second).
+MORPH_FRAMES = 10
+
+__all__ = ["MORPH_FRAMES", "DrawItem", "FramePlan", "MeshInfo", "TerrainView", "draw_items"]
+
+#: Frames a tile takes to glide from the surface it replaced to its own (a third of a second
+#: at 30 frames a second).
+MORPH_FRAMES = 10
 
 U64 = NDArray[np.uint64]
+I64 = NDArray[np.int64]
 F64 = NDArray[np.float64]
 
 
@@ -68,6 +77,9 @@ class DrawItem:
     #: Per imagery layer, bottom to top: the key of its tile the tile wears (-1: none) and the
     #: window of it the tile covers, as ``uv``.
     layers: tuple[tuple[int, tuple[float, float, float]], ...] = ()
+    #: Geomorphing: how far (0..1) the tile's vertices still lie on the surface it replaced
+    #: (its grid of half the segments: its parent's, or its own coarser grid); 0: its own.
+    morph: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,6 +125,16 @@ class TerrainView:
         self.tree = tree
         self.options = options or SelectOptions()
         self.cull_backfacing = cull_backfacing
+        #: Geomorph between levels (``DrawItem.morph``): no vertex jumps where a tile splits.
+        self.morph = True
+        #: Frames a tile takes to glide from the surface it replaced to its own.
+        self.morph_frames = MORPH_FRAMES
+        #: Last frame's drawn tiles: sorted ids, their grids and how far each still morphed.
+        self._shown: tuple[U64, I64, F64] = (
+            np.zeros(0, np.uint64),
+            np.zeros(0, np.int64),
+            np.zeros(0),
+        )
         #: The finest level of the terrain's own texture, then of each imagery layer.
         self.texture_levels = texture_levels
         #: Last frame's selection (hysteresis), None before the first.
@@ -192,10 +214,43 @@ class TerrainView:
         absent = _absent(drawn, resident)
         # blocking: what is drawn and absent is loaded now; streaming: the selection's loads
         loads = absent if blocking else sel.loads
-        items = draw_items(sel, self.options.max_sse)
+        items = draw_items(sel, self.options.max_sse, self._morphs(sel) if self.morph else None)
         ms = (time.perf_counter() - t0) * 1e3
         required = [int(k) for k in absent]
         return FramePlan(camera, sel, items, required, loads, frozenset(drawn.tolist()), ms)
+
+    def _morphs(self, sel: Selection) -> F64:
+        """Per drawn tile, how far it still shows the surface it replaced (geomorphing over
+        ``morph_frames`` frames, from the frame it first appears):
+
+        - a tile drawn last frame with the same grid glides on by 1/morph_frames;
+        - one that replaces its own coarser grid (one step), or its parent drawn with the same
+          grid (whose surface over the tile is the tile's grid of half the segments), starts
+          at 1: it shows exactly what was there;
+        - anything else (its parent drawn with the next finer grid, which is the tile's own
+          surface; a merge; the first frame) starts at 0.
+
+        The offsets a mesh moves by (``TileMesh.morph``) lead onto its grid of half the
+        segments, so the picture never jumps where a tile splits or refines its grid; a merge
+        (moving away) still does."""
+        ids = tile_id_array(sel.z, sel.x, sel.y)
+        k = np.zeros(sel.count)
+        prev_ids, prev_grid, prev_k = self._shown
+        if prev_ids.size and sel.count:
+            step = 1.0 / max(self.morph_frames, 1)
+            i = np.minimum(np.searchsorted(prev_ids, ids), prev_ids.size - 1)
+            same_tile = prev_ids[i] == ids
+            pg = np.where(same_tile, prev_grid[i], -1)
+            kept = same_tile & (pg == sel.grid)
+            k[kept] = np.maximum(prev_k[i][kept] - step, 0.0)
+            finer_grid = same_tile & (pg == sel.grid - 1)
+            parent = tile_id_array(sel.z - 1, sel.x >> 1, sel.y >> 1)
+            j = np.minimum(np.searchsorted(prev_ids, parent), prev_ids.size - 1)
+            split = ~same_tile & (prev_ids[j] == parent) & (prev_grid[j] == sel.grid)
+            k[finer_grid | split] = 1.0 - step
+        order = np.argsort(ids)
+        self._shown = (ids[order], sel.grid[order], k[order])
+        return k
 
     def predict(self, camera: Camera) -> list[int]:
         """Every key a selection from ``camera`` (fitted) would draw, textures first (what a
@@ -208,7 +263,8 @@ class TerrainView:
     def areas(self, camera: Camera, radii: Radii) -> tuple[list[int], list[int], dict[str, int]]:
         """Paper 004's areas for a fitted ``camera``: every chunk (a tile at the level its
         distance asks for) within the cache radius all round, classified by the radii. Returns
-        the memory area's keys and the cache area's (nearest first, textures before meshes)
+        the memory area's keys and the cache area's (nearest first in units of the radius towards
+        them, so ahead before behind; textures before meshes)
         and how many chunks each area holds."""
         sel = select(
             self.options,
@@ -223,7 +279,11 @@ class TerrainView:
         lon, lat = merc_to_lonlat((left + right) / 2.0, (bottom + top) / 2.0)
         centre = geodetic_to_ecef(lon, lat, 0.0) - camera.position
         area = radii.classify(centre, sel.dist_near)
-        order = np.argsort(sel.dist_near, kind="stable")
+        # most urgent first: nearest in units of the radius towards it (ahead before behind)
+        norm = np.linalg.norm(centre, axis=1)
+        direction = centre / np.maximum(norm, 1e-9)[:, None]
+        reach = np.maximum(radii.radius("cache", direction), 1e-9)
+        order = np.argsort(sel.dist_near / reach, kind="stable")
         out: list[list[int]] = []
         for a in (0, 1):
             pick = order[area[order] == a]
@@ -323,17 +383,26 @@ def _runs(keep: NDArray[np.bool_], per: int, total: int) -> tuple[tuple[int, int
     return tuple(out)
 
 
-def draw_items(sel: Selection, max_sse: float = 2.0) -> list[DrawItem]:
+def draw_items(sel: Selection, max_sse: float = 2.0, morph: F64 | None = None) -> list[DrawItem]:
     """The renderer's draw list for a selection: each tile's mesh, its texture and the window of
-    that texture it covers (a half per level up), its skirt, and the screen-space error the GPU
+    that texture it covers (a half per level up), its skirt, the screen-space error the GPU
     terrain mode's tessellation may add to the tile's own (``max_sse`` less it, at least a
-    tenth of ``max_sse``)."""
+    tenth of ``max_sse``), and how far it still shows the surface it replaced (``morph``, per
+    tile, 0..1; None: 0)."""
     u, v, scale = _windows(sel.x, sel.y, sel.texture_up)
     budget = np.maximum(max_sse - sel.sse, 0.1 * max_sse)
-    cols = zip(sel.keys, sel.texture_keys, sel.skirt, u, v, scale, budget, strict=True)
+    k = np.zeros(sel.count) if morph is None else morph
+    cols = zip(sel.keys, sel.texture_keys, sel.skirt, u, v, scale, budget, k, strict=True)
     items = [
-        DrawItem(int(k), int(t), float(sk), (float(a), float(b), float(c)), sse_budget=float(e))
-        for k, t, sk, a, b, c, e in cols
+        DrawItem(
+            int(key),
+            int(t),
+            float(sk),
+            (float(a), float(b), float(c)),
+            sse_budget=float(e),
+            morph=float(m),
+        )
+        for key, t, sk, a, b, c, e, m in cols
     ]
     if not sel.layer_keys.size:
         return items

@@ -71,9 +71,11 @@ uniform vec3 u_up;       // direction skirts hang from (ellipsoid normal at the 
 uniform float u_skirt;   // metres to lower skirt vertices in this draw
 uniform vec3 u_uv;       // texture window: offset (u, v) and scale (an ancestor's texture)
 uniform vec3 u_ground;   // the tile's west and north edges (metres, modulo) and its size
+uniform float u_morph;   // how far the tile still shows the surface it replaced (0..1)
 in vec3 in_pos;
 in vec2 in_uv;
 in float in_skirt;
+in vec3 in_morph;        // the move onto the next coarser surface
 out vec2 v_uv;
 out vec2 v_tuv;
 out float v_dist;
@@ -81,7 +83,7 @@ out vec2 v_ground;
 out vec3 v_view;
 out float v_skirt;
 void main() {
-    vec3 p = in_pos - in_skirt * u_skirt * u_up;
+    vec3 p = in_pos + u_morph * in_morph - in_skirt * u_skirt * u_up;
     v_skirt = in_skirt;
     gl_Position = u_mvp * vec4(p, 1.0);
     v_uv = u_uv.xy + u_uv.z * in_uv;
@@ -273,6 +275,8 @@ class _Tile:
     center: NDArray[np.float64]
     up: bytes
     cone: NDArray[np.float64] | None = None
+    #: The geomorph offsets' buffer (None: the mesh is not morphed).
+    morph: moderngl.Buffer | None = None
 
 
 @dataclass(eq=False)
@@ -346,6 +350,7 @@ class Renderer:
         self._u_up = self._uniform("u_up")
         self._u_skirt = self._uniform("u_skirt")
         self._u_uv = self._uniform("u_uv")
+        self._u_morph = self._uniform("u_morph")
         self._uniform("u_tex").value = 0
         for i in range(MAX_OVERLAYS):
             u = self._program.get(f"u_layer{i}", None)
@@ -477,10 +482,15 @@ class Renderer:
         else:
             ibo = self._index_buffer(s)
         vbo = self._track(self.ctx.buffer(vertices))
+        content: list[tuple[Any, ...]] = [(vbo, *_VERTEX_FORMAT)]
+        mbo = None
+        if mesh.morph is not None and mesh.morph.shape == (len(vertices), 3):
+            mbo = self._track(self.ctx.buffer(np.ascontiguousarray(mesh.morph, np.float32)))
+            content.append((mbo, "3f", "in_morph"))
         vao = self._track(
             self.ctx.vertex_array(  # type: ignore[no-untyped-call]  # untyped in moderngl's stubs
                 self._program,
-                [(vbo, *_VERTEX_FORMAT)],
+                content,
                 index_buffer=ibo,
                 index_element_size=4,
             )
@@ -495,6 +505,7 @@ class Renderer:
             np.asarray(mesh.center, dtype=np.float64).copy(),
             np.asarray(mesh.up, dtype=np.float32).tobytes(),
             None if mesh.cone is None else np.asarray(mesh.cone, dtype=np.float64),
+            mbo,
         )
 
     def upload_texture(self, key: int, image: NDArray[np.uint8]) -> None:
@@ -548,6 +559,8 @@ class Renderer:
             return
         for obj in (tile.vao, tile.vbo):
             self._free(obj)
+        if tile.morph is not None:
+            self._free(tile.morph)
         if tile.ibo is not None:
             self._free(tile.ibo)
             return
@@ -661,6 +674,7 @@ class Renderer:
             self._u_up.write(ct.up)
             self._u_skirt.value = float(item.skirt)
             self._u_uv.value = item.uv
+            self._u_morph.value = float(item.morph) if ct.morph is not None else 0.0
             tex.use(0)
             if item.runs is None:
                 ct.vao.render(moderngl.TRIANGLES)

@@ -230,11 +230,18 @@ class Loader:
         velocity. The predicted selections run on a worker (a few milliseconds each), and their
         keys are asked for once they are ready; what they ask for then may be a frame stale."""
         pending = self._predicted
-        if pending is not None and pending.done():
+        # on a simulated clock the prediction is used when the next one is due (waited for if
+        # it has not finished): its keys then reach the workers at the same simulated time on
+        # any machine, and a frame seldom waits
+        simulated = bool(getattr(self.clock, "simulated", False))
+        due = self.clock.now() - self._predicted_at >= PREDICT_EVERY
+        if pending is not None and (pending.done() if not simulated else due):
             self._predicted = None
             predicted, counts = pending.result()
+            # half the workers' places stay for what the frames themselves want
+            room = max(1, self.options.in_flight // 2)
             for stage, keys in predicted:
-                self.streamer.request(keys, stage, on_gpu)
+                self.streamer.request(self._within_budget(keys, stage), stage, on_gpu, room)
             if counts is not None:
                 self.units = {**counts, **self._states(predicted)}
         now = self.clock.now()
@@ -277,6 +284,15 @@ class Loader:
                 if keys is not None:  # None: the path would go under the ground
                     out.append(("memory" if i == 0 else "cache", keys))
         return out, counts
+
+    def _within_budget(self, keys: list[int], stage: Stage) -> list[int]:
+        """The most urgent of ``keys`` that half the ``stage``'s budget holds (at the stage's
+        own mean bytes a resource, 64 KiB before it has any): asking for more would only make
+        the prefetched resources push each other out."""
+        lru = self.streamer.memory if stage == "memory" else self.streamer.cache
+        budget = (self.options.memory_mb if stage == "memory" else self.options.cache_mb) * 2**20
+        mean = lru.nbytes / len(lru) if len(lru) else 65536.0
+        return keys[: max(1, int(0.5 * budget / max(mean, 1.0)))]
 
     def _states(self, predicted: list[tuple[Stage, list[int]]]) -> dict[str, int]:
         """Paper 004's resource units (the keys the areas hold) by state: on disk (or a

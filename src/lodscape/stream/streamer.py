@@ -168,16 +168,23 @@ class Streamer:
 
     # --- requests ----------------------------------------------------------------------------
 
-    def request(self, keys: Iterable[int], stage: Stage, skip: Callable[[int], bool]) -> None:
+    def request(
+        self,
+        keys: Iterable[int],
+        stage: Stage,
+        skip: Callable[[int], bool],
+        limit: int | None = None,
+    ) -> None:
         """Ask for ``keys`` (most urgent first) up to ``stage``; ``skip`` says which are already
-        on the GPU. Stops at the in-flight limit: less urgent classes wait their turn. Terrain
-        and imagery (``remote``) keys have a limit each, so a slow imagery source never takes
-        the terrain's places."""
+        on the GPU. Stops at the in-flight limit (or ``limit``, lower, for a prefetch that must
+        leave room for what frames want): less urgent classes wait their turn. Terrain and
+        imagery (``remote``) keys have a limit each, so a slow imagery source never takes the
+        terrain's places."""
         now = self.clock.now()
         busy = [0, 0]
         for k in self._jobs:
             busy[self._lane(k)] += 1
-        limit = self.options.in_flight
+        limit = self.options.in_flight if limit is None else min(limit, self.options.in_flight)
         for key in keys:
             if skip(key):
                 continue

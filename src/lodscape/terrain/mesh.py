@@ -63,6 +63,10 @@ class TileMesh:
     #: The GPU terrain mode's height texture and error table (``terrain.heightmap.HeightTile``),
     #: made by a worker; None: made at upload.
     height_tile: Any = None
+    #: (N, 3) float32 per vertex (skirts included): how far to move it to lie on the next
+    #: coarser surface (the grid at half the segments, the parent's vertices), for
+    #: geomorphing; None: not morphed (an irregular or terrain-adaptive mesh).
+    morph: NDArray[np.float32] | None = None
 
     @property
     def triangles(self) -> int:
@@ -73,6 +77,8 @@ class TileMesh:
     @property
     def nbytes(self) -> int:
         own = 0 if self.indices is None else self.indices.nbytes
+        if self.morph is not None:
+            own += self.morph.nbytes
         if self.height_tile is not None:
             own += self.height_tile.heights.nbytes + self.height_tile.errors.nbytes
         return int(self.vertices.nbytes + own)
@@ -206,7 +212,26 @@ def build_mesh(
         indices = adaptive_indices(diag)
     surface = (grid_indices(s) if indices is None else indices)[: 2 * s * s]
     cone = patch_cones(vertices[: (s + 1) ** 2], surface.reshape(patches(s), -1, 3), up)
-    return TileMesh(key, s, vertices, center, up, indices, cone, np.asarray(heights, np.float32))
+    morph = None if adaptive or s % 2 else morph_offsets(rel.reshape(s + 1, s + 1, 3))
+    return TileMesh(
+        key, s, vertices, center, up, indices, cone, np.asarray(heights, np.float32), morph=morph
+    )
+
+
+def morph_offsets(grid: NDArray[np.float64]) -> NDArray[np.float32]:
+    """For an (S+1, S+1, 3) grid of positions (S even, cells split north-west to south-east),
+    each vertex's move onto the grid of S/2 segments triangulated the same way (the parent's,
+    where the tile's vertices are its own): 0 at the even vertices, to the midpoint of the coarse
+    edge or diagonal under the others; skirt vertices follow their ring vertex. (N, 3) float32
+    in the mesh's vertex order."""
+    s = grid.shape[0] - 1
+    g = grid
+    coarse = g.copy()
+    coarse[1::2, ::2] = (g[:-1:2, ::2] + g[2::2, ::2]) / 2.0  # on a north-south coarse edge
+    coarse[::2, 1::2] = (g[::2, :-1:2] + g[::2, 2::2]) / 2.0  # on an east-west one
+    coarse[1::2, 1::2] = (g[:-1:2, :-1:2] + g[2::2, 2::2]) / 2.0  # on a cell's diagonal
+    d = (coarse - g).reshape(-1, 3)
+    return np.concatenate([d, d[ring_indices(s)]]).astype(np.float32)
 
 
 def tin_mesh(
