@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -127,6 +128,25 @@ def run_cli(argv: list[str], capsys: object) -> tuple[int, str, str]:
     return code, out, err
 
 
+def fbm_tileset(
+    folder: Path, seed: int, n: int = 513, west: float = 500_000.0, north: float = 4_000_000.0
+) -> Path:
+    """A tileset built from an n² fBm DEM (10 m pixels, UTM 17N): what the streaming tests fly."""
+    from lodscape.build import build
+
+    dem = write_dem(
+        str(folder / "dem.tif"),
+        fbm_heights(n, seed=seed),
+        crs="EPSG:32617",
+        west=west,
+        north=north,
+        res=10.0,
+    )
+    out = folder / "site.lods"
+    build([dem], out)
+    return out
+
+
 def helsinki_tileset(folder: Path) -> Path:
     """A tileset over the west part of the bundled Helsinki extract (a low fBm DEM, 10 m): what
     the city store and the server are tested on."""
@@ -229,3 +249,39 @@ def changed_share(a: str | os.PathLike[str], b: str | os.PathLike[str], levels: 
         pa = np.asarray(ia.convert("RGB")).astype(int)
         pb = np.asarray(ib.convert("RGB")).astype(int)
     return float((np.abs(pa - pb).sum(axis=2) > levels).mean())
+
+
+def reprojected_jump(d0: np.ndarray, c0: Any, d1: np.ndarray, c1: Any) -> np.ndarray:
+    """Per pixel of frame 0 seen again in frame 1, how far (pixels) the surface there moved:
+    frame 0's point projected into camera 1, its depth compared with frame 1's there, scaled
+    to pixels at that distance. NaN where either frame sees no ground or it fell off screen."""
+    with np.errstate(invalid="ignore"):
+        return _reprojected(d0, c0, d1, c1)
+
+
+def _reprojected(d0: np.ndarray, c0: Any, d1: np.ndarray, c1: Any) -> np.ndarray:
+    h, w = d0.shape
+    t = math.tan(math.radians(c0.fov_y) / 2)
+    u = ((np.arange(w) + 0.5) / w * 2 - 1) * t * c0.aspect
+    v = (1 - (np.arange(h) + 0.5) / h * 2) * t
+    uu, vv = np.meshgrid(u, v)
+    view = np.stack([uu * d0, vv * d0, -d0], axis=-1)  # camera 0's view space
+    world = view @ c0.rotation + c0.position  # rows of the rotation are the view axes
+    rel = (world - c1.position) @ c1.rotation.T
+    z = -rel[..., 2]
+    x = rel[..., 0] / (z * t * c1.aspect)
+    y = rel[..., 1] / (z * t)
+    # frame 1's depth at the point's sub-pixel place, bilinear between the four pixels round it
+    # (where they agree: not across a silhouette)
+    fx, fy = (x + 1) / 2 * w - 0.5, (1 - y) / 2 * h - 0.5
+    fx, fy = np.nan_to_num(fx, nan=-1.0), np.nan_to_num(fy, nan=-1.0)
+    c0, r0 = np.floor(fx).astype(int), np.floor(fy).astype(int)
+    ok = np.isfinite(d0) & (z > 0) & (c0 >= 0) & (c0 < w - 1) & (r0 >= 0) & (r0 < h - 1)
+    c, r, ax, ay = c0[ok], r0[ok], (fx - c0)[ok], (fy - r0)[ok]
+    q = np.stack([d1[r, c], d1[r, c + 1], d1[r + 1, c], d1[r + 1, c + 1]])
+    got = (q[0] * (1 - ax) + q[1] * ax) * (1 - ay) + (q[2] * (1 - ax) + q[3] * ax) * ay
+    smooth = np.isfinite(q).all(axis=0) & (np.ptp(q, axis=0) < 0.02 * z[ok])
+    out = np.full(d0.shape, np.nan)
+    idx = np.nonzero(ok)
+    out[idx[0][smooth], idx[1][smooth]] = np.abs(got - z[ok])[smooth] * c1.scale / z[ok][smooth]
+    return out

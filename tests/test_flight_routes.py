@@ -98,3 +98,62 @@ def test_bad_routes_fail_in_one_line(tmp_path: Path, text: str, suffix: str, mes
     with pytest.raises(LodscapeError, match=message) as info:
         read_route(p, speed=100.0)
     assert "\n" not in str(info.value)
+
+
+class _Writer:
+    """ffmpeg's stand-in: takes frames slowly, and breaks at ``fail_at`` (None: never)."""
+
+    def __init__(self, fail_at: int | None) -> None:
+        self.frames: list[bytes] = []
+        self.fail_at = fail_at
+        self.closed = False
+
+    def send(self, frame: bytes) -> None:
+        import time
+
+        time.sleep(0.01)
+        if self.fail_at is not None and len(self.frames) == self.fail_at:
+            raise BrokenPipeError("ffmpeg went away")
+        self.frames.append(frame)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+@pytest.mark.parametrize("threaded", [True, False])
+def test_the_video_gets_every_frame_in_order_or_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, threaded: bool
+) -> None:
+    from lodscape import flight
+
+    made: list[_Writer] = []
+
+    def writer(path: Path, w: int, h: int, fps: float) -> tuple[_Writer, Path]:
+        tmp = path.with_name(".v.tmp.mp4")
+        tmp.write_bytes(b"partial")
+        made.append(_Writer(made_fail[0]))
+        return made[-1], tmp
+
+    made_fail: list[int | None] = [None]
+    monkeypatch.setattr(flight, "_video_writer", writer)
+    monkeypatch.setattr(flight._Video, "THREADED", threaded)
+    out = tmp_path / "v.mp4"
+    frames = [np.full((4, 6, 3), i, np.uint8) for i in range(12)]
+
+    def write() -> None:
+        with flight._Video(out, 30.0) as v:
+            for f in frames:
+                v.send(f)
+            v.commit()
+
+    write()
+    assert [fr[0] for fr in made[0].frames] == list(range(12))  # all, in order
+    assert made[0].closed
+    assert out.exists()
+    # the encoder breaks at the fifth frame: the flight says so, and no file stays
+    made_fail[0] = 4
+    out.unlink()
+    with pytest.raises(BrokenPipeError):
+        write()
+    assert not out.exists()
+    assert not list(tmp_path.glob(".v.tmp*"))

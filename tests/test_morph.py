@@ -6,15 +6,14 @@ pixel; without it, the frames where tiles split do."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 import lodscape
-from _synthetic import fbm_heights, write_dem
-from lodscape import Camera, SceneOptions
+from _synthetic import fbm_heights, reprojected_jump, write_dem
+from lodscape import SceneOptions
 from lodscape.terrain.mesh import build_mesh
 
 pytestmark = pytest.mark.gl
@@ -36,36 +35,6 @@ def test_morph_offsets_lead_onto_the_coarser_grid() -> None:
     assert np.abs(fine.morph).max() > 1.0
     # a terrain-adaptive mesh (its own diagonals) is not morphed
     assert build_mesh(1, 14, 8000, 6000, h, adaptive=True).morph is None
-
-
-def _reprojected_jump(d0: np.ndarray, c0: Camera, d1: np.ndarray, c1: Camera) -> np.ndarray:
-    """Per pixel of frame 0 seen again in frame 1, how far (pixels) the surface there moved:
-    frame 0's point projected into camera 1, its depth compared with frame 1's there, scaled
-    to pixels at that distance. NaN where either frame sees no ground or it fell off screen."""
-    h, w = d0.shape
-    t = math.tan(math.radians(c0.fov_y) / 2)
-    u = ((np.arange(w) + 0.5) / w * 2 - 1) * t * c0.aspect
-    v = (1 - (np.arange(h) + 0.5) / h * 2) * t
-    uu, vv = np.meshgrid(u, v)
-    view = np.stack([uu * d0, vv * d0, -d0], axis=-1)  # camera 0's view space
-    world = view @ c0.rotation + c0.position  # rows of the rotation are the view axes
-    rel = (world - c1.position) @ c1.rotation.T
-    z = -rel[..., 2]
-    x = rel[..., 0] / (z * t * c1.aspect)
-    y = rel[..., 1] / (z * t)
-    # frame 1's depth at the point's sub-pixel place, bilinear between the four pixels round it
-    # (where they agree: not across a silhouette)
-    fx, fy = (x + 1) / 2 * w - 0.5, (1 - y) / 2 * h - 0.5
-    c0, r0 = np.floor(fx).astype(int), np.floor(fy).astype(int)
-    ok = np.isfinite(d0) & (z > 0) & (c0 >= 0) & (c0 < w - 1) & (r0 >= 0) & (r0 < h - 1)
-    c, r, ax, ay = c0[ok], r0[ok], (fx - c0)[ok], (fy - r0)[ok]
-    q = np.stack([d1[r, c], d1[r, c + 1], d1[r + 1, c], d1[r + 1, c + 1]])
-    got = (q[0] * (1 - ax) + q[1] * ax) * (1 - ay) + (q[2] * (1 - ax) + q[3] * ax) * ay
-    smooth = np.isfinite(q).all(axis=0) & (np.ptp(q, axis=0) < 0.02 * z[ok])
-    out = np.full(d0.shape, np.nan)
-    idx = np.nonzero(ok)
-    out[idx[0][smooth], idx[1][smooth]] = np.abs(got - z[ok])[smooth] * c1.scale / z[ok][smooth]
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -107,7 +76,7 @@ def _approach(dem: str, morph: bool) -> list[float]:
             _, depth = scene.render(cam)
             fitted = scene.prepare(cam)
             if prev is not None:
-                jump = _reprojected_jump(prev[0], prev[1], depth, fitted)
+                jump = reprojected_jump(prev[0], prev[1], depth, fitted)
                 # edges of the ground against the sky and what hills uncover: not the ground
                 # moving; the 99.5th percentile stands above those few pixels
                 jumps.append(float(np.nanpercentile(jump, 99.9)))

@@ -11,13 +11,10 @@ import numpy as np
 import pytest
 
 import lodscape
-from _synthetic import fbm_heights, write_dem
+from _synthetic import fbm_tileset
 from lodscape import Camera, SceneOptions
-from lodscape.build import build
 from lodscape.lod.radii import Radii, RadiiOptions, horizon, radii_for
 from lodscape.stream import SimClock, StreamOptions
-
-EAST, NORTH = 500_000.0, 4_000_000.0
 
 
 def _radii(speed: float = 0.0, height: float = 300.0, far: float = 1e9) -> Radii:
@@ -66,18 +63,7 @@ def test_chunks_are_classified_by_distance_against_the_corrected_radii() -> None
 
 @pytest.fixture(scope="module")
 def tileset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("radii")
-    dem = write_dem(
-        str(folder / "dem.tif"),
-        fbm_heights(513, seed=11),
-        crs="EPSG:32617",
-        west=EAST,
-        north=NORTH,
-        res=10.0,
-    )
-    out = folder / "site.lods"
-    build([dem], out)
-    return out
+    return fbm_tileset(tmp_path_factory.mktemp("radii"), seed=11)
 
 
 def test_the_areas_reach_all_round_at_the_level_their_distance_asks_for(tileset: Path) -> None:

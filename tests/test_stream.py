@@ -13,9 +13,8 @@ import numpy as np
 import pytest
 
 import lodscape
-from _synthetic import fbm_heights, run_cli, write_dem
+from _synthetic import fbm_tileset, run_cli
 from lodscape import Camera, SceneOptions
-from lodscape.build import build
 from lodscape.errors import SourceError
 from lodscape.stream import SimClock, Streamer, StreamOptions
 
@@ -137,18 +136,7 @@ def test_failures_are_counted_and_retried_with_backoff() -> None:
 
 @pytest.fixture(scope="module")
 def tileset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("stream")
-    dem = write_dem(
-        str(folder / "dem.tif"),
-        fbm_heights(513, seed=6),
-        crs="EPSG:32617",
-        west=EAST,
-        north=NORTH,
-        res=10.0,
-    )
-    out = folder / "site.lods"
-    build([dem], out)
-    return out
+    return fbm_tileset(tmp_path_factory.mktemp("stream"), seed=6, west=EAST, north=NORTH)
 
 
 def _line(scene: lodscape.Scene, n: int, speed: float, fps: float, w: int, h: int):

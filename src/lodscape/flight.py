@@ -12,6 +12,8 @@ import csv
 import json
 import math
 import os
+import queue
+import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -372,21 +374,66 @@ def fly(
 class _Video:
     """An MP4 written under a temporary name (opened at the first frame, which sets its size)
     and put in place by ``commit``; left unfinished, nothing of it stays. ``path`` None: no
-    video."""
+    video.
+
+    Frames go to the encoder on a thread of their own through a queue of ``AHEAD`` frames, so
+    the next frame renders while ffmpeg takes the last ones (paper 001's triple buffering, on
+    the encoder's side: the renderer waits only when three frames are still queued)."""
+
+    AHEAD = 3
+    #: False: each frame written before the next renders (what a flight did before).
+    THREADED = True
 
     def __init__(self, path: Path | None, fps: float) -> None:
         self.path, self.fps = path, fps
         self.writer: Any = None
         self.tmp: Path | None = None
+        self._queue: queue.Queue[bytes | None] | None = None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
 
     def send(self, rgb: NDArray[np.uint8]) -> None:
         if self.path is None:
             return
         if self.writer is None:
             self.writer, self.tmp = _video_writer(self.path, rgb.shape[1], rgb.shape[0], self.fps)
-        self.writer.send(np.ascontiguousarray(rgb).tobytes())
+            if not self.THREADED:
+                self.writer.send(np.ascontiguousarray(rgb).tobytes())
+                return
+            self._queue = queue.Queue(self.AHEAD)
+            self._thread = threading.Thread(target=self._encode, name="lodscape-video", daemon=True)
+            self._thread.start()
+        self._raise()
+        if self._queue is None:  # not threaded
+            self.writer.send(np.ascontiguousarray(rgb).tobytes())
+            return
+        self._queue.put(np.ascontiguousarray(rgb).tobytes())
+
+    def _encode(self) -> None:
+        assert self._queue is not None
+        while True:
+            frame = self._queue.get()
+            if frame is None:
+                return
+            if self._error is None:
+                try:
+                    self.writer.send(frame)
+                except BaseException as exc:  # said by the next send or the commit
+                    self._error = exc
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def _stop(self) -> None:
+        if self._thread is not None and self._queue is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
 
     def commit(self) -> None:
+        self._stop()
+        self._raise()
         if self.writer is not None:
             self.writer.close()
             self.writer = None
@@ -399,6 +446,7 @@ class _Video:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        self._stop()
         if self.writer is not None:
             self.writer.close()
         if self.tmp is not None and self.tmp.exists():

@@ -472,7 +472,7 @@ def select(
             if region is not None:
                 hit = region.hits(z + 1, x, y)
                 outside += int(x.size - hit.sum())
-                x, y = x[hit], y[hit]
+                x, y, parent_k = x[hit], y[hit], parent_k[hit]
 
     cols = [np.concatenate(c) for c in zip(*drawn, strict=True)] if drawn else [np.zeros(0)] * 9
     ints = [a.astype(np.int64) for a in cols[:4]]

@@ -241,7 +241,9 @@ class Loader:
             # half the workers' places stay for what the frames themselves want
             room = max(1, self.options.in_flight // 2)
             for stage, keys in predicted:
-                self.streamer.request(self._within_budget(keys, stage), stage, on_gpu, room)
+                self.streamer.request(
+                    self._within_budget(keys, stage), stage, on_gpu, room, prefetch=True
+                )
             if counts is not None:
                 self.units = {**counts, **self._states(predicted)}
         now = self.clock.now()

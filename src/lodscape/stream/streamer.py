@@ -121,6 +121,8 @@ class _Job:
     decode: bool
     submitted: float
     future: Future[tuple[bytes | None, Made | None, float]]
+    #: 0 the terrain's workers, 1 the imagery's, 2 the prefetch's.
+    lane: int = 0
     #: Simulated completion, once known.
     done_at: float | None = None
 
@@ -161,6 +163,11 @@ class Streamer:
         #: Simulated worker slots of the imagery's threads.
         self._net_slots = [-math.inf] * NET_THREADS
         self._pool = ThreadPoolExecutor(self.options.workers, thread_name_prefix="lodscape-io")
+        #: The prefetch's own threads (half the workers', at least one): what the camera will
+        #: want never queues ahead of what the frame wants now.
+        pre = max(1, self.options.workers // 2)
+        self._pre = ThreadPoolExecutor(pre, thread_name_prefix="lodscape-prefetch")
+        self._pre_slots = [-math.inf] * pre
         self._net: ThreadPoolExecutor | None = None
         if self.remote is not None:
             self._net = ThreadPoolExecutor(NET_THREADS, thread_name_prefix="lodscape-net")
@@ -174,16 +181,17 @@ class Streamer:
         stage: Stage,
         skip: Callable[[int], bool],
         limit: int | None = None,
+        prefetch: bool = False,
     ) -> None:
         """Ask for ``keys`` (most urgent first) up to ``stage``; ``skip`` says which are already
         on the GPU. Stops at the in-flight limit (or ``limit``, lower, for a prefetch that must
         leave room for what frames want): less urgent classes wait their turn. Terrain and
         imagery (``remote``) keys have a limit each, so a slow imagery source never takes the
-        terrain's places."""
+        terrain's places; a ``prefetch``'s terrain keys go to the prefetch's own threads."""
         now = self.clock.now()
-        busy = [0, 0]
-        for k in self._jobs:
-            busy[self._lane(k)] += 1
+        busy = [0, 0, 0]
+        for running in self._jobs.values():
+            busy[running.lane] += 1
         limit = self.options.in_flight if limit is None else min(limit, self.options.in_flight)
         for key in keys:
             if skip(key):
@@ -201,8 +209,11 @@ class Streamer:
             if failure is not None and now < failure.retry_at:
                 continue
             lane = self._lane(key)
+            if prefetch and lane == 0:
+                lane = 2
             if busy[lane] >= limit:
-                if self._net is None or busy[1 - lane] >= limit:
+                usable = [2 if prefetch else 0] + ([1] if self._net is not None else [])
+                if all(busy[i] >= limit for i in usable):
                     return
                 continue
             busy[lane] += 1
@@ -210,8 +221,9 @@ class Streamer:
                 self.stats.retried += 1
             self.stats.requested += 1
             decode = stage == "memory"
-            future = self._pool_for(key).submit(self._work, key, cached, decode)
-            self._jobs[key] = _Job(key, decode, now, future)
+            pool = self._pre if lane == 2 else self._pool_for(key)
+            future = pool.submit(self._work, key, cached, decode)
+            self._jobs[key] = _Job(key, decode, now, future, lane)
 
     def _lane(self, key: int) -> int:
         """1 for keys of the imagery's own threads, 0 for the terrain's."""
@@ -255,7 +267,7 @@ class Streamer:
                 took = 0.0 if exc is not None else job.future.result()[2]
                 if simulated:
                     # the worker slot that frees first takes the job
-                    slots = self._net_slots if self._lane(key) else self._slots
+                    slots = (self._slots, self._net_slots, self._pre_slots)[job.lane]
                     slot = int(np.argmin(slots))
                     start = max(job.submitted, slots[slot])
                     job.done_at = slots[slot] = start + took
@@ -373,7 +385,7 @@ class Streamer:
             if not future.done():
                 # the frame goes on without it; a later frame collects it
                 if key not in self._jobs:
-                    self._jobs[key] = _Job(key, True, now, future)
+                    self._jobs[key] = _Job(key, True, now, future, self._lane(key))
                 continue
             self._jobs.pop(key, None)
             out[i] = self._settle(key, future, now)
@@ -421,6 +433,7 @@ class Streamer:
         if self._net is not None:
             # a server that never answers must not hold the close: its requests time out alone
             self._net.shutdown(wait=False, cancel_futures=True)
+        self._pre.shutdown(wait=True, cancel_futures=True)
         self._pool.shutdown(wait=True, cancel_futures=True)
         self._jobs.clear()
 
