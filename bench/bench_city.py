@@ -116,16 +116,18 @@ def main() -> None:
     }
     full = CityOptions(timed=True)
     runs = {"naive": replace(CityOptions.naive(), timed=True), "defaults": full}
+    # occlusion culling is "auto" by default (on a software rasteriser below 10 m): both ways
+    runs["  occlusion culling always on"] = replace(full, occlusion=True)
+    runs["  occlusion culling always off"] = replace(full, occlusion=False)
     for flag, what in (
         ("frustum", "frustum culling"),
         ("lod", "levels of detail"),
-        ("occlusion", "occlusion culling"),
         ("hierarchical", "node queries (leaf queries only)"),
         ("indirect", "multi-draw-indirect"),
         ("instancing", "instancing"),
     ):
         on = getattr(full, flag)
-        if flag == "hierarchical" and not full.occlusion:
+        if flag == "hierarchical":
             runs["  with occlusion culling, leaf queries only"] = replace(
                 full, occlusion=True, hierarchical=False
             )

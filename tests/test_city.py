@@ -362,3 +362,14 @@ def test_cli_renders_a_city_on_flat_ground(
     assert "bad.osm.pbf" in err
     assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.png").exists()
+
+
+def test_auto_occlusion_is_on_among_the_walls_of_a_software_rasteriser() -> None:
+    auto = CityOptions()
+    assert auto.occlusion == "auto"
+    assert auto.resolved(software=True, height=2.0).occlusion is True
+    assert auto.resolved(software=True, height=25.0).occlusion is False
+    assert auto.resolved(software=False, height=2.0).occlusion is False
+    assert auto.resolved(software=True, height=None).occlusion is False  # no ground known
+    assert CityOptions(occlusion=True).resolved(False, 400.0).occlusion is True
+    assert not CityOptions.naive().resolved(True, 2.0).occlusion

@@ -431,9 +431,14 @@ class Scene:
 
             self._city_pass = CityPass(renderer.ctx, self.city, renderer.anisotropy)
         cp, opts = self._city_pass, self.city_options
+        from lodscape.render._context import is_software
+
+        software = is_software(renderer.ctx)
 
         def draw(camera: Camera, fbo: Any) -> None:
-            cp.draw(camera, opts, fbo)
+            ground = self.ground_height(camera.lon, camera.lat)
+            height = None if ground is None else camera.alt - ground
+            cp.draw(camera, opts.resolved(software, height), fbo)
 
         return [draw]
 

@@ -11,7 +11,7 @@ instanced multi-draw each).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -34,6 +34,10 @@ LODS = ("full", "box")
 Ground = Callable[[F64, F64], F64]
 
 
+#: "auto" occlusion culling: metres above the ground under which the camera is among the walls.
+OCCLUSION_BELOW = 10.0
+
+
 @dataclass(frozen=True)
 class CityOptions:
     """How the city is culled and simplified; ``naive`` turns every optimisation off."""
@@ -44,10 +48,12 @@ class CityOptions:
     min_px: float = 2.0
     frustum: bool = True
     lod: bool = True
-    #: Coherent hierarchical occlusion culling (CHC++). Off by default: on the benchmark's
-    #: city (BENCHMARKS.md) its queries cost more than the triangles they save, on llvmpipe and
-    #: on an H100 alike, because levels of detail already thin what lies behind.
-    occlusion: bool = False
+    #: Coherent hierarchical occlusion culling (CHC++): True, False, or "auto": on where it
+    #: paid on the benchmark's city (BENCHMARKS.md), a software rasteriser (triangles are what
+    #: costs there) with the camera less than ``OCCLUSION_BELOW`` metres above the ground
+    #: (walls in the way); off elsewhere, where levels of detail already thin what lies behind
+    #: and waiting for the queries costs more than the triangles they save.
+    occlusion: bool | str = "auto"
     #: Occlusion queries on the leaves' parents first where every shown leaf of one was hidden
     #: last frame (CHC++'s hierarchy); else on each leaf.
     hierarchical: bool = True
@@ -72,7 +78,17 @@ class CityOptions:
     @property
     def is_naive(self) -> bool:
         """Every optimisation off: one draw per object (paper 001's baseline)."""
-        return not (self.frustum or self.lod or self.occlusion or self.indirect or self.instancing)
+        occl = self.occlusion is True or self.occlusion == "auto"
+        return not (self.frustum or self.lod or occl or self.indirect or self.instancing)
+
+    def resolved(self, software: bool, height: float | None) -> CityOptions:
+        """These options with "auto" occlusion culling decided for a frame: on for a software
+        rasteriser with the camera ``height`` metres (None: unknown) above the ground, under
+        ``OCCLUSION_BELOW``."""
+        if self.occlusion != "auto":
+            return self
+        low = height is not None and height < OCCLUSION_BELOW
+        return replace(self, occlusion=bool(software and low))
 
 
 @dataclass(frozen=True, eq=False)
