@@ -683,59 +683,40 @@ def fly(
         route = flight.line_route(lon1, lat1, lon2, lat2, alt, speed)
     options = terrain.options(budget_mb)
     cams = list(flight.cameras(route, fps, w, h, pitch=pitch, fov=fov, duration=duration))
+    subject: Any
     if globe:
         from lodscape.globe import GlobeOptions
 
-        earth = _globe(
+        subject = _globe(
             source,
             GlobeOptions(max_sse=terrain.max_sse, background=(0.0, 0.0, 0.0)),
             terrain,
             options,
             clock=SimClock(),
         )
-        columns = (
-            TextColumn("[bold]flying"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeRemainingColumn(),
-        )
-        try:
-            with Progress(*columns, disable=quiet) as bar:
-                task = bar.add_task("frames", total=len(cams))
-                rows = flight.fly(
-                    earth,
-                    iter(cams),
-                    fps,
-                    video=output,
-                    stats=stats,
-                    on_frame=lambda i: bar.update(task, completed=i + 1),
-                )
-        finally:
-            earth.close()
-        if not quiet:
-            typer.echo(
-                _flight_summary(output, rows, fps)
-                + f"; globe facets per frame up to {max(r['facets'] for r in rows):,}, levels "
-                f"to {max(r['max_level'] for r in rows)}"
-            )
-        return
+    else:
+        subject = terrain.open(source, options, clock=SimClock())
     columns = (TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    with (
-        terrain.open(source, options, clock=SimClock()) as scene,
-        Progress(*columns, disable=quiet) as bar,
-    ):
+    with subject, Progress(*columns, disable=quiet) as bar:
         task = bar.add_task("frames", total=len(cams))
         flown = flight.fly(
-            scene,
+            subject,
             iter(cams),
             fps,
             video=output,
             stats=stats,
             on_frame=lambda i: bar.update(task, completed=i + 1),
         )
-        _mode_notice(scene)
+        if not globe:
+            _mode_notice(subject)
     if not quiet:
-        typer.echo(_flight_summary(output, flown, fps))
+        line = _flight_summary(output, flown, fps)
+        if globe:
+            line += (
+                f"; globe facets per frame up to {max(r['facets'] for r in flown):,}, levels "
+                f"to {max(r['max_level'] for r in flown)}"
+            )
+        typer.echo(line)
 
 
 def _flight_summary(output: Path, rows: Sequence[dict[str, float]], fps: float) -> str:

@@ -397,17 +397,18 @@ class _Video:
             return
         if self.writer is None:
             self.writer, self.tmp = _video_writer(self.path, rgb.shape[1], rgb.shape[0], self.fps)
-            if not self.THREADED:
-                self.writer.send(np.ascontiguousarray(rgb).tobytes())
-                return
-            self._queue = queue.Queue(self.AHEAD)
-            self._thread = threading.Thread(target=self._encode, name="lodscape-video", daemon=True)
-            self._thread.start()
+            if self.THREADED:
+                self._queue = queue.Queue(self.AHEAD)
+                self._thread = threading.Thread(
+                    target=self._encode, name="lodscape-video", daemon=True
+                )
+                self._thread.start()
         self._raise()
-        if self._queue is None:  # not threaded
-            self.writer.send(np.ascontiguousarray(rgb).tobytes())
-            return
-        self._queue.put(np.ascontiguousarray(rgb).tobytes())
+        frame = np.ascontiguousarray(rgb).tobytes()
+        if self._queue is None:  # each frame in turn
+            self.writer.send(frame)
+        else:
+            self._queue.put(frame)
 
     def _encode(self) -> None:
         assert self._queue is not None

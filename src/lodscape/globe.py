@@ -50,10 +50,7 @@ class _LayerSource:
     def decode(self, key: int, data: bytes) -> NDArray[np.uint8]:
         from lodscape.geo.keys import layer_of
 
-        image = np.asarray(self.layers[layer_of(key)].decode(data, 256), np.uint8)
-        if image.ndim == 3 and image.shape[2] == 3:  # drawn over the globe: opaque
-            image = np.concatenate([image, np.full((*image.shape[:2], 1), 255, np.uint8)], 2)
-        return image
+        return np.asarray(self.layers[layer_of(key)].decode(data, 256), np.uint8)
 
 
 class _GlobeImagery:
@@ -101,7 +98,7 @@ class _GlobeImagery:
         for layer in self.layers:
             sel = select_tiles(camera, layer.max_zoom)
             keys = texture_key_array(tile_id_array(sel.z, sel.x, sel.y), layer.index)
-            chosen.append((layer, sel, keys))
+            chosen.append((layer, sel))
             # their parents too (coarse first): what a tile falls back to while it comes
             pz, px, py = np.maximum(sel.z - 1, 0), sel.x >> 1, sel.y >> 1
             parents = texture_key_array(tile_id_array(pz, px, py), layer.index)
@@ -119,7 +116,7 @@ class _GlobeImagery:
         draws = []
         drawn: set[int] = set()
         tiles = fallbacks = missing_tiles = 0
-        for layer, sel, _keys in chosen:
+        for layer, sel in chosen:
             if not len(sel):
                 continue
             up = resident_ancestors(sel.z, sel.x, sel.y, layer.index, resident)
@@ -238,19 +235,28 @@ class Globe:
     clock: Any = None
     stream: Any = None
     _imagery: Any = None
-    _terrain_drew: bool = False
-
-    def __post_init__(self) -> None:
-        # a streaming terrain sets the pace: the globe's imagery streams on its clock
-        if self.stream is None and self.terrain is not None and self.terrain.streaming:
-            self.stream, self.clock = self.terrain.options.stream, self.terrain.clock
-
     _renderer: Any = None
     _ctx: Any = None
     _blocks: Any = None
     #: Drawing into a window (the viewer): the picture is left in the renderer's colour
     #: framebuffer (the terrain's tiles laid in on the CPU, then put there).
     _windowed: bool = False
+    #: The last frame's: whether the terrain's tiles were laid in, the globe's own CPU time
+    #: (selections, loading) and its imagery's streaming figures.
+    _terrain_drew: bool = False
+    _cpu_ms: float = 0.0
+    _imagery_stream: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        # a streaming terrain sets the pace: the globe's imagery streams on its clock
+        if self.stream is None and self.terrain is not None and self.terrain.streaming:
+            self.stream, self.clock = self.terrain.options.stream, self.terrain.clock
+
+    def __enter__(self) -> Globe:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def heights(self, lat: F64, lon: F64) -> F64:
         """Heights at (lat, lon): the terrain's where it has data, the ellipsoid's (0) elsewhere."""
@@ -484,19 +490,17 @@ class Globe:
         where its tiles were drawn, the streaming figures of its tiles and the globe's imagery
         together, and the globe's own."""
         out: dict[str, float] = {}
-        cpu = getattr(self, "_cpu_ms", 0.0)
+        cpu = self._cpu_ms
         if self._terrain_drew and self.terrain is not None:
             out.update(self.terrain.frame_stats())
             cpu += float(out.get("frame_cpu_ms", 0.0))
-        stream = getattr(self, "_imagery_stream", None) or {}
-        for key, value in stream.items():
+        for key, value in self._imagery_stream.items():
             out[key] = out.get(key, 0) + value
         layers = self.imagery_layers
         if layers:
-            out["imagery_failed"] = sum(layer.failed for layer in layers)
-            fetchers = [layer.fetcher for layer in layers]
-            out["http_requests"] = sum(int(getattr(f, "requests", 0)) for f in fetchers)
-            out["http_retries"] = sum(int(getattr(f, "retried", 0)) for f in fetchers)
+            from lodscape.imagery.layers import server_figures
+
+            out.update(server_figures(layers))
         last = self.last
         out.update(
             facets=last.get("triangles", 0),
@@ -525,9 +529,7 @@ class Globe:
     @property
     def streaming(self) -> bool:
         """Whether frames stream (the globe's imagery and the terrain's tiles) on a clock."""
-        if self.stream is not None:
-            return True
-        return self.terrain is not None and bool(self.terrain.streaming)
+        return self.stream is not None
 
     def _imagery_for(self, renderer: Any) -> Any:
         layers = self.imagery_layers

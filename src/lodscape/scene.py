@@ -298,13 +298,10 @@ class Scene:
     def _imagery_stats(self, loader: Loader) -> dict[str, int]:
         if not self.provider.layers:
             return {}
+        from lodscape.imagery.layers import server_figures
+
         fails = self.imagery_failures()
-        out = {"imagery_failed": sum(fails.values()), "imagery_missed": loader.missed}
-        # a tile server's own requests and retries (timeouts, 5xx, cut-short bodies), which the
-        # streamer's counts of tiles never see
-        fetchers = [layer.fetcher for layer in self.provider.layers]
-        out["http_requests"] = sum(int(getattr(f, "requests", 0)) for f in fetchers)
-        out["http_retries"] = sum(int(getattr(f, "retried", 0)) for f in fetchers)
+        out = {**server_figures(self.provider.layers), "imagery_missed": loader.missed}
         out.update((f"imagery_{k.replace('-', '_')}", n) for k, n in sorted(fails.items()))
         return out
 

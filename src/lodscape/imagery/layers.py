@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +30,7 @@ from lodscape.imagery.sources import (
     TileCache,
 )
 
-__all__ = ["MAX_OVERLAYS", "ImageryLayer", "open_layer", "warn_stderr"]
+__all__ = ["MAX_OVERLAYS", "ImageryLayer", "open_layer", "server_figures", "warn_stderr"]
 
 #: Imagery layers a scene can draw over the terrain's own texture (the terrain shaders' units).
 MAX_OVERLAYS = 4
@@ -125,6 +125,17 @@ class ImageryLayer:
 
     def close(self) -> None:
         self.fetcher.close()
+
+
+def server_figures(layers: Sequence[ImageryLayer]) -> dict[str, int]:
+    """Failed tiles, all layers together, and a tile server's own HTTP requests and retries
+    (timeouts, 5xx, cut-short bodies: what the streamer's counts of tiles never see)."""
+    fetchers = [layer.fetcher for layer in layers]
+    return {
+        "imagery_failed": sum(layer.failed for layer in layers),
+        "http_requests": sum(int(getattr(f, "requests", 0)) for f in fetchers),
+        "http_retries": sum(int(getattr(f, "retried", 0)) for f in fetchers),
+    }
 
 
 def open_layer(

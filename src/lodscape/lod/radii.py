@@ -89,14 +89,21 @@ class Radii:
     def classify(self, centre: F64, dist_near: F64) -> NDArray[np.int64]:
         """Per chunk (box centre relative to the camera (N, 3), nearest distance (N,)), its
         area: 0 memory, 1 cache, 2 disk (``AREAS``)."""
+        return self.rank(centre, dist_near)[0]
+
+    def rank(self, centre: F64, dist_near: F64) -> tuple[NDArray[np.int64], F64]:
+        """Per chunk its area (as ``classify``) and its urgency: its distance in units of the
+        cache radius towards it (ahead before behind; below 1 inside the cache area)."""
         norm = np.linalg.norm(centre, axis=1)
         direction = centre / np.maximum(norm, 1e-9)[:, None]
         # the camera's own chunk: counted as in front
         direction[norm < 1e-9] = self.view
-        out = np.full(len(centre), 2, np.int64)
-        out[dist_near <= self.radius("cache", direction)] = 1
-        out[dist_near <= self.radius("memory", direction)] = 0
-        return out
+        cache = self.radius("cache", direction)
+        area = np.full(len(centre), 2, np.int64)
+        area[dist_near <= cache] = 1
+        area[dist_near <= self.radius("memory", direction)] = 0
+        urgency: F64 = dist_near / np.maximum(cache, 1e-9)
+        return area, urgency
 
     def reach(self, area: str) -> Reach:
         """The test a selection keeps a chunk by: inside ``area`` ("memory" or "cache")."""

@@ -50,10 +50,6 @@ MORPH_FRAMES = 10
 
 __all__ = ["MORPH_FRAMES", "DrawItem", "FramePlan", "MeshInfo", "TerrainView", "draw_items"]
 
-#: Frames a tile takes to glide from the surface it replaced to its own (a third of a second
-#: at 30 frames a second).
-MORPH_FRAMES = 10
-
 U64 = NDArray[np.uint64]
 I64 = NDArray[np.int64]
 F64 = NDArray[np.float64]
@@ -278,12 +274,8 @@ class TerrainView:
         left, bottom, right, top = bounds_array(sel.z, sel.x, sel.y)
         lon, lat = merc_to_lonlat((left + right) / 2.0, (bottom + top) / 2.0)
         centre = geodetic_to_ecef(lon, lat, 0.0) - camera.position
-        area = radii.classify(centre, sel.dist_near)
-        # most urgent first: nearest in units of the radius towards it (ahead before behind)
-        norm = np.linalg.norm(centre, axis=1)
-        direction = centre / np.maximum(norm, 1e-9)[:, None]
-        reach = np.maximum(radii.radius("cache", direction), 1e-9)
-        order = np.argsort(sel.dist_near / reach, kind="stable")
+        area, urgency = radii.rank(centre, sel.dist_near)
+        order = np.argsort(urgency, kind="stable")
         out: list[list[int]] = []
         for a in (0, 1):
             pick = order[area[order] == a]
