@@ -12,7 +12,8 @@ frustum culling, per-leaf levels of detail, merged meshes by material drawn with
 multi-draw-indirect and instanced street objects; coherent hierarchical occlusion queries
 (CHC++: leaves, their parents where all were hidden, query skipping) are measured as an
 addition, being off by default. Each optimisation's share: the defaults with that one flipped;
-the two R-tree packings (STR, Hilbert) compared on the same paths. "frame" is the whole frame
+the three R-tree packings (STR, Hilbert, Priority R-tree) compared on the same paths, and
+their frustum culling alone (time and boxes tested). "frame" is the whole frame
 (terrain, city, read-back of the picture); "city pass" the city's draw alone, GPU waits
 included. Medians over the path's frames after one warm-up frame; draw calls, triangles,
 queries and boxes tested are per frame (medians). On a software rasteriser (llvmpipe) textures
@@ -76,11 +77,14 @@ def main() -> None:
         f"{model.triangles(0):,} triangles at full detail, {model.tree.leaves} leaves; "
         f"built in {time.perf_counter() - t:.1f} s"
     )
-    t = time.perf_counter()
-    other = "str" if model.tree.packing == "hilbert" else "hilbert"
-    second = build_city(city, scene.heights, packing=other)
-    print(f"the same city in a {other}-packed R-tree: built in {time.perf_counter() - t:.1f} s")
-    for tree in (model.tree, second.tree):
+    others = {}
+    for packing in ("str", "hilbert", "priority"):
+        if packing == model.tree.packing:
+            continue
+        t = time.perf_counter()
+        others[packing] = build_city(city, scene.heights, packing=packing)
+        print(f"the same city in a {packing} R-tree: built in {time.perf_counter() - t:.1f} s")
+    for tree in [model.tree, *(o.tree for o in others.values())]:
         leaf = tree.levels[0]
         vol = float(np.prod(leaf[:, 3:] - leaf[:, :3], axis=1).sum())
         area = float(np.prod(leaf[:, 3:5] - leaf[:, :2], axis=1).sum())
@@ -133,35 +137,78 @@ def main() -> None:
             )
             continue
         runs[f"  {'without' if on else 'with'} {what}"] = replace(full, **{flag: not on})
+    defaults: dict[str, tuple[float, float, float]] = {}
     for pname, cams in paths.items():
         print(f"\n{pname}, {width}×{height}, {args.frames} frames:")
         base: tuple[float, float] | None = None
-        swap = f"  {other} packing instead of {model.tree.packing}"
-        for rname, opts in [*runs.items(), (swap, full)]:
-            scene.add_city(second if rname == swap else model, opts)
-            scene.render(cams[0])
+        swaps = {f"  {p} packing instead of {model.tree.packing}": o for p, o in others.items()}
+        for rname, opts in [*runs.items(), *((k, full) for k in swaps)]:
+            on = scene
+            on.add_city(swaps.get(rname, model), opts)
+            on.render(cams[0])
             times, city_ms, calls, tris, queries, tested = [], [], [], [], [], []
+            gpu_mb: list[float] = []
             for cam in cams[1:]:
                 t = time.perf_counter()
-                scene.render(cam)
+                on.render(cam)
                 times.append((time.perf_counter() - t) * 1e3)
-                assert scene.last is not None
-                calls.append(scene.last.city.get("city_draw_calls", 0))
-                tris.append(scene.last.city.get("city_triangles", 0))
-                queries.append(scene.last.city.get("city_queries", 0))
-                city_ms.append(scene.last.city.get("city_pass_us", 0) / 1e3)
-                tested.append(scene.last.city.get("city_boxes_tested", 0))
+                assert on.last is not None
+                calls.append(on.last.city.get("city_draw_calls", 0))
+                tris.append(on.last.city.get("city_triangles", 0))
+                queries.append(on.last.city.get("city_queries", 0))
+                city_ms.append(on.last.city.get("city_pass_us", 0) / 1e3)
+                tested.append(on.last.city.get("city_boxes_tested", 0))
+                gpu_mb.append(on.last.resident_mb)
             med = statistics.median(times)
             cmed = statistics.median(city_ms)
             if base is None:
                 base = (med, cmed)
+            if rname == "defaults":
+                defaults[pname] = (med, cmed, statistics.median(gpu_mb))
             print(
                 f"  {rname:42s} frame {med:7.1f} ms (x{base[0] / med:5.2f})  "
                 f"city pass {cmed:7.1f} ms (x{base[1] / cmed:6.2f})  "
                 f"draws {int(np.median(calls)):>6,}  tris {int(np.median(tris)):>9,}  "
-                f"queries {int(np.median(queries)):>4,}  boxes {int(np.median(tested)):>4,}"
+                f"queries {int(np.median(queries)):>4,}  boxes {int(np.median(tested)):>4,}  "
+                f"terrain GPU {statistics.median(gpu_mb):5.1f} MiB"
+            )
+        # the scene tree alone: frustum culling's time and boxes tested, per packing
+        for m in [model, *others.values()]:
+            cull_ms, tested = [], []
+            for cam in cams[1:]:
+                planes = m.local_planes(scene.prepare(cam))
+                t = time.perf_counter()
+                for _ in range(20):
+                    _, n = m.tree.cull(planes)
+                cull_ms.append((time.perf_counter() - t) / 20 * 1e3)
+                tested.append(n)
+            print(
+                f"  culling, {m.tree.packing:8s} R-tree: {statistics.median(cull_ms):6.3f} ms, "
+                f"boxes tested {int(np.median(tested)):>5,}"
             )
     scene.close()
+    # the ground's imagery and the facade/roof atlas block-compressed, in a scene of their own
+    # (opened after the first is closed: one GL context at a time)
+    print("\ntextures block-compressed (BC1/BC3), the defaults on each path:")
+    with lodscape.open(spec, lodscape.SceneOptions(compress_textures=True)) as packed:
+        packed.add_city(model, full)
+        for pname, cams in paths.items():
+            packed.render(cams[0])
+            times, city_ms, gpu_mb = [], [], []
+            for cam in cams[1:]:
+                t = time.perf_counter()
+                packed.render(cam)
+                times.append((time.perf_counter() - t) * 1e3)
+                assert packed.last is not None
+                city_ms.append(packed.last.city.get("city_pass_us", 0) / 1e3)
+                gpu_mb.append(packed.last.resident_mb)
+            med, cmed = statistics.median(times), statistics.median(city_ms)
+            d = defaults[pname]
+            print(
+                f"  {pname.split(' (')[0]:12s} frame {med:7.1f} ms (uncompressed {d[0]:.1f}, "
+                f"x{d[0] / med:.2f})  city pass {cmed:6.1f} ms (x{d[1] / cmed:.2f})  terrain "
+                f"GPU {statistics.median(gpu_mb):.2f} MiB (uncompressed {d[2]:.2f})"
+            )
 
 
 if __name__ == "__main__":

@@ -216,7 +216,7 @@ def test_materials_are_distinct_tileable_layers() -> None:
     assert 0.1 < glass.mean() < 0.4
 
 
-@pytest.mark.parametrize("packing", ["str", "hilbert"])
+@pytest.mark.parametrize("packing", ["str", "hilbert", "priority"])
 def test_rtree_leaves_are_compact(packing: str) -> None:
     """Over evenly spread objects the leaves' boxes tile the ground with little overlap (a leaf
     cut across two STR slabs would span the whole city)."""
@@ -229,7 +229,7 @@ def test_rtree_leaves_are_compact(packing: str) -> None:
         assert area < 1.45e6, (n, area)
 
 
-@pytest.mark.parametrize("packing", ["str", "hilbert"])
+@pytest.mark.parametrize("packing", ["str", "hilbert", "priority"])
 def test_rtree_cull_equals_testing_every_leaf(packing: str) -> None:
     rng = np.random.default_rng(3)
     c = rng.uniform(0, 2000, (3000, 3))
@@ -250,6 +250,42 @@ def test_rtree_cull_equals_testing_every_leaf(packing: str) -> None:
         brute = box_planes(tree.levels[0], planes) >= 0
         assert np.array_equal(vis, brute)
         assert tested <= sum(len(level) for level in tree.levels)
+
+
+@pytest.mark.parametrize("packing", ["str", "hilbert", "priority"])
+def test_rtree_nodes_hold_their_children(packing: str) -> None:
+    """Every node's box holds its children's (its objects' for a leaf), every object is in one
+    leaf, and no node has more children than the fanout (a leaf than its size): over compact
+    boxes mixed with long thin ones (roads, rails) and a cluster of equal boxes."""
+    rng = np.random.default_rng(5)
+    c = rng.uniform(0, 5000, (4000, 3))
+    half = rng.uniform(1, 15, (4000, 3))
+    half[:300, 0] = rng.uniform(500, 2500, 300)  # long east-west
+    half[300:600, 1] = rng.uniform(500, 2500, 300)  # long north-south
+    c[600:900] = 1234.0  # one spot, many objects
+    boxes = np.concatenate([c - half, c + half], 1)
+    tree = pack(boxes, leaf=16, fanout=8, packing=packing)
+    assert sorted(tree.order.tolist()) == list(range(len(boxes)))
+    runs = np.diff(tree.leaf_start)
+    assert runs.min() >= 1
+    assert runs.max() <= 16
+    leaf_of = np.repeat(np.arange(tree.leaves), runs)
+    obj = boxes[tree.order]
+    own = tree.levels[0][leaf_of]
+    assert (own[:, :3] <= obj[:, :3]).all()
+    assert (own[:, 3:] >= obj[:, 3:]).all()
+    assert len(tree.levels[-1]) == 1
+    assert len(tree.starts) == len(tree.levels) - 1
+    for k, s in enumerate(tree.starts):
+        n = np.diff(s)
+        assert s[0] == 0
+        assert s[-1] == len(tree.levels[k])
+        assert n.min() >= 1
+        assert n.max() <= 8
+        parent = tree.parent(np.arange(len(tree.levels[k])), k)
+        up = tree.levels[k + 1][parent]
+        assert (up[:, :3] <= tree.levels[k][:, :3]).all()
+        assert (up[:, 3:] >= tree.levels[k][:, 3:]).all()
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,7 @@ cameras that fly them."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -157,3 +158,77 @@ def test_the_video_gets_every_frame_in_order_or_nothing(
         write()
     assert not out.exists()
     assert not list(tmp_path.glob(".v.tmp*"))
+
+
+def test_a_flight_reads_its_pictures_through_the_ring_in_order(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Through the ring of pixel-pack buffers a flight's video gets the same pictures, in the
+    same order, as reading each when drawn; a flight cut short leaves none in the ring. (One
+    scene flies the route once first, so every tile is resident and each flight draws the
+    same pictures.)"""
+    import lodscape
+    from lodscape import flight
+    from lodscape.data import sample_dem_path
+    from lodscape.stream import SimClock, StreamOptions
+
+    route = flight.orbit_route(-84.25, 36.55, 2000.0, 2500.0, 400.0)
+    cams = list(flight.cameras(route, 10.0, 64, 48))[:7]
+    got: dict[int, list[bytes]] = {}
+
+    def writer(path: Path, w: int, h: int, fps: float) -> tuple[_Writer, Path]:
+        tmp = path.with_name(".v.tmp.mp4")
+        tmp.write_bytes(b"partial")
+        w_ = _Writer(None)
+        got[flight.RING] = w_.frames
+        return w_, tmp
+
+    monkeypatch.setattr(flight, "_video_writer", writer)
+    opts = lodscape.SceneOptions(stream=StreamOptions(), morph=False)
+    with lodscape.open(sample_dem_path(), opts, clock=SimClock()) as scene:
+        flight.fly(scene, iter(cams), 10.0)
+        for ring in (0, 3, 2):
+            monkeypatch.setattr(flight, "RING", ring)
+            flight.fly(scene, iter(cams), 10.0, video=tmp_path / f"v{ring}.mp4")
+        # the ring is empty afterwards: a plain render works and reads the distance too
+        rgb, depth = scene.render(cams[0])
+        assert depth.shape == rgb.shape[:2]
+    assert len(got[0]) == len(cams)
+    assert got[3] == got[0]
+    assert got[2] == got[0]
+    assert len(set(got[0])) > 1  # the pictures differ from frame to frame
+
+    def stop(i: int) -> None:
+        if i == 4:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(flight, "RING", 3)
+    with lodscape.open(sample_dem_path(), opts, clock=SimClock()) as scene:
+        with pytest.raises(KeyboardInterrupt):
+            flight.fly(scene, iter(cams), 10.0, video=tmp_path / "cut.mp4", on_frame=stop)
+        assert not (tmp_path / "cut.mp4").exists()
+        assert scene.drain() == []
+        scene.render(cams[0])
+
+
+def test_render_behind_returns_each_picture_ring_minus_one_frames_late() -> None:
+    import lodscape
+    from lodscape.data import sample_dem_path
+
+    with lodscape.open(sample_dem_path()) as scene:
+        cams = [scene.overview_camera(48, 32)]
+        cams += [replace(cams[0], heading=float(h)) for h in (30, 60, 90)]
+        direct = [scene.render(c)[0] for c in cams]
+        late = [scene.render_behind(c, 3) for c in cams]
+        assert late[0] is None
+        assert late[1] is None
+        assert np.array_equal(late[2], direct[0])
+        assert np.array_equal(late[3], direct[1])
+        with pytest.raises(RuntimeError, match="drain"):
+            scene.render(cams[0])
+        rest = scene.drain()
+        assert len(rest) == 2
+        assert np.array_equal(rest[0], direct[2])
+        assert np.array_equal(rest[1], direct[3])
+        with pytest.raises(ValueError, match="ring"):
+            scene.render_behind(cams[0], 0)

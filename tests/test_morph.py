@@ -1,4 +1,5 @@
-"""Geomorphing (CDLOD-style, in the CPU terrain mode's vertex shader): along a slow approach,
+"""Geomorphing (CDLOD-style: the CPU terrain mode's vertex shader, the GPU mode's tessellation
+evaluation shader): along a slow approach,
 what the camera sees of the ground moves continuously. Each frame's depth is reprojected into
 the next camera: where the surface itself did not move the two agree, and the disagreement, in
 pixels of the surface's displacement, is what popped. With morphing no frame pops by more than a
@@ -50,14 +51,16 @@ def dem(tmp_path_factory: pytest.TempPathFactory) -> str:
     )
 
 
-def _approach(dem: str, morph: bool) -> list[float]:
+def _approach(dem: str, morph: bool, terrain_mode: str = "cpu") -> list[float]:
     """Per pair of consecutive frames of an approach, the 99.9th percentile of the reprojected
     jump (px). Frames load every tile they draw (no streaming: the same tiles on any machine),
     and morph as a flight's do."""
     from lodscape.lod.select import SelectOptions
 
     # a coarse bound (4 px) makes each split's step plain to see
-    opts = SceneOptions(select=SelectOptions(max_sse=4.0), morph=morph, anisotropy=1.0)
+    opts = SceneOptions(
+        select=SelectOptions(max_sse=4.0), morph=morph, anisotropy=1.0, terrain_mode=terrain_mode
+    )
     jumps: list[float] = []
     with lodscape.open(dem, opts) as scene:
         scene.view.morph = morph  # as a streaming scene's view does (one-shot scenes do not)
@@ -74,6 +77,8 @@ def _approach(dem: str, morph: bool) -> list[float]:
             lon, lat, alt = (float(a) for a in ecef_to_geodetic(p))
             cam = cam0.moved(lon=lon, lat=lat, alt=alt)
             _, depth = scene.render(cam)
+            if scene.terrain_mode_note is not None:
+                pytest.skip(scene.terrain_mode_note)
             fitted = scene.prepare(cam)
             if prev is not None:
                 jump = reprojected_jump(prev[0], prev[1], depth, fitted)
@@ -84,9 +89,12 @@ def _approach(dem: str, morph: bool) -> list[float]:
     return jumps
 
 
-def test_a_slow_approach_never_pops_with_morphing(dem: str) -> None:
-    with_morph = _approach(dem, True)
-    without = _approach(dem, False)
+@pytest.mark.parametrize("terrain_mode", ["cpu", "gpu"])
+def test_a_slow_approach_never_pops_with_morphing(dem: str, terrain_mode: str) -> None:
+    """Both terrain modes: the CPU mode's grids move by their offsets, the GPU mode's
+    tessellation evaluation blends a tile's heights with its grid of half the cells."""
+    with_morph = _approach(dem, True, terrain_mode)
+    without = _approach(dem, False, terrain_mode)
     # without morphing, where tiles split under the camera the ground jumps by over a pixel
     assert max(without) > 1.0, without
     # with it no frame moves the ground by a pixel (the floor, ~0.2-0.4 px, is the

@@ -346,29 +346,49 @@ def fly(
         raise ValueError(
             "fly needs a Scene or Globe streaming on a SimClock (Scene(..., clock=SimClock()))"
         )
-    columns = GLOBE_COLUMNS if isinstance(scene, Globe) else STAT_COLUMNS
+    globe = isinstance(scene, Globe)
+    columns = GLOBE_COLUMNS if globe else STAT_COLUMNS
+    # a scene's pictures come through the pixel-pack ring, RING - 1 frames late (not a globe's:
+    # it lays the terrain into its own picture on the CPU)
+    ring = 0 if globe or video is None else RING
     budget = 1000.0 / fps
     rows = FlightRows(columns)
     with _Video(video, fps) as out:
-        for i, cam in enumerate(frames):
-            rgb, _ = scene.render(cam)
-            out.send(rgb)
-            d = scene.frame_stats()
-            row = {c: d.get(c, 0) for c in columns}
-            row.update(
-                frame=i,
-                time_s=round(clock.now(), 4),
-                draw_ms=d["draw_ms"],
-                over_budget=int(d.get("frame_cpu_ms", 0.0) > budget),
-            )
-            rows.append(row)
-            clock.advance(1.0 / fps)
-            if on_frame is not None:
-                on_frame(i)
+        try:
+            for i, cam in enumerate(frames):
+                if ring:
+                    late = scene.render_behind(cam, ring)
+                    if late is not None:
+                        out.send(late)
+                else:
+                    # no video: the picture is read (part of a frame's cost), not the distance
+                    rgb, _ = scene.render(cam) if video or globe else scene.render(cam, depth=False)
+                    out.send(rgb)
+                d = scene.frame_stats()
+                row = {c: d.get(c, 0) for c in columns}
+                row.update(
+                    frame=i,
+                    time_s=round(clock.now(), 4),
+                    draw_ms=d["draw_ms"],
+                    over_budget=int(d.get("frame_cpu_ms", 0.0) > budget),
+                )
+                rows.append(row)
+                clock.advance(1.0 / fps)
+                if on_frame is not None:
+                    on_frame(i)
+            for late in scene.drain() if ring else ():
+                out.send(late)
+        finally:
+            if ring:
+                scene.drain()  # a flight cut short leaves nothing in the ring
         out.commit()
         if stats is not None:
             _write_stats(stats, rows, columns)
     return rows
+
+
+#: Pixel-pack buffers a flight's pictures pass through (0: each read when drawn).
+RING = 3
 
 
 class _Video:

@@ -170,7 +170,13 @@ class CityStats:
 class CityPass:
     """GL objects of one city in one context; ``draw`` adds it to the bound framebuffer."""
 
-    def __init__(self, ctx: moderngl.Context, model: CityModel, anisotropy: float = 1.0) -> None:
+    def __init__(
+        self,
+        ctx: moderngl.Context,
+        model: CityModel,
+        anisotropy: float = 1.0,
+        compress: bool = False,
+    ) -> None:
         self.ctx = ctx
         self.model = model
         self.indirect_ok = ctx.version_code >= 430
@@ -223,9 +229,15 @@ class CityPass:
         self._layer = {name: i for i, name in enumerate(names)}
         texels = layers(names)
         size = texels.shape[1]
-        tex = self._keep(ctx.texture_array((size, size, len(names)), 4, texels.tobytes()))
-        tex.build_mipmaps()
-        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        if compress:  # the facade and roof atlas block-compressed (BC3), its mips made here
+            from lodscape.imagery.compress import compress as compress_image
+            from lodscape.render._compressed import texture_array
+
+            tex = self._keep(texture_array(ctx, [compress_image(t) for t in texels]))
+        else:
+            tex = self._keep(ctx.texture_array((size, size, len(names)), 4, texels.tobytes()))
+            tex.build_mipmaps()
+            tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
         tex.repeat_x = tex.repeat_y = True
         tex.anisotropy = anisotropy
         self._materials = tex
@@ -473,8 +485,8 @@ class CityPass:
         if not options.hierarchical or len(tree.levels) < 2 or not len(leaves):
             return self._query(leaves), len(leaves)
         n_parents = len(tree.levels[1])
-        parent = leaves // tree.fanout
-        shown_per = np.bincount(shown // tree.fanout, minlength=n_parents)
+        parent = tree.parent(leaves)
+        shown_per = np.bincount(tree.parent(shown), minlength=n_parents)
         rest_per = np.bincount(parent, minlength=n_parents)
         whole = (rest_per == shown_per) & (rest_per >= 2)
         grouped = whole & self._parent_hidden

@@ -10,6 +10,7 @@ than read back from the depth buffer, whose non-linear 24-bit values lose centim
 
 from __future__ import annotations
 
+import collections
 import math
 import threading
 import time
@@ -25,6 +26,8 @@ from numpy.typing import NDArray
 from lodscape.geo.frames import WGS84_A, WGS84_B, enu_basis
 from lodscape.geo.keys import is_texture, tile_id_of_array, tile_of
 from lodscape.geo.tiles import bounds_array, tile_from_id_array
+from lodscape.imagery.compress import Compressed
+from lodscape.imagery.compress import compress as compress_image
 from lodscape.imagery.tint import NODATA_GREY
 from lodscape.lod.camera import Camera
 from lodscape.lod.view import DrawItem
@@ -321,6 +324,7 @@ class Renderer:
         tess_px: float = 4.0,
         ground: str = "imagery",
         ellipsoid: bool = True,
+        compress: bool = False,
     ) -> None:
         if terrain_mode not in ("cpu", "gpu"):
             raise ValueError(f"terrain mode is cpu or gpu, got {terrain_mode!r}")
@@ -386,10 +390,32 @@ class Renderer:
         self.terrain_mode = terrain_mode
         #: False: ``draw`` leaves the picture in ``framebuffer`` and returns empty arrays.
         self.read_back = True
+        #: False: ``draw`` reads the picture only, and returns an empty (0, 0) distance.
+        self.read_depth = True
+        #: N > 0: the picture is read into a ring of N pixel-pack buffers, and ``draw`` returns
+        #: the one read N - 1 frames before (empty until then; ``drain`` gives the rest), so
+        #: the GL may copy frame N while the next renders (paper 001's triple buffering).
+        self.ring = 0
+        self._ring: collections.deque[tuple[moderngl.Buffer, int, int]] = collections.deque()
+        self._ring_free: list[tuple[moderngl.Buffer, int]] = []
         #: Draw the terrain's triangles as lines (the viewer's wireframe key).
         self.wireframe = False
         #: Tint each tile by its level (the viewer's LOD colouring key).
         self.lod_colours = False
+        #: Imagery textures go to the GPU block-compressed (BC1 RGB, BC3 RGBA; compressed on
+        #: the workers in ``prepare``) where the context takes S3TC; asked for where it does
+        #: not, textures stay uncompressed and ``compress_note`` says why.
+        self.compress = False
+        self.compress_note: str | None = None
+        if compress and ground == "imagery":
+            from lodscape.render._compressed import has_s3tc
+
+            self.compress = has_s3tc(self.ctx)
+            if not self.compress:
+                self.compress_note = (
+                    "texture compression: this OpenGL has no S3TC (BC1/BC3) textures; "
+                    "textures stay uncompressed"
+                )
         self._tess: TessTerrain | None = None
         self._gpu_tiles: dict[int, _GpuTile] = {}
         if terrain_mode == "gpu":
@@ -420,17 +446,20 @@ class Renderer:
 
     def prepare(self, key: int, made: TileMesh | NDArray[np.uint8]) -> Any:
         """On a worker (``stream.gpu.GpuResources``): in the GPU terrain mode, a mesh's height
-        texture made beside it, so the GL thread only uploads. Touches no GL state."""
+        texture made beside it, so the GL thread only uploads; with ``compress``, a texture's
+        compressed mip chain. Touches no GL state."""
+        if self.compress and is_texture(key) and not isinstance(made, TileMesh | Compressed):
+            return compress_image(np.asarray(made, np.uint8))
         if self._tess is None or not isinstance(made, TileMesh) or made.height_tile is not None:
             return made
         t = tile_of(key)
         return replace(made, height_tile=height_tile(made, t.z, t.x, t.y))
 
-    def upload_resource(self, key: int, made: TileMesh | NDArray[np.uint8]) -> int:
+    def upload_resource(self, key: int, made: TileMesh | Compressed | NDArray[np.uint8]) -> int:
         """On the GL thread (``stream.gpu.GpuResources``): upload a mesh or a texture by its
         key; returns the GPU bytes it holds."""
         if is_texture(key):
-            self.upload_texture(key, np.asarray(made))
+            self.upload_texture(key, made if isinstance(made, Compressed) else np.asarray(made))
         elif isinstance(made, TileMesh):
             self.upload(made)
         else:
@@ -508,11 +537,25 @@ class Renderer:
             mbo,
         )
 
-    def upload_texture(self, key: int, image: NDArray[np.uint8]) -> None:
+    def upload_texture(self, key: int, image: NDArray[np.uint8] | Compressed) -> None:
         """Make ``image`` ((H, W, 3) RGB or (H, W, 4) RGBA, row 0 north; alpha 0 where there is
-        no terrain) usable under ``key``, with mipmaps; uploading a key again is a no-op."""
+        no terrain; or its ``Compressed`` mip chain) usable under ``key``, with mipmaps;
+        uploading a key again is a no-op. With ``compress`` an image is compressed here."""
         self._use()
         if key in self._textures:
+            return
+        if self.compress and not isinstance(image, Compressed):
+            image = compress_image(np.asarray(image, np.uint8))
+        if isinstance(image, Compressed):
+            from lodscape.render import _compressed
+
+            if not self.compress:
+                raise ValueError(f"texture {key}: compressed, but this renderer does not compress")
+            tex = self._track(_compressed.texture(self.ctx, image))
+            tex.repeat_x = tex.repeat_y = False
+            if self._anisotropy > 1.0:
+                tex.anisotropy = self._anisotropy
+            self._textures[key] = (tex, image.nbytes)
             return
         image = np.ascontiguousarray(image, dtype=np.uint8)
         if self.ground == "landcover":
@@ -642,7 +685,7 @@ class Renderer:
             calls, triangles, submit_s = self._tess.draw(
                 camera,
                 [
-                    (it.key, tex, it.skirt, it.uv, it.sse_budget, g, tint, lay)
+                    (it.key, tex, it.skirt, it.uv, it.sse_budget, g, tint, lay, it.morph)
                     for it, tex, g, tint, lay in zip(
                         items, textures, ground, tints, layers, strict=True
                     )
@@ -746,15 +789,48 @@ class Renderer:
             return np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
 
         h, w = camera.height, camera.width
+        no_depth = np.zeros((0, 0), np.float32)
+        if self.ring > 0:
+            self._ring.append((self._pack(fbo, w, h), w, h))
+            late = self.drain(keep=self.ring - 1)
+            return (late[0] if late else np.zeros((0, 0, 3), np.uint8)), no_depth
         # GL rows go bottom-up: flip so row 0 is the top of the picture
         rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
+        rgb = np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1])
+        if not self.read_depth:
+            return rgb, no_depth
         dist = np.frombuffer(
             fbo.read(components=1, attachment=1, alignment=1, dtype="f4"), np.float32
         )
-        return (
-            np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1]),
-            np.ascontiguousarray(dist.reshape(h, w)[::-1]),
-        )
+        return rgb, np.ascontiguousarray(dist.reshape(h, w)[::-1])
+
+    @property
+    def pending(self) -> int:
+        """Pictures in the read ring not yet returned."""
+        return len(self._ring)
+
+    def drain(self, keep: int = 0) -> list[NDArray[np.uint8]]:
+        """The pictures still in the read ring, oldest first, leaving the newest ``keep``."""
+        out = []
+        while len(self._ring) > keep:
+            buf, w, h = self._ring.popleft()
+            rgb = np.frombuffer(buf.read(), np.uint8)
+            out.append(np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1]))
+            self._ring_free.append((buf, w * h * 3))
+        return out
+
+    def _pack(self, fbo: moderngl.Framebuffer, w: int, h: int) -> moderngl.Buffer:
+        """Start reading the picture into a pixel-pack buffer (the GL copies asynchronously)."""
+        size = w * h * 3
+        for buf, n in [e for e in self._ring_free if e[1] != size]:
+            self._ring_free.remove((buf, n))
+            self._free(buf)
+        if self._ring_free:
+            buf, _ = self._ring_free.pop()
+        else:
+            buf = self._track(self.ctx.buffer(reserve=size))
+        fbo.read_into(buf, components=3, attachment=0, alignment=1)
+        return buf
 
     # --- lifetime ---------------------------------------------------------------------------
 
@@ -768,6 +844,10 @@ class Renderer:
         if self._target is not None:
             self._free_target(self._target)
             self._target = None
+        for buf in [b for b, _, _ in self._ring] + [b for b, _ in self._ring_free]:
+            self._free(buf)
+        self._ring.clear()
+        self._ring_free.clear()
         if self._tess is not None:
             self._tess.close()
             self._tess = None

@@ -135,6 +135,7 @@ layout(quads, equal_spacing, ccw) in;
 in vec3 e_patch[];
 uniform sampler2D u_frame;
 uniform sampler2D u_height;
+uniform float u_morph;     // how far the tile still shows its grid of half the cells (0..1)
 uniform mat4 u_mvp;        // projection · view for positions in the tile frame
 uniform mat3 u_rot;        // tile frame → view rotation
 uniform vec3 u_offset;     // view-space position of the tile frame's origin
@@ -150,12 +151,29 @@ out vec2 v_ground;
 out vec3 v_view;
 out vec3 v_normal;         // view space, from the height texture
 out float v_skirt;
+float coarse_height(vec2 uv) {
+    // the surface of the grid of half the cells: bilinear between every other texel (what the
+    // tile's parent, or its own coarser grid, showed there)
+    float half_cells = 0.5 * u_cells;
+    vec2 g = clamp(uv, 0.0, 1.0) * half_cells;
+    vec2 g0 = min(floor(g), vec2(half_cells - 1.0));
+    vec2 f = g - g0;
+    ivec2 i = ivec2(g0) * 2;
+    float h00 = texelFetch(u_height, i, 0).r, h10 = texelFetch(u_height, i + ivec2(2, 0), 0).r;
+    float h01 = texelFetch(u_height, i + ivec2(0, 2), 0).r;
+    float h11 = texelFetch(u_height, i + ivec2(2, 2), 0).r;
+    return mix(mix(h00, h10, f.x), mix(h01, h11, f.x), f.y);
+}
 vec3 surface(vec2 uv) {
     float n = u_cells + 1.0;
     vec2 t = (clamp(uv, 0.0, 1.0) * u_cells + 0.5) / vec2(n, 2.0 * n);
     vec3 base = textureLod(u_frame, t, 0.0).xyz;
     vec3 up = textureLod(u_frame, t + vec2(0.0, 0.5), 0.0).xyz;
-    return base + textureLod(u_height, (clamp(uv, 0.0, 1.0) * u_cells + 0.5) / n, 0.0).r * up;
+    float h = textureLod(u_height, (clamp(uv, 0.0, 1.0) * u_cells + 0.5) / n, 0.0).r;
+    if (u_morph > 0.0 && u_cells >= 2.0 && mod(u_cells, 2.0) < 0.5) {
+        h = mix(h, coarse_height(uv), u_morph);
+    }
+    return base + h * up;
 }
 void main() {
     float a = gl_TessCoord.x, b = gl_TessCoord.y;
@@ -375,12 +393,14 @@ class TessTerrain:
                 tuple[float, float, float],
                 tuple[float, float, float, float],
                 Layers,
+                float,
             ]
         ],
     ) -> tuple[int, int, float]:
         """Draw (key, texture, skirt, uv window, error budget px, ground window, tint, imagery
-        layers) items into the bound framebuffer; returns (draw calls, triangles the
-        tessellator made, seconds spent issuing them)."""
+        layers, morph) items into the bound framebuffer; returns (draw calls, triangles the
+        tessellator made, seconds spent issuing them). An item's morph: how far it still shows
+        its grid of half the cells (the surface it replaced)."""
         t0 = time.perf_counter()
         ctx = self.ctx
         p = self._p
@@ -395,7 +415,7 @@ class TessTerrain:
             u_tint = p.get("u_tint")
             if "u_layers" in p:
                 p["u_layers"].value = len(items[0][7]) if items else 0
-            for key, tex, skirt, uv, budget, ground, tint, layers in items:
+            for key, tex, skirt, uv, budget, ground, tint, layers, morph in items:
                 bind_layers(p, layers)
                 if u_ground is not None:
                     u_ground.value = ground
@@ -421,6 +441,7 @@ class TessTerrain:
                 p["u_cells"].value = float(s)
                 p["u_patches"].value = float(pp)
                 p["u_max"].value = float(c)
+                p["u_morph"].value = float(morph)
                 tex.use(0)
                 self._frame(tile.z, tile.y, s).use(1)
                 tile.height.use(2)
