@@ -22,7 +22,10 @@ only once the simulated time passes its start (the simulated time its worker slo
 its cost. The cost is the source's declared one (``source.cost(key)``, seconds) where it has one,
 else the worker thread's CPU time for the fetch and the decode: never wall time, so a loaded
 machine (threads waiting for a core, the GIL) does not slow a simulated flight, and a source
-with declared costs gives the same flight statistics on any machine.
+with declared costs gives the same flight statistics on any machine. A simulated clock also
+waits for a local job that has not finished in real time when its frame collects (it would have
+had the time): when a result is usable is the clock's decision alone, not how soon this
+machine's threads got to it. Network jobs (imagery layers) are not waited for.
 """
 
 from lodscape.stream.streamer import (

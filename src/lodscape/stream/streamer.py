@@ -6,6 +6,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FuturesTimeout
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
@@ -126,6 +127,9 @@ class _Job:
     #: Simulated completion, once known.
     done_at: float | None = None
 
+
+#: Longest a simulated clock waits for one local job (a fetch and decode) in ``collect``.
+SIM_WAIT_S = 60.0
 
 #: Threads that fetch imagery layers' tiles (network waits, raster reads), apart from the
 #: terrain's workers.
@@ -261,7 +265,15 @@ class Streamer:
         simulated = bool(getattr(self.clock, "simulated", False))
         for key, job in list(self._jobs.items()):
             if not job.future.done():
-                continue
+                if not simulated or job.lane == 1:
+                    continue
+                # on a simulated clock local work is waited for: its cost on the clock, not how
+                # soon this machine's threads got to it, says when it is usable (the network's
+                # jobs are not: a server that hangs must not hold the frame)
+                try:
+                    job.future.exception(timeout=SIM_WAIT_S)
+                except FuturesTimeout:
+                    continue
             exc = job.future.exception()
             if job.done_at is None:
                 took = 0.0 if exc is not None else job.future.result()[2]
