@@ -409,3 +409,71 @@ def test_auto_occlusion_is_on_among_the_walls_of_a_software_rasteriser() -> None
     assert auto.resolved(software=True, height=None).occlusion is False  # no ground known
     assert CityOptions(occlusion=True).resolved(False, 400.0).occlusion is True
     assert not CityOptions.naive().resolved(True, 2.0).occlusion
+
+
+@pytest.mark.gl
+def test_the_scene_trees_packing_from_the_cli_and_python(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    view = ["--lon", "24.9405", "--lat", "60.169", "--alt", "150", "--pitch", "-25"]
+    view += ["--size", "320x180", "-q", "--city", str(sample_city_path())]
+    pictures = {}
+    for tree in ("hilbert", "priority"):
+        pictures[tree] = tmp_path / f"{tree}.png"
+        argv = ["render", "flat", "--city-tree", tree, "-o", str(pictures[tree]), *view]
+        code, _, err = run_cli(argv, capsys)
+        assert code == 0, err
+    # the packing changes which boxes are tested, not what the city looks like (the levels of
+    # detail go by leaves, so a few far objects may differ)
+    assert changed_share(pictures["hilbert"], pictures["priority"]) < 0.02
+    out = tmp_path / "x.png"
+    code, _, err = run_cli(["render", "flat", "--city-tree", "kd", "-o", str(out), *view], capsys)
+    assert code == 2
+    assert "--city-tree" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    city = read_osm(sample_city_path())
+    w, s, e, n = city.bounds
+    with lodscape.open(f"flat:{w},{s},{e},{n}") as scene:
+        model = scene.add_city(city, CityOptions(packing="priority"))
+        assert model.tree.packing == "priority"
+        assert scene.city_options.packing == "priority"
+
+
+@pytest.mark.gl
+def test_uniform_and_storage_buffers_draw_the_same_city() -> None:
+    """The camera in a uniform buffer and the instances in a storage buffer (read by the draw's
+    base instance) draw exactly what plain uniforms and instanced attributes draw: buildings
+    from above, and trees seen from 30 m."""
+    city = read_osm(sample_city_path())
+    w, s, e, n = city.bounds
+    with lodscape.open(f"flat:{w - 0.01},{s - 0.005},{e + 0.01},{n + 0.005}") as scene:
+        scene.add_city(city)
+        pictures = {}
+        for buffers in (True, False):
+            scene.set_city_options(CityOptions(buffers=buffers, occlusion=True))
+            for cam in (scene.city_camera(240, 160), _street_camera(scene)):
+                rgb, depth = scene.render(cam)
+                rgb, depth = scene.render(cam)  # the occlusion queries settled
+                assert scene._city_pass is not None
+                assert scene._city_pass.buffers is buffers
+                pictures[(buffers, cam.alt)] = (rgb, depth, scene.last.city["city_triangles"])
+        for alt in {a for _, a in pictures}:
+            a, b = pictures[(True, alt)], pictures[(False, alt)]
+            assert np.array_equal(a[0], b[0])
+            assert np.array_equal(a[1], b[1])
+            assert a[2] == b[2] > 0
+
+
+def _street_camera(scene: lodscape.Scene) -> Camera:
+    """Looking down on trees in the middle of the sample (instances far from the first: the
+    storage buffer is read at the draw's base instance)."""
+    from lodscape.geo.frames import ecef_to_geodetic
+
+    model = scene.city
+    assert model is not None
+    trees = model.instances["tree"]
+    x, y, z = (float(v) for v in trees[len(trees) // 2, :3])
+    ecef = model.frame.origin + np.array([x, y - 30.0, z]) @ model.frame.basis
+    lon, lat, _ = (float(v) for v in ecef_to_geodetic(ecef))
+    return Camera(lon, lat, z + 30.0, heading=0.0, pitch=-45.0, width=240, height=160)

@@ -219,6 +219,14 @@ MorphOpt = Annotated[
         "instead of jumping.",
     ),
 ]
+CityTreeOpt = Annotated[
+    str,
+    typer.Option(
+        "--city-tree",
+        help="How the city's scene tree is packed: hilbert (the default), str, or priority "
+        "(the Priority R-tree; best on long thin objects, not on a city's).",
+    ),
+]
 CompressOpt = Annotated[
     bool,
     typer.Option(
@@ -284,6 +292,7 @@ class TerrainFlags:
     ellipsoid: bool = True
     morph: bool = True
     compress_textures: bool = False
+    city_tree: str = "hilbert"
 
     def fractal(self, source: str) -> Fractal | None:
         return _detail(source, self.detail, self.hurst, self.sigma, self.seed)
@@ -329,7 +338,17 @@ class TerrainFlags:
             sea_level=_sea_level(self.sea_level),
             band=self.band,
             nodata=self.nodata,
+            city_options=self.city_options(),
         )
+
+    def city_options(self) -> Any:
+        from lodscape.city.model import CityOptions
+
+        if self.city_tree not in ("hilbert", "str", "priority"):
+            raise LodscapeError(
+                f"--city-tree: expected hilbert, str or priority, got {self.city_tree!r}"
+            )
+        return CityOptions(packing=self.city_tree)
 
 
 _TERRAIN_FLAGS = [
@@ -357,6 +376,7 @@ _TERRAIN_FLAGS = [
         ("ellipsoid", EllipsoidOpt, True),
         ("morph", MorphOpt, True),
         ("compress_textures", CompressOpt, False),
+        ("city_tree", CityTreeOpt, "hilbert"),
     )
 ]
 

@@ -409,27 +409,37 @@ class Scene:
 
     def add_city(self, city: str | PathLike[str] | Any, options: Any = None) -> Any:
         """Drape a city on the terrain: an OSM file (.osm.pbf, .osm) or a built ``CityModel``;
-        its objects stand on this scene's ground. Returns the model."""
+        its objects stand on this scene's ground, in a scene tree packed as ``options.packing``
+        says (a built model keeps its own). Returns the model."""
         from lodscape.city.model import CityModel, CityOptions, build_city
         from lodscape.city.osm import City, read_osm
 
+        options = options or CityOptions()
         if isinstance(city, CityModel):
             model = city
         else:
             model = build_city(
-                city if isinstance(city, City) else read_osm(str(city)), self.heights
+                city if isinstance(city, City) else read_osm(str(city)),
+                self.heights,
+                packing=options.packing,
             )
         if self._city_pass is not None:
             self._city_pass.release()
             self._city_pass = None
         self.city = model
-        self.city_options = options or CityOptions()
+        self.city_options = options
         return model
 
     def set_city_options(self, options: Any) -> None:
         """Change how the city is drawn (``CityOptions``); occlusion culling starts afresh."""
+        old = self.city_options
+        rebuild = old is not None and options.buffers != old.buffers
         self.city_options = options
-        if self._city_pass is not None:
+        if self._city_pass is not None and rebuild:
+            # the buffers' path is made with the pass: made again at the next frame
+            self._city_pass.release()
+            self._city_pass = None
+        elif self._city_pass is not None:
             self._city_pass.reset()
 
     def heights(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -458,7 +468,11 @@ class Scene:
             from lodscape.render.city_pass import CityPass
 
             self._city_pass = CityPass(
-                renderer.ctx, self.city, renderer.anisotropy, compress=renderer.compress
+                renderer.ctx,
+                self.city,
+                renderer.anisotropy,
+                compress=renderer.compress,
+                buffers=self.city_options.buffers,
             )
         cp, opts = self._city_pass, self.city_options
         from lodscape.render._context import is_software

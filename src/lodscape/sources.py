@@ -97,6 +97,7 @@ def open(
     sea_level: float | None = 0.0,
     band: int | None = None,
     nodata: float | None = None,
+    city_options: Any = None,
     **array_kwargs: Any,
 ) -> Scene:
     """A scene over a tileset built by ``lodscape build`` (.lods), a GeoTIFF (any GDAL raster), a
@@ -114,7 +115,9 @@ def open(
       up. Failures are counted (``Scene.imagery_failures``) and said once on stderr;
       ``options.imagery_timeout`` bounds a render's wait and ``options.imagery_strict`` makes
       any failure an error;
-    - ``city`` (an OSM file or a ``City``) is draped on it, with the cities a tileset stores;
+    - ``city`` (an OSM file or a ``City``) is draped on it, with the cities a tileset stores,
+      drawn as ``city_options`` (a ``city.model.CityOptions``: culling, levels of detail, the
+      scene tree's packing) say;
     - ``fill``: what stands where a raster has no data: ``none`` (a hole, nothing drawn),
       ``nearest`` (the nearest valid height stretched), ``value:H`` or ``ellipsoid`` (height
       0); a tileset keeps the fill it was built with;
@@ -172,7 +175,7 @@ def open(
         if stored is not None and town is not None:
             stored = stored.merged(town)
         if stored is not None or town is not None:
-            scene.add_city(stored if stored is not None else town)
+            scene.add_city(stored if stored is not None else town, city_options)
     except BaseException:
         scene.close()
         raise

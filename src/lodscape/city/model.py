@@ -70,6 +70,13 @@ class CityOptions:
     #: Wait for the GPU before and after the city pass and report its time (for benchmarks;
     #: the waits cost a little).
     timed: bool = False
+    #: The camera in a uniform buffer written once a frame, the street objects' instances in a
+    #: shader storage buffer (OpenGL 4.3 with the draw parameters); False: plain uniforms per
+    #: program and instanced vertex attributes (what the GL gets without them anyway).
+    buffers: bool = True
+    #: How the scene tree is packed when the city is built here ("hilbert", "str" or
+    #: "priority": the Priority R-tree; ``bench/bench_city.py`` compares them).
+    packing: str = DEFAULT_PACKING
 
     @classmethod
     def naive(cls) -> CityOptions:

@@ -40,15 +40,31 @@ F64 = NDArray[np.float64]
 
 _VERTEX = """
 #version 330
+#ifdef BLOCKS
+// the frame's camera in one uniform buffer, written once a frame for every program
+layout(std140) uniform Frame { mat4 f_mvp; mat4 f_rot; vec4 f_offset; vec4 f_sun; };
+#define MVP f_mvp
+#define ROT mat3(f_rot)
+#define OFFSET f_offset.xyz
+#else
 uniform mat4 u_mvp;      // projection · view for positions in the city's frame
 uniform mat3 u_rot;      // city frame → view rotation
 uniform vec3 u_offset;   // view-space position of the city's origin
+#define MVP u_mvp
+#define ROT u_rot
+#define OFFSET u_offset
+#endif
 in vec3 in_pos;
 in vec3 in_normal;
 in vec2 in_uv;
 #ifdef INSTANCED
+#ifdef BLOCKS
+// per instance x, y, z, scale, heading (five floats), read by the draw's base instance
+layout(std430, binding = 1) readonly buffer Instances { float inst[]; };
+#else
 in vec4 in_inst;         // x, y, z, scale
 in float in_heading;
+#endif
 #endif
 out vec3 v_normal;
 out vec2 v_uv;
@@ -57,15 +73,20 @@ void main() {
     vec3 p = in_pos;
     vec3 n = in_normal;
 #ifdef INSTANCED
+#ifdef BLOCKS
+    int i = 5 * (gl_BaseInstanceARB + gl_InstanceID);
+    vec4 in_inst = vec4(inst[i], inst[i + 1], inst[i + 2], inst[i + 3]);
+    float in_heading = inst[i + 4];
+#endif
     float c = cos(in_heading), s = sin(in_heading);
     mat3 r = mat3(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
     p = in_inst.xyz + r * (in_inst.w * p);
     n = r * n;
 #endif
-    gl_Position = u_mvp * vec4(p, 1.0);
+    gl_Position = MVP * vec4(p, 1.0);
     v_normal = n;
     v_uv = in_uv;
-    v_dist = -(u_offset + u_rot * p).z;
+    v_dist = -(OFFSET + ROT * p).z;
 }
 """
 
@@ -74,7 +95,13 @@ _FRAGMENT = """
 uniform sampler2DArray u_materials;
 uniform float u_layer;   // the material's layer
 uniform vec2 u_repeat;   // metres one repeat of its texture covers
+#ifdef BLOCKS
+layout(std140) uniform Frame { mat4 f_mvp; mat4 f_rot; vec4 f_offset; vec4 f_sun; };
+#define SUN f_sun.xyz
+#else
 uniform vec3 u_sun;
+#define SUN u_sun
+#endif
 in vec3 v_normal;
 in vec2 v_uv;
 in float v_dist;
@@ -82,7 +109,7 @@ layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
     vec3 n = normalize(v_normal);
-    float light = 0.45 + 0.55 * max(dot(n, u_sun), 0.0) + 0.1 * n.z;
+    float light = 0.45 + 0.55 * max(dot(n, SUN), 0.0) + 0.1 * n.z;
     vec3 albedo = texture(u_materials, vec3(v_uv / u_repeat, u_layer)).rgb;
     f_color = vec4(albedo * light, 1.0);
     f_dist = v_dist;
@@ -91,12 +118,28 @@ void main() {
 
 _BOX_VERTEX = """
 #version 330
+#ifdef BLOCKS
+layout(std140) uniform Frame { mat4 f_mvp; mat4 f_rot; vec4 f_offset; vec4 f_sun; };
+#define MVP f_mvp
+#else
 uniform mat4 u_mvp;
+#define MVP u_mvp
+#endif
 uniform vec3 u_lo;
 uniform vec3 u_hi;
 in vec3 in_pos;
-void main() { gl_Position = u_mvp * vec4(mix(u_lo, u_hi, in_pos), 1.0); }
+void main() { gl_Position = MVP * vec4(mix(u_lo, u_hi, in_pos), 1.0); }
 """
+
+
+def _variant(source: str, *defines: str) -> str:
+    """``source`` with ``defines``; the buffers' variant on GLSL 4.30 with the draw parameters."""
+    head = "#version 330"
+    if "BLOCKS" in defines:
+        head = "#version 430\n#extension GL_ARB_shader_draw_parameters : require"
+    return source.replace("#version 330", "\n".join([head, *(f"#define {d}" for d in defines)]))
+
+
 _BOX_FRAGMENT = """
 #version 330
 layout(location = 0) out vec4 f_color;
@@ -176,18 +219,37 @@ class CityPass:
         model: CityModel,
         anisotropy: float = 1.0,
         compress: bool = False,
+        buffers: bool = True,
     ) -> None:
         self.ctx = ctx
         self.model = model
         self.indirect_ok = ctx.version_code >= 430
+        #: The camera in a uniform buffer (written once a frame for every program) and the
+        #: street objects' instances in a shader storage buffer (read by the draw's base
+        #: instance) where the GL has them (4.3 and the draw parameters); else plain uniforms
+        #: per program and instanced vertex attributes.
+        self.buffers = (
+            buffers
+            and self.indirect_ok
+            and (ctx.version_code >= 460 or "GL_ARB_shader_draw_parameters" in ctx.extensions)
+        )
         self._objs: list[Any] = []
-        prog = self._keep(ctx.program(vertex_shader=_VERTEX, fragment_shader=_FRAGMENT))
-        iprog = self._keep(
+        blocks = ("BLOCKS",) if self.buffers else ()
+        prog = self._keep(
             ctx.program(
-                vertex_shader=_VERTEX.replace("#version 330", "#version 330\n#define INSTANCED"),
-                fragment_shader=_FRAGMENT,
+                vertex_shader=_variant(_VERTEX, *blocks),
+                fragment_shader=_variant(_FRAGMENT, *blocks),
             )
         )
+        iprog = self._keep(
+            ctx.program(
+                vertex_shader=_variant(_VERTEX, "INSTANCED", *blocks),
+                fragment_shader=_variant(_FRAGMENT, *blocks),
+            )
+        )
+        self._frame_ubo: moderngl.Buffer | None = None
+        if self.buffers:
+            self._frame_ubo = self._keep(ctx.buffer(reserve=160))
         # programs are indexed by uniform name: moderngl types members as a union
         self._prog: Any = prog
         self._iprog: Any = iprog
@@ -203,24 +265,20 @@ class CityPass:
             )
             self._meshes[key] = vao
         self._models: dict[tuple[str, str], tuple[moderngl.VertexArray, int]] = {}
+        #: Per street-object kind, its instances' storage buffer (the buffers' path).
+        self._instances: dict[str, moderngl.Buffer] = {}
         for kind, inst in model.instances.items():
             if not len(inst):
                 continue
             ibuf = self._keep(ctx.buffer(np.ascontiguousarray(inst, np.float32).tobytes()))
+            self._instances[kind] = ibuf
             for mat, geo in MODELS[kind].items():
                 vbo = self._keep(ctx.buffer(geo.vertices().tobytes()))
                 ibo = self._keep(ctx.buffer(geo.triangles.tobytes()))
-                vao = self._keep(
-                    ctx.vertex_array(
-                        iprog,
-                        [
-                            (vbo, "3f 3f 2f", "in_pos", "in_normal", "in_uv"),
-                            (ibuf, "4f 1f/i", "in_inst", "in_heading"),
-                        ],
-                        ibo,
-                        4,
-                    )
-                )
+                layout: list[Any] = [(vbo, "3f 3f 2f", "in_pos", "in_normal", "in_uv")]
+                if not self.buffers:
+                    layout.append((ibuf, "4f 1f/i", "in_inst", "in_heading"))
+                vao = self._keep(ctx.vertex_array(iprog, layout, ibo, 4))
                 self._models[(kind, mat)] = (vao, len(geo.triangles))
         # materials: one texture array, a layer each (deduplicated by name), mipmapped
         names = sorted({mat for _, mat in model.geometry} | {mat for _, mat in self._models}) or [
@@ -241,7 +299,12 @@ class CityPass:
         tex.repeat_x = tex.repeat_y = True
         tex.anisotropy = anisotropy
         self._materials = tex
-        bprog = self._keep(ctx.program(vertex_shader=_BOX_VERTEX, fragment_shader=_BOX_FRAGMENT))
+        bprog = self._keep(
+            ctx.program(
+                vertex_shader=_variant(_BOX_VERTEX, *blocks),
+                fragment_shader=_variant(_BOX_FRAGMENT, *blocks),
+            )
+        )
         self._bprog: Any = bprog
         cube = self._keep(ctx.buffer(_CUBE.tobytes()))
         cidx = self._keep(ctx.buffer(_CUBE_TRIS.tobytes()))
@@ -291,6 +354,23 @@ class CityPass:
         offset = camera.rotation @ (m.frame.origin - camera.position)
         sun = np.array([math.cos(0.8) * 0.5, math.sin(0.8) * 0.5, 0.75])
         sun /= np.linalg.norm(sun)
+        if self._frame_ubo is not None:
+            # one write a frame: the Frame block (std140: two mat4, two vec4) of every program
+            block = np.zeros(40, np.float32)
+            block[0:16] = np.ascontiguousarray(mvp.T, np.float32).ravel()
+            rot4 = np.eye(4)
+            rot4[:3, :3] = rot
+            block[16:32] = np.ascontiguousarray(rot4.T, np.float32).ravel()
+            block[32:35] = offset
+            block[36:39] = sun
+            self._frame_ubo.write(block.tobytes())
+            self._frame_ubo.bind_to_uniform_block(0)
+            for prog in (self._prog, self._iprog, self._bprog):
+                prog["Frame"].binding = 0
+                if "u_materials" in prog:
+                    prog["u_materials"].value = 0
+            self._materials.use(0)
+            return
         for prog in (self._prog, self._iprog):
             prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))
             prog["u_rot"].write(np.ascontiguousarray(rot.T, np.float32))
@@ -299,6 +379,11 @@ class CityPass:
             prog["u_materials"].value = 0
         self._materials.use(0)
         self._bprog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))
+
+    def _bind_instances(self, kind: str) -> None:
+        """The buffers' path: ``kind``'s instances as the Instances storage buffer."""
+        if self.buffers:
+            self._instances[kind].bind_to_storage_buffer(1)
 
     def _use(self, prog: Any, mat: str) -> None:
         """Point ``prog`` at ``mat``'s layer of the material array."""
@@ -419,6 +504,7 @@ class CityPass:
             if not len(s):
                 continue
             self._use(self._iprog, mat)
+            self._bind_instances(kind)
             tris += int(c.sum()) * ntri
             if options.instancing and self.indirect_ok:
                 cmd = np.zeros((len(s), 5), np.uint32)
@@ -467,6 +553,7 @@ class CityPass:
         for (kind, mat), (vao, ntri) in self._models.items():
             start, count = m.instance_runs[kind]
             self._use(self._iprog, mat)
+            self._bind_instances(kind)
             calls += self._one_by_one(vao, ntri, start[everything], count[everything])
             tris += int(count.sum()) * ntri
         return CityStats(calls, tris, m.objects)
