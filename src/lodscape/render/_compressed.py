@@ -7,7 +7,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
-from typing import Any
+from typing import Any, TypeVar
 
 import moderngl
 
@@ -15,6 +15,7 @@ from lodscape.imagery.compress import Compressed
 
 __all__ = ["has_s3tc", "texture", "texture_array"]
 
+_Tex = TypeVar("_Tex", moderngl.Texture, moderngl.TextureArray)
 _TEXTURE_2D = 0x0DE1
 _TEXTURE_2D_ARRAY = 0x8C1A
 _ARGS = [
@@ -81,12 +82,7 @@ def texture(ctx: moderngl.Context, data: Compressed) -> moderngl.Texture:
     tex.use(0)
     for level, (lw, lh, blocks) in enumerate(data.levels):
         fn(_TEXTURE_2D, level, data.format, lw, lh, 0, len(blocks), blocks)
-    err = ctx.error
-    if err != "GL_NO_ERROR":
-        tex.release()
-        raise RuntimeError(f"compressed texture upload failed: {err}")
-    tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-    return tex
+    return _checked(ctx, tex)
 
 
 def texture_array(ctx: moderngl.Context, layers: list[Compressed]) -> moderngl.TextureArray:
@@ -106,9 +102,14 @@ def texture_array(ctx: moderngl.Context, layers: list[Compressed]) -> moderngl.T
         lw, lh, _ = first.levels[level]
         blocks = b"".join(lay.levels[level][2] for lay in layers)
         fn(_TEXTURE_2D_ARRAY, level, first.format, lw, lh, len(layers), 0, len(blocks), blocks)
+    return _checked(ctx, tex)
+
+
+def _checked(ctx: moderngl.Context, tex: _Tex) -> _Tex:
+    """``tex`` mipmap-filtered, or released and an error if the upload failed."""
     err = ctx.error
     if err != "GL_NO_ERROR":
         tex.release()
-        raise RuntimeError(f"compressed texture array upload failed: {err}")
+        raise RuntimeError(f"compressed texture upload failed: {err}")
     tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
     return tex
