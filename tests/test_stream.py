@@ -94,6 +94,47 @@ def test_the_simulated_clock_charges_workers_their_declared_cost() -> None:
         s.close()
 
 
+class _SlowThreads(MemorySource):
+    """Threads that take 0.3 s of real time for a fetch declared to cost 10 ms (a loaded
+    machine, a starved thread)."""
+
+    def fetch(self, key: int) -> bytes:
+        time.sleep(0.3)
+        return bytes([key % 256]) * self.size
+
+    def cost(self, key: int) -> float:
+        return 0.01
+
+
+def test_a_simulated_clock_waits_for_local_work_but_not_the_network() -> None:
+    """When a result is usable is the simulated clock's decision: a frame 20 ms later has the
+    tiles declared to cost 10 ms, however slow the threads really were (a flight's statistics
+    do not depend on the machine); a network job (an imagery layer) is not waited for."""
+    clock = SimClock()
+    s = Streamer(_SlowThreads(), StreamOptions(workers=4, in_flight=8), clock)
+    try:
+        s.request([1, 2, 3, 4], "memory", lambda k: False)
+        clock.advance(0.02)
+        t = time.perf_counter()
+        s.collect()
+        assert sorted(s.memory) == [1, 2, 3, 4]
+        assert s.stats.sim_wait_ms > 0.0
+        assert time.perf_counter() - t < 5.0
+    finally:
+        s.close()
+    s = Streamer(_SlowThreads(), StreamOptions(), SimClock(), remote=lambda k: True)
+    try:
+        s.request([5, 6], "memory", lambda k: False)
+        s.clock.advance(0.02)  # type: ignore[attr-defined]
+        t = time.perf_counter()
+        s.collect()
+        assert time.perf_counter() - t < 0.2
+        assert len(s.memory) == 0
+        s.drain()
+    finally:
+        s.close()
+
+
 def test_the_in_flight_limit_and_priorities() -> None:
     src = MemorySource(delay=0.02)
     s = Streamer(src, StreamOptions(in_flight=3), SimClock())

@@ -288,11 +288,13 @@ class Scene:
         loader.finish(plan)
         stream: dict[str, float] = {}
         if not blocking:
-            stream = {
-                **loader.stream_stats(),
-                "stall_ms": round(report.stall_ms, 2),
-                "frame_cpu_ms": round((t2 - t0) * 1e3, 2),
-            }
+            stream = loader.stream_stats()
+            # a simulated clock's waits for the workers are not the frame's own work
+            waited = float(stream.get("sim_wait_ms", 0.0))
+            stream.update(
+                stall_ms=round(report.stall_ms, 2),
+                frame_cpu_ms=round(max((t2 - t0) * 1e3 - waited, 0.0), 2),
+            )
         self.last = FrameStats(
             plan.selection.stats(),
             renderer.last_stats.draw_calls,

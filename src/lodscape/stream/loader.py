@@ -21,6 +21,7 @@ never one of those.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -182,8 +183,9 @@ class Loader:
         if not blocking:
             on_gpu = self.gpu.__contains__
             self.streamer.request((int(k) for k in plan.loads), "memory", on_gpu)
-            self._prefetch(plan.camera, on_gpu)
             self._wanted = [int(k) for k in plan.loads]
+            self.streamer.wanted = frozenset(self._wanted)
+            self._prefetch(plan.camera, on_gpu)
         load_ms = begin_ms + (time.perf_counter() - t0) * 1e3
         return LoadReport(taken + uploaded, stall, load_ms)
 
@@ -237,13 +239,18 @@ class Loader:
         due = self.clock.now() - self._predicted_at >= PREDICT_EVERY
         if pending is not None and (pending.done() if not simulated else due):
             self._predicted = None
+            t = time.perf_counter()
             predicted, counts = pending.result()
-            # half the workers' places stay for what the frames themselves want
+            if simulated:  # waited for a worker, not the frame's own work
+                self.streamer.stats.sim_wait_ms += (time.perf_counter() - t) * 1e3
+            # half the workers' places stay for what the frames themselves want; the radii's
+            # and the velocity's keys share one half of each stage's budget (asked for apart,
+            # they filled a stage and pushed out what the frames had loaded)
             room = max(1, self.options.in_flight // 2)
-            for stage, keys in predicted:
-                self.streamer.request(
-                    self._within_budget(keys, stage), stage, on_gpu, room, prefetch=True
-                )
+            for stage in ("memory", "cache"):
+                lists = [keys for st, keys in predicted if st == stage]
+                keys = self._within_budget(_interleave(lists), stage)
+                self.streamer.request(keys, stage, on_gpu, room, prefetch=True)
             if counts is not None:
                 self.units = {**counts, **self._states(predicted)}
         now = self.clock.now()
@@ -314,3 +321,15 @@ class Loader:
 
     def close(self) -> None:
         self.streamer.close()
+
+
+def _interleave(lists: list[list[int]]) -> list[int]:
+    """The lists' keys taken in turn (each most urgent first), each key once."""
+    out: list[int] = []
+    seen: set[int] = set()
+    for group in itertools.zip_longest(*lists):
+        for key in group:
+            if key is not None and key not in seen:
+                seen.add(key)
+                out.append(key)
+    return out

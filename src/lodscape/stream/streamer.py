@@ -108,6 +108,9 @@ class StreamStats:
     upload_ms: float = 0.0
     #: Bytes fetched from the source (disk, a server), not from the cache stage.
     fetched_bytes: int = 0
+    #: Milliseconds a simulated clock waited for local jobs in ``collect`` (real time the
+    #: workers took that the simulated frame already gave them: not the frame's own work).
+    sim_wait_ms: float = 0.0
 
     def snapshot(self) -> StreamStats:
         return StreamStats(**self.__dict__)
@@ -122,7 +125,7 @@ class _Job:
     decode: bool
     submitted: float
     future: Future[tuple[bytes | None, Made | None, float]]
-    #: 0 the terrain's workers, 1 the imagery's, 2 the prefetch's.
+    #: 0 the terrain's workers, 1 the imagery's, 2 the prefetch's, 3 the prefetch's imagery.
     lane: int = 0
     #: Simulated completion, once known.
     done_at: float | None = None
@@ -173,9 +176,19 @@ class Streamer:
         self._pre = ThreadPoolExecutor(pre, thread_name_prefix="lodscape-prefetch")
         self._pre_slots = [-math.inf] * pre
         self._net: ThreadPoolExecutor | None = None
+        #: The prefetch's network threads: a prefetched imagery tile never queues ahead of one
+        #: a frame wants (half the imagery's threads).
+        self._pre_net: ThreadPoolExecutor | None = None
+        self._pre_net_slots = [-math.inf] * (NET_THREADS // 2)
         if self.remote is not None:
             self._net = ThreadPoolExecutor(NET_THREADS, thread_name_prefix="lodscape-net")
+            self._pre_net = ThreadPoolExecutor(
+                NET_THREADS // 2, thread_name_prefix="lodscape-prefetch-net"
+            )
         self._pinned: set[int] = set()
+        #: Keys the frame on screen wants (``Loader`` sets them): a prefetched resource never
+        #: pushes one of them out of the memory stage before it is uploaded.
+        self.wanted: frozenset[int] = frozenset()
 
     # --- requests ----------------------------------------------------------------------------
 
@@ -191,9 +204,10 @@ class Streamer:
         on the GPU. Stops at the in-flight limit (or ``limit``, lower, for a prefetch that must
         leave room for what frames want): less urgent classes wait their turn. Terrain and
         imagery (``remote``) keys have a limit each, so a slow imagery source never takes the
-        terrain's places; a ``prefetch``'s terrain keys go to the prefetch's own threads."""
+        terrain's places; a ``prefetch``'s keys go to the prefetch's own threads (terrain and
+        network apart), so they never queue ahead of what a frame wants."""
         now = self.clock.now()
-        busy = [0, 0, 0]
+        busy = [0, 0, 0, 0]
         for running in self._jobs.values():
             busy[running.lane] += 1
         limit = self.options.in_flight if limit is None else min(limit, self.options.in_flight)
@@ -213,10 +227,12 @@ class Streamer:
             if failure is not None and now < failure.retry_at:
                 continue
             lane = self._lane(key)
-            if prefetch and lane == 0:
-                lane = 2
+            if prefetch:
+                lane += 2
             if busy[lane] >= limit:
-                usable = [2 if prefetch else 0] + ([1] if self._net is not None else [])
+                usable = [2, 3] if prefetch else [0, 1]
+                if self._net is None:
+                    usable = usable[:1]
                 if all(busy[i] >= limit for i in usable):
                     return
                 continue
@@ -225,7 +241,7 @@ class Streamer:
                 self.stats.retried += 1
             self.stats.requested += 1
             decode = stage == "memory"
-            pool = self._pre if lane == 2 else self._pool_for(key)
+            pool = {2: self._pre, 3: self._pre_net}.get(lane) or self._pool_for(key)
             future = pool.submit(self._work, key, cached, decode)
             self._jobs[key] = _Job(key, decode, now, future, lane)
 
@@ -265,21 +281,26 @@ class Streamer:
         simulated = bool(getattr(self.clock, "simulated", False))
         for key, job in list(self._jobs.items()):
             if not job.future.done():
-                if not simulated or job.lane == 1:
+                if not simulated or job.lane in (1, 3):
                     continue
                 # on a simulated clock local work is waited for: its cost on the clock, not how
                 # soon this machine's threads got to it, says when it is usable (the network's
                 # jobs are not: a server that hangs must not hold the frame)
+                t = time.perf_counter()
                 try:
                     job.future.exception(timeout=SIM_WAIT_S)
                 except FuturesTimeout:
                     continue
+                finally:
+                    self.stats.sim_wait_ms += (time.perf_counter() - t) * 1e3
             exc = job.future.exception()
             if job.done_at is None:
                 took = 0.0 if exc is not None else job.future.result()[2]
                 if simulated:
                     # the worker slot that frees first takes the job
-                    slots = (self._slots, self._net_slots, self._pre_slots)[job.lane]
+                    slots = (self._slots, self._net_slots, self._pre_slots, self._pre_net_slots)[
+                        job.lane
+                    ]
                     slot = int(np.argmin(slots))
                     start = max(job.submitted, slots[slot])
                     job.done_at = slots[slot] = start + took
@@ -411,7 +432,7 @@ class Streamer:
 
     def _put_memory(self, key: int, made: Made) -> None:
         self.memory.put(key, made, _nbytes(made))
-        self.memory.shrink(self.options.memory_mb * 2**20, keep={key})
+        self.memory.shrink(self.options.memory_mb * 2**20, keep=self.wanted | {key})
 
     @property
     def cache_bytes(self) -> int:
@@ -442,9 +463,11 @@ class Streamer:
             job.future.exception(timeout=timeout)
 
     def close(self) -> None:
-        if self._net is not None:
-            # a server that never answers must not hold the close: its requests time out alone
-            self._net.shutdown(wait=False, cancel_futures=True)
+        for net in (self._net, self._pre_net):
+            if net is not None:
+                # a server that never answers must not hold the close: its requests time out
+                # alone
+                net.shutdown(wait=False, cancel_futures=True)
         self._pre.shutdown(wait=True, cancel_futures=True)
         self._pool.shutdown(wait=True, cancel_futures=True)
         self._jobs.clear()
