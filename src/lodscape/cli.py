@@ -1014,17 +1014,39 @@ def build(
 def export(
     tileset: Annotated[str, typer.Argument(help="A .lods tileset.")],
     cesium: Annotated[
-        Path, typer.Option("--cesium", help="Folder to write a Cesium terrain layer into.")
-    ],
+        Path | None, typer.Option("--cesium", help="Folder to write a Cesium terrain layer into.")
+    ] = None,
+    pmtiles: Annotated[
+        Path | None,
+        typer.Option("--pmtiles", help="PMTiles v3 archive to write the imagery into."),
+    ] = None,
+    terrarium: Annotated[
+        Path | None,
+        typer.Option(
+            "--terrarium",
+            help="PMTiles v3 archive to write the terrain into, as Terrarium PNG tiles.",
+        ),
+    ] = None,
 ) -> None:
-    """Write a tileset as files a Cesium client streams: layer.json, {z}/{x}/{y}.terrain, the
-    imagery as imagery/{z}/{x}/{y}.png with its TileJSON (imagery.json), and a stored city's
-    buildings as 3D Tiles (3dtiles/tileset.json)."""
-    from lodscape.store.export import export_cesium
+    """Write a tileset as files clients stream: with --cesium a folder (layer.json,
+    {z}/{x}/{y}.terrain, the imagery as imagery/{z}/{x}/{y}.png with its TileJSON, a stored
+    city's buildings as 3D Tiles); with --pmtiles its imagery, with --terrarium its terrain
+    (Terrarium-encoded), each one PMTiles v3 archive."""
+    if cesium is None and pmtiles is None and terrarium is None:
+        raise LodscapeError("export: give --cesium FOLDER, --pmtiles FILE or --terrarium FILE")
+    if cesium is not None:
+        from lodscape.store.export import export_cesium
 
-    n = export_cesium(tileset, cesium)
-    city = " and 3dtiles/" if (cesium / "3dtiles").exists() else ""
-    typer.echo(f"wrote {n} terrain tiles, layer.json, imagery.json{city} to {cesium}")
+        n = export_cesium(tileset, cesium)
+        city = " and 3dtiles/" if (cesium / "3dtiles").exists() else ""
+        typer.echo(f"wrote {n} terrain tiles, layer.json, imagery.json{city} to {cesium}")
+    if pmtiles is not None or terrarium is not None:
+        from lodscape.store.pmtiles import export_pmtiles
+
+        got = export_pmtiles(tileset, pmtiles, terrarium)
+        for what, path in (("imagery", pmtiles), ("terrain", terrarium)):
+            if path is not None:
+                typer.echo(f"wrote {got[what]} {what} tiles to {path}")
 
 
 @app.command()

@@ -484,6 +484,19 @@ class TilesetProvider:
                 todo[at[~np.isnan(h)]] = False
         return out.reshape(shape)
 
+    def tile_heights(
+        self, z: int, x: int, y: int, lon: ArrayLike, lat: ArrayLike
+    ) -> NDArray[np.float64]:
+        """Heights of stored tile z/x/y's own mesh (its level's surface) at points inside it;
+        NaN where it has none (a hole, outside the data, or no such tile)."""
+        lon = np.asarray(lon, np.float64)
+        lat = np.asarray(lat, np.float64)
+        mesh = self._decoded(z, x, y)
+        if mesh is None:
+            return np.full(lon.shape, np.nan)
+        h: NDArray[np.float64] = _heights_in(mesh, lon.ravel(), lat.ravel()).reshape(lon.shape)
+        return h
+
     #: Bytes of decoded meshes kept for ``heights`` (a city's footprints, a globe's facets ask
     #: the same tiles again and again; a tile is some 60 KiB).
     DECODED_BYTES = 64 * 2**20

@@ -1,0 +1,125 @@
+"""``lodscape export --pmtiles/--terrarium``: PMTiles v3 archives read back by the PyPI
+``pmtiles`` reader, tile for tile; Terrarium heights decoded against the tileset's own, holes
+transparent."""
+
+from __future__ import annotations
+
+import io
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from pmtiles.reader import MmapSource, Reader, all_tiles
+from pmtiles.tile import TileType
+
+from _synthetic import fbm_heights, run_cli, write_dem
+from lodscape.build import BuildOptions, build
+from lodscape.geo.tiles import Tile, merc_to_lonlat, xy_bounds
+from lodscape.store.tileset import TilesetProvider
+
+EAST, NORTH, RES = 700000.0, 4060000.0, 30.0
+
+
+@pytest.fixture(scope="module")
+def tileset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    h = fbm_heights(129, seed=12)
+    h[50:80, 45:85] = -9999.0  # a hole: no data, not a height
+    folder = tmp_path_factory.mktemp("pmtiles")
+    dem = write_dem(
+        str(folder / "hole.tif"),
+        h,
+        crs="EPSG:32617",
+        west=EAST,
+        north=NORTH,
+        res=RES,
+        nodata=-9999,
+    )
+    out = folder / "site.lods"
+    build([dem], out, BuildOptions(fill="none"))
+    return out
+
+
+def test_export_writes_imagery_and_terrarium_archives_a_reader_reads(
+    tileset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    img, dem = tmp_path / "imagery.pmtiles", tmp_path / "terrain.pmtiles"
+    argv = ["export", str(tileset), "--pmtiles", str(img), "--terrarium", str(dem)]
+    code, out, err = run_cli(argv, capsys)
+    assert code == 0, err
+    assert "imagery tiles" in out
+    assert "terrain tiles" in out
+    db = sqlite3.connect(tileset)
+    stored = {
+        (z, x, (1 << z) - 1 - row): bytes(d)
+        for z, x, row, d in db.execute(
+            "SELECT zoom_level, tile_column, tile_row, tile_data FROM tiles"
+        )
+    }
+    terrain = {(z, x, y) for z, x, y in db.execute("SELECT z, x, y FROM terrain")}
+    db.close()
+    # every imagery tile, byte for byte, and nothing else
+    with img.open("rb") as f:
+        get = MmapSource(f)
+        reader = Reader(get)
+        header = reader.header()
+        assert header["tile_type"] == TileType.PNG
+        assert header["min_zoom"] == min(z for z, _, _ in stored)
+        assert header["max_zoom"] == max(z for z, _, _ in stored)
+        assert header["addressed_tiles_count"] == len(stored)
+        got = {zxy: bytes(data) for zxy, data in all_tiles(get)}
+        assert got == stored
+        assert reader.get(*next(iter(stored))) == stored[next(iter(stored))]
+        assert "name" in reader.metadata()
+    # the terrain: one Terrarium tile per stored terrain tile, heights as its own mesh's
+    provider = TilesetProvider(tileset)
+    try:
+        with dem.open("rb") as f:
+            get = MmapSource(f)
+            meta = Reader(get).metadata()
+            assert meta["encoding"] == "terrarium"
+            tiles = dict(all_tiles(get))
+        assert set(tiles) == terrain
+        holes = checked = 0
+        for z, x, y in sorted(terrain, reverse=True):
+            if checked == 8:
+                break
+            rgba = np.asarray(Image.open(io.BytesIO(tiles[(z, x, y)])), np.float64)
+            h = rgba[..., 0] * 256 + rgba[..., 1] + rgba[..., 2] / 256 - 32768
+            b = xy_bounds(Tile(x, y, z))
+            f = (np.arange(256) + 0.5) / 256
+            xm, ym = np.meshgrid(b.left + f * (b.right - b.left), b.top - f * (b.top - b.bottom))
+            lon, lat = merc_to_lonlat(xm, ym)
+            want = provider.tile_heights(z, x, y, lon, lat)
+            ok = np.isfinite(want)
+            assert np.array_equal(rgba[..., 3] == 255, ok)
+            holes += int((~ok).sum())
+            if ok.any():
+                assert np.abs(h[ok] - want[ok]).max() <= 1 / 256
+                checked += 1
+        assert checked == 8
+        assert holes > 0  # the hole (and the outside) is transparent, not a made-up height
+    finally:
+        provider.close()
+
+
+def test_export_refuses_in_one_line_and_leaves_nothing(
+    tileset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, _, err = run_cli(["export", str(tileset)], capsys)
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1
+    missing = tmp_path / "no" / "x.pmtiles"
+    code, _, err = run_cli(["export", str(tileset), "--pmtiles", str(missing)], capsys)
+    assert code == 2
+    assert "x.pmtiles" in err
+    assert len(err.strip().splitlines()) == 1
+    bad = tmp_path / "bad.lods"
+    bad.write_bytes(b"not a tileset")
+    out = tmp_path / "x.pmtiles"
+    code, _, err = run_cli(["export", str(bad), "--pmtiles", str(out)], capsys)
+    assert code == 2
+    assert "bad.lods" in err
+    assert not out.exists()
+    assert not list(tmp_path.glob(".*tmp"))
