@@ -71,9 +71,10 @@ class CityOptions:
     #: the waits cost a little).
     timed: bool = False
     #: The camera in a uniform buffer written once a frame, the street objects' instances in a
-    #: shader storage buffer (OpenGL 4.3 with the draw parameters); False: plain uniforms per
-    #: program and instanced vertex attributes (what the GL gets without them anyway).
-    buffers: bool = True
+    #: shader storage buffer (OpenGL 4.3 with the draw parameters) instead of plain uniforms per
+    #: program and instanced vertex attributes. Off by default: on llvmpipe it cost ~10 % a
+    #: frame (storage reads per vertex); not measured on a GPU (BENCHMARKS.md).
+    buffers: bool = False
     #: How the scene tree is packed when the city is built here ("hilbert", "str" or
     #: "priority": the Priority R-tree; ``bench/bench_city.py`` compares them).
     packing: str = DEFAULT_PACKING

@@ -219,7 +219,7 @@ class CityPass:
         model: CityModel,
         anisotropy: float = 1.0,
         compress: bool = False,
-        buffers: bool = True,
+        buffers: bool = False,
     ) -> None:
         self.ctx = ctx
         self.model = model
