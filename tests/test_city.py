@@ -412,7 +412,7 @@ def test_auto_occlusion_is_on_among_the_walls_of_a_software_rasteriser() -> None
 
 
 @pytest.mark.gl
-def test_the_scene_trees_packing_from_the_cli_and_python(
+def test_the_scene_trees_packing_and_the_buffers_from_the_cli_and_python(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     view = ["--lon", "24.9405", "--lat", "60.169", "--alt", "150", "--pitch", "-25"]
@@ -423,6 +423,12 @@ def test_the_scene_trees_packing_from_the_cli_and_python(
         argv = ["render", "flat", "--city-tree", tree, "-o", str(pictures[tree]), *view]
         code, _, err = run_cli(argv, capsys)
         assert code == 0, err
+    # the buffers draw the same picture from the command line too
+    pictures["buffers"] = tmp_path / "buffers.png"
+    argv = ["render", "flat", "--city-buffers", "-o", str(pictures["buffers"]), *view]
+    code, _, err = run_cli(argv, capsys)
+    assert code == 0, err
+    assert changed_share(pictures["hilbert"], pictures["buffers"]) == 0.0
     # the packing changes which boxes are tested, not what the city looks like (the levels of
     # detail go by leaves, so a few far objects may differ)
     assert changed_share(pictures["hilbert"], pictures["priority"]) < 0.02

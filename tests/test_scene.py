@@ -155,3 +155,29 @@ def test_no_gl_object_leaks_over_1000_renders(dem: str) -> None:
     renderer = s.renderer
     s.close()
     assert renderer.live_objects() == 0
+
+
+@pytest.mark.gl
+def test_a_scene_and_its_pictures_show_themselves_in_a_notebook() -> None:
+    """``show`` renders a ``Picture`` (the overview by default); it and the scene give a
+    notebook PNG bytes (``_repr_png_``) that decode to what was rendered."""
+    import io
+
+    from PIL import Image
+
+    import lodscape
+    from lodscape.data import sample_dem_path
+
+    with lodscape.open(sample_dem_path()) as scene:
+        cam = scene.overview_camera(96, 64)
+        pic = scene.show(cam)
+        assert isinstance(pic, lodscape.Picture)
+        assert pic.camera == cam
+        rgb, depth = scene.render(cam)
+        assert np.array_equal(pic.rgb, rgb)
+        assert np.array_equal(pic.depth, depth)
+        back = np.asarray(Image.open(io.BytesIO(pic._repr_png_())))
+        assert np.array_equal(back, rgb)
+        default = np.asarray(Image.open(io.BytesIO(scene._repr_png_())))
+        assert default.shape == (400, 640, 3)
+        assert default.std() > 5  # terrain, not a blank frame

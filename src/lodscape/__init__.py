@@ -19,7 +19,7 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 
 if _typing.TYPE_CHECKING:
-    from lodscape.scene import FrameStats, Scene, SceneOptions
+    from lodscape.scene import FrameStats, Picture, Scene, SceneOptions
     from lodscape.sources import open
 
 __version__ = "0.1.0"
@@ -29,6 +29,7 @@ __all__ = [
     "CameraError",
     "FrameStats",
     "LodscapeError",
+    "Picture",
     "Scene",
     "SceneOptions",
     "SelectOptions",
@@ -39,7 +40,7 @@ __all__ = [
     "select",
 ]
 
-_LAZY = {"FrameStats", "Scene", "SceneOptions", "open"}
+_LAZY = {"FrameStats", "Picture", "Scene", "SceneOptions", "open"}
 
 
 def __getattr__(name: str) -> _typing.Any:

@@ -227,6 +227,15 @@ CityTreeOpt = Annotated[
         "(the Priority R-tree; best on long thin objects, not on a city's).",
     ),
 ]
+CityBuffersOpt = Annotated[
+    bool,
+    typer.Option(
+        "--city-buffers/--no-city-buffers",
+        help="Draw the city with its camera in a uniform buffer and its street objects' "
+        "instances in a storage buffer (OpenGL 4.3; off: plain uniforms and instanced "
+        "attributes, faster on a software rasteriser).",
+    ),
+]
 CompressOpt = Annotated[
     bool,
     typer.Option(
@@ -293,6 +302,7 @@ class TerrainFlags:
     morph: bool = True
     compress_textures: bool = False
     city_tree: str = "hilbert"
+    city_buffers: bool = False
 
     def fractal(self, source: str) -> Fractal | None:
         return _detail(source, self.detail, self.hurst, self.sigma, self.seed)
@@ -348,7 +358,7 @@ class TerrainFlags:
             raise LodscapeError(
                 f"--city-tree: expected hilbert, str or priority, got {self.city_tree!r}"
             )
-        return CityOptions(packing=self.city_tree)
+        return CityOptions(packing=self.city_tree, buffers=self.city_buffers)
 
 
 _TERRAIN_FLAGS = [
@@ -377,6 +387,7 @@ _TERRAIN_FLAGS = [
         ("morph", MorphOpt, True),
         ("compress_textures", CompressOpt, False),
         ("city_tree", CityTreeOpt, "hilbert"),
+        ("city_buffers", CityBuffersOpt, False),
     )
 ]
 

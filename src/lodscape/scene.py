@@ -98,6 +98,29 @@ class SceneOptions:
             raise ValueError(f"Expected terrain_mode cpu or gpu, got {self.terrain_mode!r}")
 
 
+@dataclass(frozen=True, eq=False)
+class Picture:
+    """One rendered view: RGB (H, W, 3) uint8, its distance (H, W) float32 metres (inf: sky)
+    and the camera. In a notebook it shows itself inline (``_repr_png_``)."""
+
+    rgb: NDArray[np.uint8]
+    depth: NDArray[np.float32]
+    camera: Camera
+
+    def png(self) -> bytes:
+        """The picture as PNG bytes."""
+        import io
+
+        from PIL import Image
+
+        buf = io.BytesIO()
+        Image.fromarray(np.ascontiguousarray(self.rgb), "RGB").save(buf, "PNG")
+        return buf.getvalue()
+
+    def _repr_png_(self) -> bytes:
+        return self.png()
+
+
 @dataclass(frozen=True)
 class FrameStats:
     """What one frame drew and how long its stages took."""
@@ -214,6 +237,21 @@ class Scene:
     def ground_height(self, lon: float, lat: float) -> float | None:
         """Terrain height at a point, or None outside the data's footprint."""
         return self.provider.ground_height(lon, lat)
+
+    def show(self, camera: Camera | None = None, width: int = 640, height: int = 400) -> Picture:
+        """Render ``camera`` (default: the overview at ``width``×``height``, or the city's
+        camera when a city is draped) as a ``Picture``, which a notebook shows inline."""
+        if camera is None:
+            if self.city is not None:
+                camera = self.city_camera(width, height)
+            else:
+                camera = self.overview_camera(width, height)
+        rgb, depth = self.render(camera)
+        return Picture(rgb, depth, camera)
+
+    def _repr_png_(self) -> bytes:
+        """A notebook's inline view of the scene: ``show()``'s picture."""
+        return self.show().png()
 
     def overview_camera(self, width: int = 1280, height: int = 720, fov_y: float = 60.0) -> Camera:
         """A camera south of the data looking north at its centre, seeing all of it."""
