@@ -8,7 +8,7 @@ popped (``tests/_synthetic.reprojected_jump``). Per frame the 99.9th percentile;
 over the approach, with and without morphing (4 px bound, where each split's step is plain;
 and the default 2 px). Frames load every tile they draw (the same tiles on any machine).
 
-    python bench/bench_morph.py [--frames 36] [--size 256x160]
+    python bench/bench_morph.py [--frames 36] [--size 256x160] [--terrain-mode gpu]
 """
 
 from __future__ import annotations
@@ -32,10 +32,12 @@ from _synthetic import fbm_heights, reprojected_jump, write_dem
 
 
 def approach(
-    dem: str, morph: bool, sse: float, frames: int, w: int, h: int
+    dem: str, morph: bool, sse: float, frames: int, w: int, h: int, mode: str = "cpu"
 ) -> tuple[list[float], list[int]]:
     """Per frame pair the 99.9th percentile jump (px), and per frame the triangles drawn."""
-    opts = SceneOptions(select=SelectOptions(max_sse=sse), morph=morph, anisotropy=1.0)
+    opts = SceneOptions(
+        select=SelectOptions(max_sse=sse), morph=morph, anisotropy=1.0, terrain_mode=mode
+    )
     jumps: list[float] = []
     tris: list[int] = []
     with lodscape.open(dem, opts) as scene:
@@ -80,6 +82,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=36)
     ap.add_argument("--size", default="256x160")
+    ap.add_argument("--terrain-mode", default="cpu", choices=("cpu", "gpu"))
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
     import tempfile
@@ -98,10 +101,11 @@ def main() -> None:
             ("the sample", sample_dem_path()),
         ):
             for sse in (4.0, 2.0):
-                on, tris = approach(dem, True, sse, args.frames, w, h)
-                off, _ = approach(dem, False, sse, args.frames, w, h)
+                on, tris = approach(dem, True, sse, args.frames, w, h, args.terrain_mode)
+                off, _ = approach(dem, False, sse, args.frames, w, h, args.terrain_mode)
                 print(
-                    f"{name}, {sse:g} px bound, {args.frames} frames at {w}×{h}: largest jump "
+                    f"{name}, {args.terrain_mode} terrain mode, {sse:g} px bound, {args.frames} "
+                    f"frames at {w}×{h}: largest jump "
                     f"(99.9th percentile) {max(on):.2f} px with morphing, {max(off):.2f} px "
                     f"without; frames over a pixel {sum(j > 1 for j in on)} and "
                     f"{sum(j > 1 for j in off)}; the floor (median) {statistics.median(on):.2f} "

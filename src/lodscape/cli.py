@@ -214,7 +214,7 @@ MorphOpt = Annotated[
     bool,
     typer.Option(
         "--morph/--no-morph",
-        help="Geomorph between levels (the CPU terrain mode, in flights and the viewer): a tile "
+        help="Geomorph between levels (both terrain modes, in flights and the viewer): a tile "
         "that replaces a coarser one glides from its surface to its own over 10 frames "
         "instead of jumping.",
     ),
@@ -353,10 +353,11 @@ class TerrainFlags:
 
     def city_options(self) -> Any:
         from lodscape.city.model import CityOptions
+        from lodscape.city.rtree import PACKINGS
 
-        if self.city_tree not in ("hilbert", "str", "priority"):
+        if self.city_tree not in PACKINGS:
             raise LodscapeError(
-                f"--city-tree: expected hilbert, str or priority, got {self.city_tree!r}"
+                f"--city-tree: expected {', '.join(PACKINGS)}, got {self.city_tree!r}"
             )
         return CityOptions(packing=self.city_tree, buffers=self.city_buffers)
 

@@ -25,11 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["DEFAULT_PACKING", "RTree", "box_planes", "pack"]
+__all__ = ["DEFAULT_PACKING", "PACKINGS", "RTree", "box_planes", "pack"]
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 DEFAULT_PACKING = "hilbert"
+#: The packings ``pack`` knows.
+PACKINGS = ("hilbert", "str", "priority")
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,7 +199,7 @@ def _order(boxes: F64, leaf: int, packing: str) -> I64:
         order: I64 = np.argsort(_hilbert(q[:, 0], q[:, 1]), kind="stable")
         return order
     if packing != "str":
-        raise ValueError(f"unknown R-tree packing {packing!r} (str, hilbert or priority)")
+        raise ValueError(f"unknown R-tree packing {packing!r} ({', '.join(PACKINGS)})")
     leaves = math.ceil(n / leaf)
     slabs = max(1, math.ceil(math.sqrt(leaves)))
     # a slab holds whole leaves: a leaf cut by a slab's end would span the whole y range

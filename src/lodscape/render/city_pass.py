@@ -306,6 +306,13 @@ class CityPass:
             )
         )
         self._bprog: Any = bprog
+        if self.buffers:
+            # the programs' Frame blocks read binding 0, and their materials unit 0, for good
+            programs: tuple[Any, ...] = (prog, iprog, bprog)
+            for p in programs:
+                p["Frame"].binding = 0
+                if "u_materials" in p:
+                    p["u_materials"].value = 0
         cube = self._keep(ctx.buffer(_CUBE.tobytes()))
         cidx = self._keep(ctx.buffer(_CUBE_TRIS.tobytes()))
         self._box = self._keep(ctx.vertex_array(bprog, [(cube, "3f", "in_pos")], cidx, 4))
@@ -365,10 +372,6 @@ class CityPass:
             block[36:39] = sun
             self._frame_ubo.write(block.tobytes())
             self._frame_ubo.bind_to_uniform_block(0)
-            for prog in (self._prog, self._iprog, self._bprog):
-                prog["Frame"].binding = 0
-                if "u_materials" in prog:
-                    prog["u_materials"].value = 0
             self._materials.use(0)
             return
         for prog in (self._prog, self._iprog):

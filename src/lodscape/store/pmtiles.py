@@ -28,6 +28,14 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from pmtiles.tile import (
+    Compression,
+    Entry,
+    TileType,
+    serialize_directory,
+    serialize_header,
+    zxy_to_tileid,
+)
 
 from lodscape.errors import LodscapeError
 from lodscape.geo.tiles import Tile, merc_to_lonlat, xy_bounds
@@ -162,14 +170,6 @@ def write_archive(
 ) -> int:
     """A PMTiles v3 archive at ``out`` of the tiles ``keys`` (z, x, y; XYZ rows), each read by
     ``data`` in Hilbert order; returns the tiles written."""
-    from pmtiles.tile import (
-        Compression,
-        Entry,
-        TileType,
-        serialize_directory,
-        serialize_header,
-        zxy_to_tileid,
-    )
 
     ordered = sorted((zxy_to_tileid(z, x, y), z, x, y) for z, x, y in set(keys))
     if not ordered:
@@ -200,7 +200,7 @@ def write_archive(
                 b = xy_bounds(Tile(x, y, z))
                 (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
                 lo = [min(lo[0], w), min(lo[1], s), max(lo[2], e), max(lo[3], n)]
-            root, leaves = _directories(entries, serialize_directory, Entry)
+            root, leaves = _directories(entries)
             meta = gzip.compress(json.dumps(metadata).encode(), mtime=0)
             zooms = [z for _, z, _, _ in ordered]
             e7 = [round(v * 1e7) for v in lo]
@@ -244,10 +244,10 @@ def write_archive(
     return len(ordered)
 
 
-def _directories(entries: list, serialize: Callable, entry: type) -> tuple[bytes, bytes]:  # type: ignore[type-arg]
+def _directories(entries: list[Entry]) -> tuple[bytes, bytes]:
     """(root, leaves): all entries in the root if they fit the first 16 KiB, else leaf
     directories of a growing number of entries, the root pointing at them."""
-    root: bytes = serialize(entries)
+    root: bytes = serialize_directory(entries)
     if len(root) <= _ROOT_BYTES:
         return root, b""
     size = 4096
@@ -255,10 +255,10 @@ def _directories(entries: list, serialize: Callable, entry: type) -> tuple[bytes
         leaves = io.BytesIO()
         pointers = []
         for i in range(0, len(entries), size):
-            leaf = serialize(entries[i : i + size])
-            pointers.append(entry(entries[i].tile_id, leaves.tell(), len(leaf), 0))
+            leaf = serialize_directory(entries[i : i + size])
+            pointers.append(Entry(entries[i].tile_id, leaves.tell(), len(leaf), 0))
             leaves.write(leaf)
-        root = serialize(pointers)
+        root = serialize_directory(pointers)
         if len(root) <= _ROOT_BYTES:
             return root, leaves.getvalue()
         size *= 2

@@ -166,25 +166,26 @@ class Streamer:
         self.stats = StreamStats()
         self._jobs: dict[int, _Job] = {}
         self._failures: dict[int, _Failure] = {}
-        self._slots = [-math.inf] * self.options.workers
-        #: Simulated worker slots of the imagery's threads.
-        self._net_slots = [-math.inf] * NET_THREADS
         self._pool = ThreadPoolExecutor(self.options.workers, thread_name_prefix="lodscape-io")
         #: The prefetch's own threads (half the workers', at least one): what the camera will
         #: want never queues ahead of what the frame wants now.
         pre = max(1, self.options.workers // 2)
         self._pre = ThreadPoolExecutor(pre, thread_name_prefix="lodscape-prefetch")
-        self._pre_slots = [-math.inf] * pre
         self._net: ThreadPoolExecutor | None = None
         #: The prefetch's network threads: a prefetched imagery tile never queues ahead of one
         #: a frame wants (half the imagery's threads).
         self._pre_net: ThreadPoolExecutor | None = None
-        self._pre_net_slots = [-math.inf] * (NET_THREADS // 2)
         if self.remote is not None:
             self._net = ThreadPoolExecutor(NET_THREADS, thread_name_prefix="lodscape-net")
             self._pre_net = ThreadPoolExecutor(
                 NET_THREADS // 2, thread_name_prefix="lodscape-prefetch-net"
             )
+        #: Per lane (``_Job.lane``): its threads, and their simulated worker slots (when each
+        #: is free next on a simulated clock).
+        self._lane_pools = (self._pool, self._net, self._pre, self._pre_net)
+        self._lane_slots = [
+            [-math.inf] * n for n in (self.options.workers, NET_THREADS, pre, NET_THREADS // 2)
+        ]
         self._pinned: set[int] = set()
         #: Keys the frame on screen wants (``Loader`` sets them): a prefetched resource never
         #: pushes one of them out of the memory stage before it is uploaded.
@@ -241,7 +242,8 @@ class Streamer:
                 self.stats.retried += 1
             self.stats.requested += 1
             decode = stage == "memory"
-            pool = {2: self._pre, 3: self._pre_net}.get(lane) or self._pool_for(key)
+            pool = self._lane_pools[lane]
+            assert pool is not None  # the network's lanes are only taken when it has threads
             future = pool.submit(self._work, key, cached, decode)
             self._jobs[key] = _Job(key, decode, now, future, lane)
 
@@ -298,9 +300,7 @@ class Streamer:
                 took = 0.0 if exc is not None else job.future.result()[2]
                 if simulated:
                     # the worker slot that frees first takes the job
-                    slots = (self._slots, self._net_slots, self._pre_slots, self._pre_net_slots)[
-                        job.lane
-                    ]
+                    slots = self._lane_slots[job.lane]
                     slot = int(np.argmin(slots))
                     start = max(job.submitted, slots[slot])
                     job.done_at = slots[slot] = start + took
