@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.errors import CameraError
+from lodscape.errors import CameraError, LodscapeError
 from lodscape.geo.keys import is_overlay
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
@@ -120,6 +120,15 @@ class Picture:
 
     def _repr_png_(self) -> bytes:
         return self.png()
+
+    def __repr__(self) -> str:
+        h, w = self.rgb.shape[:2]
+        ground = float(np.isfinite(self.depth).mean()) if self.depth.size else 0.0
+        c = self.camera
+        return (
+            f"Picture({w}x{h}, lon {c.lon:.5f} lat {c.lat:.5f} alt {c.alt:,.0f} m, "
+            f"heading {c.heading:.0f} pitch {c.pitch:.0f}, ground {ground:.0%})"
+        )
 
 
 @dataclass(frozen=True)
@@ -249,6 +258,18 @@ class Scene:
                 camera = self.overview_camera(width, height)
         rgb, depth = self.render(camera)
         return Picture(rgb, depth, camera)
+
+    def widget(self, camera: Camera | None = None, width: int = 640, height: int = 400) -> Any:
+        """A notebook widget showing ``camera`` (default: ``show()``'s) that the user flies
+        with the keys and mouse, rendered here and streamed to the browser
+        (``lodscape.widget.SceneWidget``; needs ``pip install 'lodscape[jupyter]'``)."""
+        try:
+            from lodscape.widget import SceneWidget
+        except ImportError as exc:
+            raise LodscapeError(
+                f"the notebook widget needs anywidget ({exc}): pip install 'lodscape[jupyter]'"
+            ) from None
+        return SceneWidget(self, camera, width=width, height=height)
 
     def _repr_png_(self) -> bytes:
         """A notebook's inline view of the scene: ``show()``'s picture."""

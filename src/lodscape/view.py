@@ -25,7 +25,7 @@ import numpy as np
 from lodscape.errors import CameraError, LodscapeError
 from lodscape.lod.camera import Camera
 
-__all__ = ["Viewable", "load_camera", "save_camera", "view"]
+__all__ = ["Motion", "Viewable", "faster", "fly_step", "load_camera", "look", "save_camera", "view"]
 
 CAMERA_FIELDS = ("lon", "lat", "alt", "heading", "pitch", "roll", "fov_y")
 
@@ -296,45 +296,110 @@ class _Controller:
         self.st.say(f"fractal detail {'on' if other == 'detail' else 'off'}")
 
     def on_drag(self, x: int, y: int, dx: int, dy: int) -> None:
-        c = self.st.camera
-        self.st.camera = c.moved(
-            heading=(c.heading + 0.25 * dx) % 360.0,
-            pitch=float(np.clip(c.pitch - 0.25 * dy, -89.0, 89.0)),
-        )
+        self.st.camera = look(self.st.camera, dx, dy)
 
     def on_scroll(self, x: float, y: float) -> None:
-        self.st.speed = float(np.clip(self.st.speed * 1.25**y, 0.5, 2e6))
+        self.st.speed = faster(self.st.speed, y)
         self.st.say(f"speed {self.st.speed:,.0f} m/s")
 
     def move(self, dt: float) -> None:
-        c, k, keys = self.st.camera, self.st.keys, self.keys
-        h, p = math.radians(c.heading), math.radians(c.pitch)
-        fwd = np.array([math.sin(h) * math.cos(p), math.cos(h) * math.cos(p), math.sin(p)])
-        right = np.array([math.cos(h), -math.sin(h), 0.0])
-        d = np.zeros(3)
-        d += fwd * ((keys.W in k) - (keys.S in k))
-        d += right * ((keys.D in k) - (keys.A in k))
-        d[2] += (keys.E in k) - (keys.Q in k)
-        turn = ((keys.RIGHT in k) - (keys.LEFT in k)) * 60.0 * dt
-        tilt = ((keys.UP in k) - (keys.DOWN in k)) * 40.0 * dt
-        step = d * self.st.speed * dt
-        # east/north metres to degrees at the camera
-        lat = c.lat + math.degrees(step[1] / 6_371_000.0)
-        lon = c.lon + math.degrees(
-            step[0] / (6_371_000.0 * max(math.cos(math.radians(c.lat)), 1e-6))
+        k, keys = self.st.keys, self.keys
+        self.st.camera = fly_step(
+            self.st.camera,
+            Motion(
+                forward=(keys.W in k) - (keys.S in k),
+                right=(keys.D in k) - (keys.A in k),
+                up=(keys.E in k) - (keys.Q in k),
+                turn=(keys.RIGHT in k) - (keys.LEFT in k),
+                tilt=(keys.UP in k) - (keys.DOWN in k),
+            ),
+            self.st.speed,
+            dt,
+            self.scene.ground_height,
         )
-        lat = float(np.clip(lat, -85.0, 85.0))
-        alt = c.alt + step[2]
-        g = self.scene.ground_height(lon, lat)
-        if g is not None:
-            alt = max(alt, g + 2.0)
-        self.st.camera = c.moved(
-            lon=(lon + 180.0) % 360.0 - 180.0,
-            lat=lat,
-            alt=alt,
-            heading=(c.heading + turn) % 360.0,
-            pitch=float(np.clip(c.pitch + tilt, -89.0, 89.0)),
-        )
+
+
+#: The keys (lower-case letters, ``ArrowLeft``…) that push each way, as a browser names them.
+BROWSER_KEYS: dict[str, tuple[str, int]] = {
+    "w": ("forward", 1),
+    "s": ("forward", -1),
+    "d": ("right", 1),
+    "a": ("right", -1),
+    "e": ("up", 1),
+    "q": ("up", -1),
+    "arrowright": ("turn", 1),
+    "arrowleft": ("turn", -1),
+    "arrowup": ("tilt", 1),
+    "arrowdown": ("tilt", -1),
+}
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Which way the flying keys push, each -1, 0 or 1: W/S forward, D/A right, E/Q up,
+    arrows turn right/left and tilt up/down."""
+
+    forward: int = 0
+    right: int = 0
+    up: int = 0
+    turn: int = 0
+    tilt: int = 0
+
+    @classmethod
+    def of_keys(cls, keys: Any) -> Motion:
+        """The motion of the held keys (browser names, any case; unknown keys are ignored)."""
+        push = {"forward": 0, "right": 0, "up": 0, "turn": 0, "tilt": 0}
+        for key in keys:
+            way = BROWSER_KEYS.get(str(key).lower())
+            if way is not None:
+                push[way[0]] += way[1]
+        return cls(**{k: max(-1, min(1, v)) for k, v in push.items()})
+
+
+def look(camera: Camera, dx: float, dy: float) -> Camera:
+    """A mouse drag of (dx, dy) pixels: a quarter degree of heading and pitch per pixel."""
+    return camera.moved(
+        heading=(camera.heading + 0.25 * dx) % 360.0,
+        pitch=float(np.clip(camera.pitch - 0.25 * dy, -89.0, 89.0)),
+    )
+
+
+def faster(speed: float, notches: float) -> float:
+    """The wheel: ×1.25 a notch, kept within 0.5 m/s .. 2,000 km/s."""
+    return float(np.clip(speed * 1.25**notches, 0.5, 2e6))
+
+
+def fly_step(
+    camera: Camera,
+    motion: Motion,
+    speed: float,
+    dt: float,
+    ground_height: Any = None,
+) -> Camera:
+    """The camera after ``dt`` seconds of ``motion`` at ``speed`` m/s (turning 60°/s, tilting
+    40°/s), kept 2 m above ``ground_height(lon, lat)`` where that gives a height."""
+    c = camera
+    h, p = math.radians(c.heading), math.radians(c.pitch)
+    fwd = np.array([math.sin(h) * math.cos(p), math.cos(h) * math.cos(p), math.sin(p)])
+    right = np.array([math.cos(h), -math.sin(h), 0.0])
+    d = fwd * motion.forward + right * motion.right
+    d[2] += motion.up
+    step = d * speed * dt
+    # east/north metres to degrees at the camera
+    lat = c.lat + math.degrees(step[1] / 6_371_000.0)
+    lon = c.lon + math.degrees(step[0] / (6_371_000.0 * max(math.cos(math.radians(c.lat)), 1e-6)))
+    lat = float(np.clip(lat, -85.0, 85.0))
+    alt = c.alt + step[2]
+    g = ground_height(lon, lat) if ground_height is not None else None
+    if g is not None:
+        alt = max(alt, g + 2.0)
+    return c.moved(
+        lon=(lon + 180.0) % 360.0 - 180.0,
+        lat=lat,
+        alt=alt,
+        heading=(c.heading + motion.turn * 60.0 * dt) % 360.0,
+        pitch=float(np.clip(c.pitch + motion.tilt * 40.0 * dt, -89.0, 89.0)),
+    )
 
 
 def view(
