@@ -591,13 +591,55 @@ def render(
             "none); as `lodscape globe`.",
         ),
     ] = False,
+    poses: Annotated[
+        Path | None,
+        typer.Option(
+            help="A vision dataset: CSV of camera poses (lon,lat,alt[,heading,pitch,roll,fov,"
+            "name]) rendered into --dataset."
+        ),
+    ] = None,
+    dataset: Annotated[
+        Path | None,
+        typer.Option(
+            help="Folder to write the dataset to: RGB, depth, normals, semantic masks, cameras "
+            "(OpenCV, COLMAP, NeRF)."
+        ),
+    ] = None,
+    origin: Annotated[
+        str | None,
+        typer.Option(
+            help="LON,LAT[,HEIGHT]: the dataset's local east-north-up origin (default: the "
+            "data's centre at height 0)."
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
     *,
     terrain: TerrainFlags,
 ) -> None:
     """Render one view of SOURCE (a DEM, a .lods tileset, procedural:seed=N, or flat with
-    --city). Without --lon/--lat/--alt, a view of the whole data (or of the city)."""
+    --city). Without --lon/--lat/--alt, a view of the whole data (or of the city). With
+    --poses and --dataset, a vision dataset of many views."""
     w, h = _size(size)
+    if poses is not None or dataset is not None or origin is not None:
+        if poses is None or dataset is None:
+            raise LodscapeError("--poses and --dataset go together (--origin needs both)")
+        given = [
+            flag
+            for flag, v in (
+                ("--lon", lon),
+                ("--lat", lat),
+                ("--alt", alt),
+                ("--camera", camera_file),
+                ("--depth", depth),
+            )
+            if v is not None
+        ]
+        if given or globe:
+            raise LodscapeError(
+                f"a dataset's cameras come from --poses: drop {', '.join(given) or '--globe'}"
+            )
+        _render_dataset(source, poses, dataset, origin, w, h, fov, quiet, terrain)
+        return
     _check_outputs(output, depth)
     if globe:
         if camera_file is not None and (lon is not None or lat is not None or alt is not None):
@@ -644,6 +686,64 @@ def render(
                 lon, lat, alt, heading=heading, pitch=pitch, roll=roll, fov_y=fov, width=w, height=h
             )
         _render(scene, camera, output, depth, quiet)
+
+
+def _render_dataset(
+    source: str,
+    poses_csv: Path,
+    out: Path,
+    origin_text: str | None,
+    w: int,
+    h: int,
+    fov: float,
+    quiet: bool,
+    terrain: TerrainFlags,
+) -> None:
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeRemainingColumn,
+    )
+
+    from lodscape.dataset import Origin, read_poses, write_dataset
+
+    origin = None
+    if origin_text is not None:
+        try:
+            parts = [float(v) for v in origin_text.split(",")]
+        except ValueError:
+            parts = []
+        if len(parts) not in (2, 3) or not all(math.isfinite(v) for v in parts):
+            raise LodscapeError(f"--origin is LON,LAT[,HEIGHT], got {origin_text!r}")
+        if not (-180.0 <= parts[0] <= 180.0 and -90.0 <= parts[1] <= 90.0):
+            raise LodscapeError(f"--origin {origin_text!r} is not on the Earth")
+        origin = Origin(*parts)
+    cameras = read_poses(poses_csv, w, h, fov)
+    columns = (
+        TextColumn("[bold]rendering"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+    )
+    with terrain.open(source, terrain.options()) as scene:
+        with Progress(*columns, disable=quiet) as bar:
+            task = bar.add_task("poses", total=len(cameras))
+            used = write_dataset(
+                scene,
+                cameras,
+                out,
+                origin,
+                progress=lambda done, _total: bar.update(task, completed=done),
+            )
+        _mode_notice(scene)
+    if not quiet:
+        typer.echo(
+            f"wrote {out}: {len(cameras)} poses (images, depth, normals, semantic, cameras; "
+            f"COLMAP and NeRF) in east-north-up metres from lon {used.lon}, lat {used.lat}, "
+            f"height {used.height} m"
+        )
 
 
 @app.command()

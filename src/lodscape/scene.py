@@ -34,7 +34,7 @@ from lodscape.stream.streamer import Clock
 from lodscape.terrain.pyramid import TileTree
 from lodscape.terrain.source import HeightSource
 
-__all__ = ["FrameStats", "Scene", "SceneOptions"]
+__all__ = ["Capture", "FrameStats", "Picture", "Scene", "SceneOptions"]
 
 SKY = (0.62, 0.75, 0.88)
 
@@ -129,6 +129,20 @@ class Picture:
             f"Picture({w}x{h}, lon {c.lon:.5f} lat {c.lat:.5f} alt {c.alt:,.0f} m, "
             f"heading {c.heading:.0f} pitch {c.pitch:.0f}, ground {ground:.0%})"
         )
+
+
+@dataclass(frozen=True, eq=False)
+class Capture:
+    """One view for a dataset (``Scene.capture``): RGB (H, W, 3) uint8; depth (H, W) float32,
+    metres along the optical axis (inf: sky); normals (H, W, 3) float32, unit, in the camera's
+    OpenCV frame (x right, y down, z ahead), facing the camera (0 where nothing is drawn);
+    labels (H, W) uint8 (``render.labels.LABELS``); and the camera, its clip planes fitted."""
+
+    rgb: NDArray[np.uint8]
+    depth: NDArray[np.float32]
+    normals: NDArray[np.float32]
+    labels: NDArray[np.uint8]
+    camera: Camera
 
 
 @dataclass(frozen=True)
@@ -294,7 +308,18 @@ class Scene:
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """RGB (H, W, 3) uint8 and depth (H, W) float32 metres along the view axis (inf: sky);
         ``depth`` False: the distance is not read back (an empty (0, 0) array)."""
-        return self._render(camera, depth=depth, ring=0)
+        rgb, dist, _ = self._render(camera, depth=depth, ring=0)
+        return rgb, dist
+
+    def capture(self, camera: Camera) -> Capture:
+        """Render ``camera`` for a dataset: the picture and its distance, then the same frame
+        once more for each pixel's surface normal and semantic label (``Capture``)."""
+        rgb, dist, got = self._render(camera, depth=True, ring=0, labels=True)
+        assert got is not None
+        # the GL's view axes (x right, y up, z backwards) to OpenCV's (x right, y down, z ahead)
+        normals = got[..., :3] * np.array([1.0, -1.0, -1.0], np.float32)
+        labels = np.rint(got[..., 3]).clip(0, 255).astype(np.uint8)
+        return Capture(rgb, dist, np.ascontiguousarray(normals), labels, self.prepare(camera))
 
     def render_behind(self, camera: Camera, ring: int = 3) -> NDArray[np.uint8] | None:
         """Render ``camera`` and return the picture of ``ring - 1`` frames before (None for the
@@ -303,7 +328,7 @@ class Scene:
         gives the pictures still in the ring (``render`` refuses while some are left)."""
         if ring < 1:
             raise ValueError(f"ring must be at least 1, got {ring}")
-        rgb, _ = self._render(camera, depth=False, ring=ring)
+        rgb, _, _ = self._render(camera, depth=False, ring=ring)
         return rgb if rgb.size else None
 
     def drain(self) -> list[NDArray[np.uint8]]:
@@ -313,8 +338,8 @@ class Scene:
         return self._renderer.drain()
 
     def _render(
-        self, camera: Camera, *, depth: bool, ring: int
-    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        self, camera: Camera, *, depth: bool, ring: int, labels: bool = False
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32] | None]:
         cam = self.prepare(camera)
         renderer = self._renderer_for(cam)
         if ring != renderer.ring and renderer.pending:
@@ -344,6 +369,17 @@ class Scene:
         rgb, dist = renderer.draw(
             cam, items, background=self._options.background, after=self._city_passes(renderer)
         )
+        labelled = None
+        if labels:
+            # the same items and passes again, drawing normals and labels
+            cp = self._city_pass
+            if cp is not None:
+                cp.labels, last = True, cp.last
+            try:
+                labelled, _ = renderer.draw_labels(cam, items, after=self._city_passes(renderer))
+            finally:
+                if cp is not None:
+                    cp.labels, cp.last = False, last
         t3 = time.perf_counter()
         loader.finish(plan)
         stream: dict[str, float] = {}
@@ -374,7 +410,7 @@ class Scene:
         )
         if self._options.imagery_strict:
             self._strict_imagery()
-        return rgb, dist
+        return rgb, dist, labelled
 
     def frame_stats(self) -> dict[str, float]:
         """The last frame's figures by name (``FrameStats.as_dict``); empty before the first."""

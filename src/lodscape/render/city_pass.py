@@ -32,6 +32,7 @@ from lodscape.city.materials import layers, material
 from lodscape.city.mesh import MODELS
 from lodscape.city.model import CityModel, CityOptions
 from lodscape.lod.camera import Camera
+from lodscape.render.labels import object_label
 
 __all__ = ["CityPass", "CityStats"]
 
@@ -69,6 +70,8 @@ in float in_heading;
 out vec3 v_normal;
 out vec2 v_uv;
 out float v_dist;
+out vec3 v_view;         // view space: the label pass's normal and its facing
+out vec3 v_view_normal;
 void main() {
     vec3 p = in_pos;
     vec3 n = in_normal;
@@ -86,7 +89,9 @@ void main() {
     gl_Position = MVP * vec4(p, 1.0);
     v_normal = n;
     v_uv = in_uv;
-    v_dist = -(OFFSET + ROT * p).z;
+    v_view = OFFSET + ROT * p;
+    v_view_normal = ROT * n;
+    v_dist = -v_view.z;
 }
 """
 
@@ -102,12 +107,22 @@ layout(std140) uniform Frame { mat4 f_mvp; mat4 f_rot; vec4 f_offset; vec4 f_sun
 uniform vec3 u_sun;
 #define SUN u_sun
 #endif
+uniform int u_labels;    // a dataset's pass: the view-space normal and the object's label
+uniform float u_label;
 in vec3 v_normal;
 in vec2 v_uv;
 in float v_dist;
+in vec3 v_view;
+in vec3 v_view_normal;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
+    if (u_labels != 0) {
+        vec3 m = normalize(v_view_normal);
+        f_color = vec4(dot(m, v_view) > 0.0 ? -m : m, u_label);
+        f_dist = v_dist;
+        return;
+    }
     vec3 n = normalize(v_normal);
     float light = 0.45 + 0.55 * max(dot(n, SUN), 0.0) + 0.1 * n.z;
     vec3 albedo = texture(u_materials, vec3(v_uv / u_repeat, u_layer)).rgb;
@@ -328,6 +343,8 @@ class CityPass:
         self._frame = 0
         self.last = CityStats()
         self._node_queries = 0
+        #: Draw labels and normals (``Renderer.draw_labels``) instead of colours.
+        self.labels = False
 
     def reset(self) -> None:
         """Forget last frame's visibility (occlusion culling starts from nothing seen)."""
@@ -388,6 +405,11 @@ class CityPass:
         if self.buffers:
             self._instances[kind].bind_to_storage_buffer(1)
 
+    def _label(self, prog: Any, kind: str | None) -> None:
+        """The label pass: ``prog`` draws ``kind``'s label (None: buildings)."""
+        if self.labels:
+            prog["u_label"].value = float(object_label(kind))
+
     def _use(self, prog: Any, mat: str) -> None:
         """Point ``prog`` at ``mat``'s layer of the material array."""
         prog["u_layer"].value = float(self._layer[mat])
@@ -407,6 +429,9 @@ class CityPass:
     def _draw(self, camera: Camera, options: CityOptions, fbo: moderngl.Framebuffer) -> CityStats:
         self._fbo = fbo
         self._uniforms(camera)
+        for prog in (self._prog, self._iprog):
+            prog["u_labels"].value = int(self.labels)
+        self._label(self._prog, None)
         self.ctx.enable_only(moderngl.DEPTH_TEST)
         if options.is_naive:
             self.last = self._draw_naive(options)
@@ -507,6 +532,7 @@ class CityPass:
             if not len(s):
                 continue
             self._use(self._iprog, mat)
+            self._label(self._iprog, kind)
             self._bind_instances(kind)
             tris += int(c.sum()) * ntri
             if options.instancing and self.indirect_ok:
@@ -556,6 +582,7 @@ class CityPass:
         for (kind, mat), (vao, ntri) in self._models.items():
             start, count = m.instance_runs[kind]
             self._use(self._iprog, mat)
+            self._label(self._iprog, kind)
             self._bind_instances(kind)
             calls += self._one_by_one(vao, ntri, start[everything], count[everything])
             tris += int(count.sum()) * ntri

@@ -31,6 +31,7 @@ from lodscape.imagery.compress import compress as compress_image
 from lodscape.imagery.tint import NODATA_GREY
 from lodscape.lod.camera import Camera
 from lodscape.lod.view import DrawItem
+from lodscape.render import labels
 from lodscape.render._context import create_context, is_software, make_current
 from lodscape.render.tess_pass import LAYER_UNIT, MAX_OVERLAYS, TessTerrain, bind_layers
 from lodscape.terrain.heightmap import height_tile
@@ -113,6 +114,9 @@ in vec2 v_uv;
 in vec2 v_tuv;           // where in the tile (0..1), for the layers' windows
 in float v_dist;
 in vec3 v_view;
+#ifdef HEIGHT_NORMALS
+in vec3 v_normal;        // view space, from the height texture
+#endif
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 UNDERSIDE_GLSL
@@ -129,6 +133,15 @@ void main() {
     ivec2 size = textureSize(u_tex, 0);
     ivec2 texel = clamp(ivec2(floor(v_uv * vec2(size))), ivec2(0), size - 1);
     if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
+    if (u_labels != 0) {
+#ifdef HEIGHT_NORMALS
+        f_color = labelled(v_normal, v_view, u_class_label[0]);
+#else
+        f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[0]);
+#endif
+        f_dist = v_dist;
+        return;
+    }
     if (underside(v_view)) {
         f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
         f_dist = v_dist;
@@ -165,7 +178,17 @@ int cls(ivec2 t, ivec2 size) {
 }
 void main() {
     ivec2 size = textureSize(u_tex, 0);
-    if (cls(ivec2(floor(v_uv * vec2(size))), size) == 255) discard;
+    int here = cls(ivec2(floor(v_uv * vec2(size))), size);
+    if (here == 255) discard;
+    if (u_labels != 0) {
+#ifdef HEIGHT_NORMALS
+        f_color = labelled(v_normal, v_view, u_class_label[here]);
+#else
+        f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[here]);
+#endif
+        f_dist = v_dist;
+        return;
+    }
     if (underside(v_view)) {
         f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
         f_dist = v_dist;
@@ -220,6 +243,7 @@ uniform float u_c;         // |u_eye|^2 - 1, from float64 on the CPU
 uniform vec3 u_inv_axes;   // 1/a, 1/a, 1/b
 uniform vec3 u_sun;        // towards the sun, world
 uniform vec3 u_colour;
+uniform int u_labels;      // a dataset's pass: the normal (view space) and the no-data label
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
@@ -235,16 +259,30 @@ void main() {
     float t = u_c / (-b + sqrt(disc));
     vec3 n = normalize((u_eye + t * dp) * u_inv_axes);
     float light = 0.35 + 0.65 * max(dot(n, u_sun), 0.0);
-    f_color = vec4(u_colour * light, 1.0);
+    f_color = u_labels != 0 ? vec4(n * u_to_world, NO_DATA_LABEL) : vec4(u_colour * light, 1.0);
     f_dist = t;
 }
 """
+_ELLIPSOID_FRAGMENT = _ELLIPSOID_FRAGMENT.replace("NO_DATA_LABEL", f"{float(labels.NO_DATA):.1f}")
 
 #: Colour of the ellipsoid where there is no terrain: the no-data grey, lit as the tint is.
 ELLIPSOID_GREY = (NODATA_GREY / 255.0,) * 3
 
-_FRAGMENT_SHADER = _FRAGMENT_SHADER.replace("UNDERSIDE_GLSL", _UNDERSIDE)
-_LANDCOVER_FRAGMENT_SHADER = _LANDCOVER_FRAGMENT_SHADER.replace("UNDERSIDE_GLSL", _UNDERSIDE)
+#: A dataset's second pass (``Renderer.draw_labels``): with ``u_labels`` 1 a fragment writes
+#: its view-space normal (towards the camera) and its semantic class (``LABELS``) into an
+#: RGBA32F target instead of its colour; ``u_class_label`` maps a ground class to its label.
+_LABELS = """
+uniform int u_labels;
+uniform float u_class_label[16];
+vec4 labelled(vec3 n, vec3 view, float label) {
+    n = normalize(n);
+    return vec4(dot(n, view) > 0.0 ? -n : n, label);
+}
+"""
+_FRAGMENT_SHADER = _FRAGMENT_SHADER.replace("UNDERSIDE_GLSL", _UNDERSIDE + _LABELS)
+_LANDCOVER_FRAGMENT_SHADER = _LANDCOVER_FRAGMENT_SHADER.replace(
+    "UNDERSIDE_GLSL", _UNDERSIDE + _LABELS
+)
 
 #: Ground texture coordinates wrap every this many metres (a whole number of every repeat).
 GROUND_WRAP = 4096.0
@@ -386,6 +424,13 @@ class Renderer:
         self._anisotropy = max(1.0, min(cap, float(anisotropy)))
         self._target: _Target | None = None
         self._target_for(width, height)
+        self._labels_target: _Target | None = None
+        #: The land-cover classes the ground textures hold (the label pass maps them).
+        self._classes: tuple[str, ...] | None = None
+        if ground == "landcover":
+            from lodscape.imagery.landcover import CLASSES
+
+            self._classes = CLASSES
         #: "gpu": tiles are height textures tessellated in hardware (``render.tess_pass``).
         self.terrain_mode = terrain_mode
         #: False: ``draw`` leaves the picture in ``framebuffer`` and returns empty arrays.
@@ -638,6 +683,54 @@ class Renderer:
         """Render ``items`` from ``camera``: RGB (H, W, 3) uint8, row 0 at the top, and view
         distance (H, W) float32 in metres along the view axis, +inf where nothing was drawn.
         ``after`` passes (the city) draw into the same framebuffer once the terrain is in."""
+        return self._draw(camera, items, background, after, labelled=False)
+
+    def draw_labels(
+        self,
+        camera: Camera,
+        items: Sequence[DrawItem],
+        *,
+        after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]] = (),
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """The same frame as ``draw`` (same items, same passes) drawn for a dataset: (H, W, 4)
+        float32 of the view-space normal facing the camera (x right, y up, z backwards) and
+        the semantic label (``render.labels``; 0 where nothing was drawn), and the distance.
+        The draw statistics stay the colour frame's."""
+        if self.ring:
+            raise RuntimeError("draw_labels reads back at once: no read ring")
+        stats = self.last_stats
+        try:
+            out = self._draw(camera, items, None, after, labelled=True)
+        finally:
+            self._set_labels(False)
+            self.last_stats = stats
+        return out  # type: ignore[return-value]
+
+    def _set_labels(self, on: bool) -> None:
+        programs = [self._program]
+        if self._tess is not None:
+            programs.append(self._tess.program)
+        if self._ellipsoid is not None:
+            programs.append(self._ellipsoid[0])
+        table = labels.ground_labels(self._classes)
+        for prog in programs:
+            u = prog.get("u_labels", None)
+            if isinstance(u, moderngl.Uniform):
+                u.value = int(on)
+            u = prog.get("u_class_label", None)
+            if on and isinstance(u, moderngl.Uniform):
+                # the compiler keeps only the slots a shader reads (one, for imagery)
+                u.write(table[: u.array_length].tobytes())
+
+    def _draw(
+        self,
+        camera: Camera,
+        items: Sequence[DrawItem],
+        background: Rgb | None,
+        after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]],
+        *,
+        labelled: bool,
+    ) -> tuple[NDArray[Any], NDArray[np.float32]]:
         self._use()
         # resolve every key before touching GL state, so a bad frame changes nothing
         tiles: list[_Tile | _GpuTile] = []
@@ -654,18 +747,25 @@ class Renderer:
             textures.append(texture[0])
         layers = [self._layers(item) for item in items]
         rot = camera.rotation
-        target = self._target_for(camera.width, camera.height)
-        bg = self.background if background is None else _rgb(background)
+        if labelled:
+            fbo = self._label_target_for(camera.width, camera.height)
+            bg: tuple[float, float, float, float] = (0.0, 0.0, 0.0, float(labels.SKY))
+        else:
+            fbo = self._target_for(camera.width, camera.height).fbo
+            bg = (*(self.background if background is None else _rgb(background)), 1.0)
 
-        ctx, fbo = self.ctx, target.fbo
+        ctx = self.ctx
         fbo.use()
         # glClear writes one value to every colour attachment: mask each in turn instead
         # (the stubs type color_mask for one attachment; moderngl takes one mask per attachment)
         fbo.color_mask = (_ALL, _NONE)  # type: ignore[assignment]
-        fbo.clear(*bg, 1.0, depth=1.0)
+        fbo.clear(*bg, depth=1.0)
         fbo.color_mask = (_NONE, _ALL)  # type: ignore[assignment]
         fbo.clear(float("inf"), 0.0, 0.0, 0.0)
         fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
+        if self.ellipsoid:
+            self._ellipsoid_program()
+        self._set_labels(labelled)
         if self.ellipsoid:
             self._draw_ellipsoid(camera)
         # no culling: skirts and steep faces are seen from both sides
@@ -692,7 +792,7 @@ class Renderer:
                 ],
             )
             self.last_stats = DrawStats(calls, triangles, submit_s * 1e3)
-            return self._finish(camera, fbo, after)
+            return self._finish(camera, fbo, after, labelled)
         self._u_rot.write(np.ascontiguousarray(rot.T, dtype=np.float32))
         triangles = calls = 0
         cpu_tiles = [t for t in tiles if isinstance(t, _Tile)]
@@ -729,20 +829,13 @@ class Renderer:
                 triangles += count
                 calls += 1
         self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
-        return self._finish(camera, fbo, after)
+        return self._finish(camera, fbo, after, labelled)
 
     def _draw_ellipsoid(self, camera: Camera) -> None:
         """The ellipsoid behind everything (no depth written: any terrain drawn wins), its
         distance in the distance attachment where the terrain leaves it showing."""
         self.ctx.enable_only(moderngl.NOTHING)
-        if self._ellipsoid is None:
-            program = self._track(
-                self.ctx.program(
-                    vertex_shader=_ELLIPSOID_VERTEX, fragment_shader=_ELLIPSOID_FRAGMENT
-                )
-            )
-            self._ellipsoid = (program, self._track(self.ctx.vertex_array(program, [])))
-        p, vao = self._ellipsoid
+        p, vao = self._ellipsoid_program()
         axes = np.array([WGS84_A, WGS84_A, WGS84_B])
         eye = camera.position / axes  # float64 until the upload
         ty = math.tan(math.radians(camera.fov_y) / 2.0)
@@ -762,6 +855,16 @@ class Renderer:
                 u.write(np.ascontiguousarray(value).tobytes())
         vao.render(moderngl.TRIANGLES, vertices=3)
 
+    def _ellipsoid_program(self) -> tuple[moderngl.Program, moderngl.VertexArray]:
+        if self._ellipsoid is None:
+            program = self._track(
+                self.ctx.program(
+                    vertex_shader=_ELLIPSOID_VERTEX, fragment_shader=_ELLIPSOID_FRAGMENT
+                )
+            )
+            self._ellipsoid = (program, self._track(self.ctx.vertex_array(program, [])))
+        return self._ellipsoid
+
     def _layers(self, item: DrawItem) -> list[tuple[moderngl.Texture, tuple[float, float, float]]]:
         """A tile's imagery layers as textures: a layer tile not uploaded (failed, or not in
         yet) is transparent, so the layer below shows."""
@@ -778,17 +881,25 @@ class Renderer:
         camera: Camera,
         fbo: moderngl.Framebuffer,
         after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]],
-    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        labelled: bool = False,
+    ) -> tuple[NDArray[Any], NDArray[np.float32]]:
         """The other passes, then the read-back."""
         for extra in after:
             extra(camera, fbo)
             fbo.use()
         self.ctx.wireframe = False
+        h, w = camera.height, camera.width
+        if labelled:
+            got = np.frombuffer(fbo.read(components=4, attachment=0, dtype="f4"), np.float32)
+            dist = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32)
+            return (
+                np.ascontiguousarray(got.reshape(h, w, 4)[::-1]),
+                np.ascontiguousarray(dist.reshape(h, w)[::-1]),
+            )
         if not self.read_back:
             # a window shows the framebuffer itself (``framebuffer``): nothing comes back
             return np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
 
-        h, w = camera.height, camera.width
         no_depth = np.zeros((0, 0), np.float32)
         if self.ring > 0:
             self._ring.append((self._pack(fbo, w, h), w, h))
@@ -841,9 +952,10 @@ class Renderer:
         self._use()
         for key in [*self._tiles, *self._textures, *self._gpu_tiles]:
             self.release(key)
-        if self._target is not None:
-            self._free_target(self._target)
-            self._target = None
+        for target in (self._target, self._labels_target):
+            if target is not None:
+                self._free_target(target)
+        self._target = self._labels_target = None
         for buf in [b for b, _, _ in self._ring] + [b for b, _ in self._ring_free]:
             self._free(buf)
         self._ring.clear()
@@ -915,6 +1027,21 @@ class Renderer:
         fbo = self._track(self.ctx.framebuffer([color, dist], depth))
         self._target = _Target(size, color, dist, depth, fbo)
         return self._target
+
+    def _label_target_for(self, width: int, height: int) -> moderngl.Framebuffer:
+        """The label pass's target: RGBA32F (normal, label), the distance, a depth buffer."""
+        got = self._labels_target
+        if got is not None and got.size == (width, height):
+            return got.fbo
+        if got is not None:
+            self._free_target(got)
+        size = (width, height)
+        color = self._track(self.ctx.renderbuffer(size, 4, dtype="f4"))
+        dist = self._track(self.ctx.renderbuffer(size, 1, dtype="f4"))
+        depth = self._track(self.ctx.depth_renderbuffer(size))
+        fbo = self._track(self.ctx.framebuffer([color, dist], depth))
+        self._labels_target = _Target(size, color, dist, depth, fbo)
+        return fbo
 
     def _free_target(self, target: _Target) -> None:
         # moderngl re-binds its idea of the bound framebuffer after creating or reading objects;
