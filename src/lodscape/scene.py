@@ -37,6 +37,24 @@ from lodscape.terrain.source import HeightSource
 __all__ = ["Capture", "FrameStats", "Picture", "Scene", "SceneOptions"]
 
 SKY = (0.62, 0.75, 0.88)
+#: Selections a one-shot render makes over a tree that learns as its tiles come (a level of a
+#: server's terrain each), at most.
+MAX_LEARNING_ROUNDS = 32
+
+
+def _over_network(provider: Any) -> bool:
+    """Whether a provider (or the one it wraps) fetches every key over the network."""
+    for _ in range(8):
+        if getattr(provider, "network", False):
+            return True
+        provider = getattr(provider, "base", None)
+        if provider is None:
+            return False
+    return False
+
+
+def _everything(key: int) -> bool:
+    return True
 
 
 @dataclass(frozen=True)
@@ -350,9 +368,21 @@ class Scene:
         t0 = time.perf_counter()
         if not blocking:
             loader.begin()
+        epoch = getattr(self.tree, "epoch", None)
         plan = self.view.update(cam, loader.resident(), blocking=blocking)
         late = loader.late
         report = loader.serve(plan, blocking=blocking)
+        if blocking and epoch is not None:
+            # a tree that learns as tiles come (a server's): select again with what the loads
+            # taught, a level deeper a round, until nothing new is learnt
+            tree: Any = self.tree
+            for _ in range(MAX_LEARNING_ROUNDS):
+                if tree.epoch == epoch:
+                    break
+                epoch = tree.epoch
+                cam = self.prepare(camera)
+                plan = self.view.update(cam, loader.resident(), blocking=True)
+                report = loader.serve(plan, blocking=True)
         if loader.late > late and not self._said_late:
             from lodscape.imagery.layers import warn_stderr
 
@@ -465,6 +495,7 @@ class Scene:
                 optional=is_overlay if self.provider.layers else None,
                 imagery_wait=opts.imagery_timeout,
                 areas=self._areas,
+                remote=_everything if _over_network(self.provider) else None,
             )
         return self._loader
 

@@ -51,7 +51,7 @@ __all__ = [
     "procedural_provider",
 ]
 
-Kind = Literal["tileset", "raster", "procedural", "flat", "none"]
+Kind = Literal["tileset", "raster", "procedural", "flat", "none", "server"]
 
 
 @dataclass(frozen=True)
@@ -69,10 +69,16 @@ class SourceSpec:
 
 def parse_source(source: str | PathLike[str]) -> SourceSpec:
     """``none`` or ``-`` (no terrain: the globe alone), ``flat`` (level ground under a city),
-    ``flat:W,S,E,N[,H]``, ``procedural[:seed=N,…]``, a .lods tileset, or a raster path."""
+    ``flat:W,S,E,N[,H]``, ``procedural[:seed=N,…]``, terrain on a server (a quantized-mesh
+    ``layer.json`` URL, ``terrarium:URL``, ``terrain-rgb:URL``), a .lods tileset, or a raster
+    path."""
+    from lodscape.store.remote import is_server_spec
+
     text = os.fspath(source)
     if text in ("none", "-"):
         return SourceSpec("none", text)
+    if is_server_spec(text):
+        return SourceSpec("server", text)
     if text == "flat" or text.startswith("flat:"):
         return SourceSpec("flat", text)
     if text == "procedural" or text.startswith("procedural:"):
@@ -151,7 +157,15 @@ def open(
     timeout = (options or SceneOptions()).imagery_timeout
     layers = _open_layers(specs, imagery_cache, imagery_maxzoom, timeout)
     try:
-        provider, owns = _terrain(source, spec, detail, array_kwargs, ground)
+        provider, owns = _terrain(
+            source,
+            spec,
+            detail,
+            array_kwargs,
+            ground,
+            cache=_cache_dir(imagery_cache),
+            timeout=timeout,
+        )
     except BaseException:
         for layer in layers:
             layer.close()
@@ -207,12 +221,23 @@ class _Ground:
     nodata: float | None = None
 
 
+def _cache_dir(cache: str | PathLike[str] | None) -> Path:
+    """Where HTTP tiles are kept: the given folder, else the user's cache."""
+    if cache is not None:
+        return Path(cache)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
+    return Path(base) / "lodscape"
+
+
 def _terrain(
     source: Any,
     spec: SourceSpec | None,
     detail: Fractal | None,
     array_kwargs: dict[str, Any],
     ground: _Ground | None = None,
+    *,
+    cache: Path | None = None,
+    timeout: float = 10.0,
 ) -> tuple[Provider, bool]:
     """The terrain provider a source names, and whether the scene owns it."""
     ground = ground or _Ground()
@@ -232,6 +257,19 @@ def _terrain(
         raise SourceError(f"{spec.text}: no terrain (none is for the globe alone)")
     if spec.kind == "procedural":
         return procedural_provider(spec.text, detail, sea_level=ground.sea_level), True
+    if spec.kind == "server":
+        if detail is not None:
+            raise SourceError(f"{spec.text}: fractal detail needs a raster source, not a server")
+        if ground.fill.kind != "none":
+            raise SourceError(
+                f"{spec.text}: a server's terrain is drawn as it comes (--fill is for rasters)"
+            )
+        from lodscape.store.remote import RemoteProvider, open_server
+
+        if cache is not None:
+            cache.mkdir(parents=True, exist_ok=True)
+        heights, tree = open_server(spec.text, cache_dir=cache, timeout=max(timeout, 0.5))
+        return RemoteProvider(heights, tree), True
     if spec.kind == "tileset":
         if detail is not None:
             raise SourceError(
@@ -288,9 +326,7 @@ def _open_layers(
 
     if len(specs) > MAX_OVERLAYS:
         raise LodscapeError(f"at most {MAX_OVERLAYS} imagery layers, got {len(specs)}")
-    if cache is None:
-        base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
-        cache = Path(base) / "lodscape"
+    cache = _cache_dir(cache)
     layers: list[Any] = []
     try:
         for i, text in enumerate(specs):
@@ -318,6 +354,9 @@ def _with_layers(provider: Provider, layers: list[Any], owns: bool) -> Provider:
 
     finest = max(int(layer.max_zoom) for layer in layers)
     own = provider.texture_levels[0]
+    deepen = getattr(provider.tree, "deepen", None)
+    if deepen is not None and finest > provider.tree.zmax:
+        deepen(finest)  # a server's tree: its finest surface interpolated below its data
     if finest > provider.tree.zmax:
         if type(provider) is RasterProvider and owns:
             tree = DetailTree.over(provider.tree, Fractal(0.7, 0.0, 0))

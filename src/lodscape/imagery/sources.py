@@ -19,7 +19,7 @@ import re
 import sqlite3
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
@@ -290,7 +290,11 @@ class HttpSource:
         min_zoom: int = 0,
         max_zoom: int = 19,
         deadline: float | None = None,
+        check: Callable[[bytes, str], bytes] | None = None,
+        accept: str | None = None,
     ) -> None:
+        """``check`` says whether a body is a tile (raising ``ImageryError``; default: an
+        image); ``accept`` is the Accept header sent (terrain servers want theirs)."""
         import httpx
 
         for field in ("{z}", "{x}", "{y}"):
@@ -309,10 +313,14 @@ class HttpSource:
         self.backoff = backoff
         self.cache = cache
         self.default_max_age = default_max_age
+        self.check = check or _check_image
+        headers = {"User-Agent": USER_AGENT}
+        if accept is not None:
+            headers["Accept"] = accept
         self._client = httpx.Client(
             timeout=httpx.Timeout(timeout, connect=min(timeout, 5.0)),
             limits=httpx.Limits(max_connections=max_connections),
-            headers={"User-Agent": USER_AGENT},
+            headers=headers,
             follow_redirects=True,
         )
         _bound_by_deadlines(self._client)
@@ -390,7 +398,7 @@ class HttpSource:
                 last, kind = f"a body over {MAX_TILE_BYTES >> 20} MiB", "too-large"
                 break
             try:
-                _check_image(data, url)
+                self.check(data, url)
             except ImageryError as exc:
                 last, kind = str(exc).split(": ", 1)[-1], exc.kind
                 if kind == "too-large":

@@ -97,9 +97,14 @@ class Loader:
         optional: Callable[[int], bool] | None = None,
         imagery_wait: float = 10.0,
         areas: Areas | None = None,
+        remote: Callable[[int], bool] | None = None,
     ) -> None:
+        """``optional`` keys (imagery) may be drawn without; ``remote`` ones come over the
+        network (default: the optional ones) and get the streamer's network threads."""
         self.options = options
-        self.streamer = Streamer(source, options, clock, prepare=gpu.prepare, remote=optional)
+        self.streamer = Streamer(
+            source, options, clock, prepare=gpu.prepare, remote=remote or optional
+        )
         self._optional = optional
         #: Seconds blocking frames may still wait for optional keys (imagery), all together.
         self.imagery_wait = imagery_wait

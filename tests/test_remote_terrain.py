@@ -1,0 +1,308 @@
+"""Terrain streamed from servers on loopback: quantized-mesh from ``lodscape serve`` itself, and
+Terrarium PNG tiles from a small server the test runs; the same surface as the local data, the
+flight with no local file, and one-line errors for servers that fail."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import math
+import socket
+import threading
+from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import lodscape
+from _synthetic import fbm_tileset, run_cli
+from lodscape.dataset import Origin, conventions
+from lodscape.geo.frames import ecef_to_geodetic, geodetic_to_ecef
+from lodscape.geo.tiles import ORIGIN, lonlat_to_merc, merc_to_lonlat
+from lodscape.store.remote import interpolate_mesh, level_error, open_server
+
+pytestmark = pytest.mark.gl
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return fbm_tileset(tmp_path_factory.mktemp("remote"), seed=11, n=257)
+
+
+@pytest.fixture(scope="module")
+def served(site: Path) -> Iterator[str]:
+    """``lodscape serve``'s app on loopback."""
+    from aiohttp import web
+
+    from lodscape.serve import TileService, make_app
+
+    service = TileService(site)
+    port = _free_port()
+    loop = asyncio.new_event_loop()
+    runner = web.AppRunner(make_app(service))
+    ready = threading.Event()
+
+    def serve() -> None:
+        asyncio.set_event_loop(loop)
+        loop.run_until_complete(runner.setup())
+        loop.run_until_complete(web.TCPSite(runner, "127.0.0.1", port).start())
+        ready.set()
+        loop.run_forever()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    assert ready.wait(30)
+    yield f"http://127.0.0.1:{port}"
+    asyncio.run_coroutine_threadsafe(runner.cleanup(), loop).result(30)
+    loop.call_soon_threadsafe(loop.stop)
+    thread.join(30)
+    loop.close()
+    service.close()
+
+
+def _camera(site: Path) -> lodscape.Camera:
+    """Over the site's south part, looking north across it."""
+    with lodscape.open(site) as scene:
+        b = scene.provider.bounds_merc
+        lon, lat = merc_to_lonlat((b.left + b.right) / 2, b.bottom + 0.25 * (b.top - b.bottom))
+        g = scene.ground_height(float(lon), float(lat))
+    assert g is not None
+    return lodscape.Camera(float(lon), float(lat), g + 600.0, heading=10, pitch=-30,
+                           width=320, height=200)  # fmt: skip
+
+
+def test_quantized_mesh_from_lodscape_serve_is_the_local_surface(
+    site: Path, served: str, tmp_path: Path
+) -> None:
+    cam = _camera(site)
+    with lodscape.open(site) as local:
+        _, d_local = local.render(cam)
+        tiles_local = local.last.selection["tiles"]
+    with lodscape.open(f"{served}/layer.json", imagery_cache=tmp_path) as remote:
+        _, d_remote = remote.render(cam)
+        stats = remote.last.selection
+        # heights anywhere: the served meshes, as the tileset's own
+        lon = cam.lon + np.linspace(-0.01, 0.01, 50)
+        lat = np.full(50, cam.lat + 0.004)
+        got = remote.provider.heights_at(lon, lat)
+    with lodscape.open(site) as local:
+        want = local.provider.heights_at(lon, lat)
+    ok = np.isfinite(want) & np.isfinite(got)
+    assert ok.sum() > 40
+    np.testing.assert_allclose(got[ok], want[ok], atol=0.05)
+    both = np.isfinite(d_local) & np.isfinite(d_remote)
+    assert both.mean() > 0.5
+    rel = np.abs(d_remote[both] - d_local[both]) / d_local[both]
+    assert np.median(rel) < 0.002, np.median(rel)
+    assert stats["max_depth"] > 10
+    assert stats["tiles"] > 4
+    assert tiles_local > 4
+
+
+def test_meshes_interpolate_on_their_own_triangles() -> None:
+    from lodscape.store.remote import _Mesh
+
+    # two triangles over the unit square, a ridge along the diagonal u = v
+    u = np.array([0.0, 1.0, 1.0, 0.0])
+    v = np.array([0.0, 0.0, 1.0, 1.0])
+    h = np.array([0.0, 10.0, 0.0, 10.0])
+    mesh = _Mesh(u, v, h, np.array([[0, 1, 2], [0, 2, 3]]), 0)
+    pu = np.array([0.75, 0.25, 0.5, 1.0, 0.0])
+    pv = np.array([0.25, 0.75, 0.5, 0.0, 1.0])
+    np.testing.assert_allclose(interpolate_mesh(mesh, pu, pv), [5.0, 5.0, 0.0, 10.0, 10.0])
+    assert np.isnan(interpolate_mesh(mesh, np.array([1.5]), np.array([0.5]))).all()
+
+
+# --- Terrarium ------------------------------------------------------------------------------
+
+
+#: The analytic terrain the Terrarium server encodes: a tilted sine, metres.
+def _height(lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+    return (
+        300.0
+        + 150.0 * np.sin((lon - 8.0) * 40.0) * np.cos((lat - 46.0) * 30.0)
+        + 2000.0 * (lat - 46.0)
+    )
+
+
+BOX = (7.9, 45.95, 8.1, 46.05)  # west, south, east, north: the server's tiles cover it
+MAXZOOM = 13
+
+
+def _terrarium_png(z: int, x: int, y: int) -> bytes | None:
+    from PIL import Image
+
+    n = 256
+    size = 2.0 * ORIGIN / (1 << z)
+    px = (np.arange(n) + 0.5) / n
+    xm = -ORIGIN + (x + px) * size
+    ym = ORIGIN - (y + px) * size
+    lon, lat = merc_to_lonlat(xm[None, :], ym[:, None])
+    lon, lat = np.broadcast_arrays(lon, lat)
+    w, s, e, nn = BOX
+    inside = (lon >= w) & (lon <= e) & (lat >= s) & (lat <= nn)
+    if not inside.any():
+        return None
+    v = _height(lon, lat) + 32768.0
+    r = np.floor(v / 256.0)
+    g = np.floor(v - r * 256.0)
+    b = np.floor((v - r * 256.0 - g) * 256.0)
+    rgba = np.dstack([r, g, b, np.where(inside, 255, 0)]).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(rgba, "RGBA").save(buf, "PNG")
+    return buf.getvalue()
+
+
+class _Terrarium:
+    """PNG height tiles on loopback; ``fail`` answers 500 to every tile."""
+
+    def __init__(self) -> None:
+        self.fail = False
+        self.requests = 0
+        owner = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args: object) -> None:
+                pass
+
+            def do_GET(self) -> None:
+                owner.requests += 1
+                parts = self.path.strip("/").split("/")
+                try:
+                    z, x, y = int(parts[-3]), int(parts[-2]), int(parts[-1].split(".")[0])
+                except (ValueError, IndexError):
+                    self.send_error(400)
+                    return
+                if owner.fail:
+                    self.send_error(500)
+                    return
+                body = _terrarium_png(z, x, y) if z <= MAXZOOM else None
+                if body is None:
+                    self.send_error(404)
+                    return
+                self.send_response(200)
+                self.send_header("Content-Type", "image/png")
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+@pytest.fixture
+def terrarium() -> Iterator[_Terrarium]:
+    server = _Terrarium()
+    yield server
+    server.close()
+
+
+def test_terrarium_heights_are_the_servers(terrarium: _Terrarium, tmp_path: Path) -> None:
+    spec = f"terrarium:{MAXZOOM}:{terrarium.url}/{{z}}/{{x}}/{{y}}.png"
+    heights, tree = open_server(spec, cache_dir=tmp_path)
+    try:
+        rng = np.random.default_rng(1)
+        lon = rng.uniform(7.95, 8.05, 400)
+        lat = rng.uniform(45.97, 46.03, 400)
+        xm, ym = lonlat_to_merc(lon, lat)
+        h, ok = heights.sample(xm, ym, heights.resolution_merc)
+        assert ok.all()
+        # bilinear between pixel centres 2.4 m apart (at z 13, 46°N) on a smooth surface,
+        # heights encoded to 1/256 m
+        np.testing.assert_allclose(h, _height(lon, lat), atol=0.5)
+        # outside what the server has: no data, not a made-up height
+        _h2, ok2 = heights.sample(*lonlat_to_merc(np.array([9.0]), np.array([46.0])), 10.0)
+        assert not ok2.any()
+        assert tree.zmax == MAXZOOM
+        assert level_error(0, 64) == pytest.approx(6378137.0 * 2 * math.pi * 0.25 / 65)
+    finally:
+        heights.close()
+
+
+def test_terrarium_renders_with_no_local_data(terrarium: _Terrarium, tmp_path: Path) -> None:
+    spec = f"terrarium:{MAXZOOM}:{terrarium.url}/{{z}}/{{x}}/{{y}}.png"
+    g = float(_height(np.array(8.0), np.array(45.99)))
+    cam = lodscape.Camera(8.0, 45.99, g + 1500.0, heading=0.0, pitch=-35.0, width=320, height=200)
+    with lodscape.open(spec, imagery_cache=tmp_path) as scene:
+        _rgb, depth = scene.render(cam)
+        ground = scene.ground_height(8.0, 46.0)
+        stats = scene.last.selection
+    assert ground == pytest.approx(float(_height(np.array(8.0), np.array(46.0))), abs=0.5)
+    assert np.isfinite(depth).mean() > 0.6
+    assert stats["max_depth"] >= 12
+    # the centre pixel's ray meets the analytic surface where the depth says
+    o = Origin(8.0, 46.0)
+    m = conventions(cam, o)
+    ray = np.linalg.inv(m.K) @ np.array([159.5, 99.5, 1.0])
+    local = m.R.T @ (ray * float(depth[99:101, 159:161].mean()) - m.t)
+    ecef = o.basis.T @ local + geodetic_to_ecef(8.0, 46.0, 0.0)
+    plon, plat, ph = ecef_to_geodetic(ecef)
+    assert float(ph) == pytest.approx(float(_height(np.array(plon), np.array(plat))), abs=3.0)
+
+
+def test_a_failing_terrain_server_is_one_line(
+    terrarium: _Terrarium, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    terrarium.fail = True
+    spec = f"terrarium:{MAXZOOM}:{terrarium.url}/{{z}}/{{x}}/{{y}}.png"
+    out = tmp_path / "v.png"
+    code, _, err = run_cli(
+        ["render", spec, "--lon", "8", "--lat", "45.99", "--alt", "3000", "-o", str(out),
+         "--imagery-cache", str(tmp_path), "--imagery-timeout", "2"],
+        capsys,
+    )  # fmt: skip
+    assert code == 2
+    assert "HTTP 500" in err
+    assert err.strip().count("\n") == 0
+    assert not out.exists()
+    for argv, message in [
+        (["render", "http://127.0.0.1:1/layer.json"], "cannot fetch the layer"),
+        (["render", f"{terrarium.url}/x/layer.json"], "HTTP 400 for the layer"),
+        (["render", "terrarium:http//x"], "expected terrarium:"),
+    ]:
+        code, _, err = run_cli([*argv, "-o", str(out)], capsys)
+        assert code == 2, argv
+        assert message in err, (argv, err)
+        assert err.strip().count("\n") == 0
+
+
+def test_fly_a_served_site_with_no_local_data(
+    site: Path, served: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cam = _camera(site)
+    out = tmp_path / "f.mp4"
+    stats = tmp_path / "f.csv"
+    line = f"{cam.lon},{cam.lat},{cam.lon},{cam.lat + 0.01},{cam.alt}"
+    code, _stdout, err = run_cli(
+        ["fly", f"{served}/layer.json", "--imagery", f"{served}/imagery/{{z}}/{{x}}/{{y}}.png",
+         "--line", line, "--speed", "200", "--fps", "10", "--size", "160x96",
+         "-o", str(out), "--stats", str(stats), "--imagery-cache", str(tmp_path), "-q"],
+        capsys,
+    )  # fmt: skip
+    assert code == 0, err
+    assert out.stat().st_size > 1000
+    import csv
+
+    with stats.open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) >= 5
+    # the tree opens a level a round of loads while it flies: the first frame draws the root
+    # tile over the whole view; the last ones draw the served terrain within the error bound,
+    # nothing falling back
+    assert float(rows[0]["max_sse_px"]) > 1e3
+    assert float(rows[-1]["max_sse_px"]) <= 2.0
+    assert int(rows[-1]["fallback_max"]) == 0
+    assert int(rows[-1]["tiles"]) >= 1
