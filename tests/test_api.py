@@ -40,6 +40,8 @@ def test_exported_members_resolve() -> None:
         "serve",
         "globe",
         "sources",
+        "dataset",
+        "widget",
         "annotations",
     }
 

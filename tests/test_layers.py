@@ -25,7 +25,19 @@ LAYERS: dict[str, set[str]] = {
     "stream": {"geo", "lod", "terrain"},
     "render": {"geo", "lod", "terrain", "imagery", "city"},
 }
-APP = {"scene", "sources", "globe", "flight", "view", "serve", "cli", "data", "__init__"}
+APP = {
+    "scene",
+    "sources",
+    "globe",
+    "flight",
+    "view",
+    "serve",
+    "cli",
+    "data",
+    "dataset",
+    "widget",
+    "__init__",
+}
 
 
 def _modules() -> dict[str, Path]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import math
 import socket
 import threading
@@ -306,3 +307,90 @@ def test_fly_a_served_site_with_no_local_data(
     assert float(rows[-1]["max_sse_px"]) <= 2.0
     assert int(rows[-1]["fallback_max"]) == 0
     assert int(rows[-1]["tiles"]) >= 1
+
+
+# --- a geographic (EPSG:4326) quantized-mesh server, as Cesium's ----------------------------
+
+GEO_MAXZOOM = 11
+
+
+def _geographic_tile(z: int, x: int, tms: int) -> bytes | None:
+    """Tile z/x/tms of the geographic tiling (two root tiles): a 17² grid of the analytic
+    heights over the tile, where it meets ``BOX``."""
+    from lodscape.store.quantized_mesh import encode
+    from lodscape.terrain.mesh import grid_indices
+
+    span = 180.0 / (1 << z)
+    w, s = -180.0 + x * span, -90.0 + tms * span
+    e, n = w + span, s + span
+    bw, bs, be, bn = BOX
+    if e < bw or w > be or n < bs or s > bn:
+        return None
+    g = 16
+    lon, lat = np.meshgrid(np.linspace(w, e, g + 1), np.linspace(n, s, g + 1))
+    tris = grid_indices(g)[: 2 * g * g].astype(np.int64)
+    return encode(lon.ravel(), lat.ravel(), _height(lon, lat).ravel(), tris, (w, s, e, n))
+
+
+@pytest.fixture
+def geographic() -> Iterator[str]:
+    layer = {
+        "tilejson": "2.1.0",
+        "format": "quantized-mesh-1.0",
+        "version": "1.0.0",
+        "scheme": "tms",
+        "projection": "EPSG:4326",
+        "tiles": ["tiles/{z}/{x}/{y}.terrain?v={version}"],
+        "maxzoom": GEO_MAXZOOM,
+        "bounds": list(BOX),
+    }
+
+    class Handler(BaseHTTPRequestHandler):
+        def log_message(self, *args: object) -> None:
+            pass
+
+        def do_GET(self) -> None:
+            path = self.path.split("?")[0]
+            if path.endswith("/layer.json"):
+                body: bytes | None = json.dumps(layer).encode()
+            else:
+                z, x, y = (int(p) for p in [*path.split("/")[-3:-1], path.split("/")[-1][:-8]])
+                body = _geographic_tile(z, x, y) if z <= GEO_MAXZOOM else None
+            if body is None:
+                self.send_error(404)
+                return
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{httpd.server_address[1]}/terrain/layer.json"
+    httpd.shutdown()
+    httpd.server_close()
+
+
+def test_a_geographic_quantized_mesh_layer(geographic: str, tmp_path: Path) -> None:
+    heights, tree = open_server(geographic, cache_dir=tmp_path)
+    try:
+        assert heights.tiles.geographic
+        assert tree.zmax == GEO_MAXZOOM + 1  # a geographic level z spans Web Mercator's z + 1
+        rng = np.random.default_rng(4)
+        lon = rng.uniform(7.95, 8.05, 300)
+        lat = rng.uniform(45.97, 46.03, 300)
+        xm, ym = lonlat_to_merc(lon, lat)
+        h, ok = heights.sample(xm, ym, heights.resolution_merc)
+        assert ok.all()
+        # linear on the served triangles (cells of 0.0055°, ~500 m): the sine's curvature over
+        # a cell is up to 1.4 m; a vertex misplaced by one cell would be off by up to 33 m
+        err = np.abs(h - _height(lon, lat))
+        assert err.max() < 1.5
+        assert np.median(err) < 0.8
+    finally:
+        heights.close()
+    g = float(_height(np.array(8.0), np.array(45.99)))
+    cam = lodscape.Camera(8.0, 45.99, g + 1500.0, heading=0.0, pitch=-35.0, width=160, height=100)
+    with lodscape.open(geographic, imagery_cache=tmp_path) as scene:
+        _, depth = scene.render(cam)
+    assert np.isfinite(depth).mean() > 0.6
