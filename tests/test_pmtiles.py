@@ -123,3 +123,26 @@ def test_export_refuses_in_one_line_and_leaves_nothing(
     assert "bad.lods" in err
     assert not out.exists()
     assert not list(tmp_path.glob(".*tmp"))
+
+
+def test_two_archives_are_written_together_or_not_at_all(
+    tileset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The imagery archive is complete before the terrain's fails: neither is left."""
+    import shutil
+
+    broken = tmp_path / "cut.lods"
+    shutil.copy(tileset, broken)
+    with sqlite3.connect(broken) as db:  # the last terrain tile cut short
+        z, x, y = db.execute("SELECT z, x, y FROM terrain ORDER BY z DESC LIMIT 1").fetchone()
+        db.execute("UPDATE terrain SET data = X'00010203' WHERE z=? AND x=? AND y=?", (z, x, y))
+    img, dem = tmp_path / "img.pmtiles", tmp_path / "dem.pmtiles"
+    code, _, err = run_cli(
+        ["export", str(broken), "--pmtiles", str(img), "--terrarium", str(dem)], capsys
+    )
+    assert code == 2, err
+    assert "cut short" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not img.exists()
+    assert not dem.exists()
+    assert not list(tmp_path.glob(".*tmp"))

@@ -63,13 +63,24 @@ def export_pmtiles(
     provider = TilesetProvider(tileset)  # refuses what is not a complete tileset
     db = connect_readonly(tileset)
     written: dict[str, int] = {}
+    staged: list[tuple[Path, Path]] = []
     try:
         name = Path(tileset).stem
         if imagery is not None:
-            written["imagery"] = _imagery(db, name, Path(imagery))
+            written["imagery"], tmp = _imagery(db, name, Path(imagery))
+            staged.append((tmp, Path(imagery)))
         if terrain is not None:
-            written["terrain"] = _terrain(db, provider, name, Path(terrain))
+            written["terrain"], tmp = _terrain(db, provider, name, Path(terrain))
+            staged.append((tmp, Path(terrain)))
+        # both archives complete before either is put in place: a failure leaves neither
+        for tmp, out in staged:
+            try:
+                os.replace(tmp, out)
+            except OSError as exc:
+                raise TilesetError(f"{out}: cannot write ({exc.strerror or exc})") from None
     finally:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
         db.close()
         provider.close()
     return written
@@ -83,7 +94,7 @@ def _check_target(path: Path) -> None:
         raise TilesetError(f"{path}: folder {parent} does not exist")
 
 
-def _imagery(db: sqlite3.Connection, name: str, out: Path) -> int:
+def _imagery(db: sqlite3.Connection, name: str, out: Path) -> tuple[int, Path]:
     """The tileset's MBTiles imagery (TMS rows) as XYZ tiles."""
     meta = dict(db.execute("SELECT name, value FROM metadata").fetchall())
     fmt = str(meta.get("format", "png")).lower()
@@ -108,12 +119,12 @@ def _imagery(db: sqlite3.Connection, name: str, out: Path) -> int:
         "type": "baselayer",
         "format": fmt,
     }
-    return write_archive(
-        out, keys, data, tile_type=3 if fmt in ("jpg", "jpeg") else 2, metadata=metadata
-    )
+    return _stage(out, keys, data, tile_type=3 if fmt in ("jpg", "jpeg") else 2, metadata=metadata)
 
 
-def _terrain(db: sqlite3.Connection, provider: TilesetProvider, name: str, out: Path) -> int:
+def _terrain(
+    db: sqlite3.Connection, provider: TilesetProvider, name: str, out: Path
+) -> tuple[int, Path]:
     keys = [(int(z), int(x), int(y)) for z, x, y in db.execute("SELECT z, x, y FROM terrain")]
     if not keys:
         raise TilesetError(f"{name}: the tileset holds no terrain to export")
@@ -129,7 +140,7 @@ def _terrain(db: sqlite3.Connection, provider: TilesetProvider, name: str, out: 
         "format": "png",
         "encoding": "terrarium",
     }
-    return write_archive(out, keys, data, tile_type=2, metadata=metadata)
+    return _stage(out, keys, data, tile_type=2, metadata=metadata)
 
 
 def terrarium(
@@ -170,7 +181,26 @@ def write_archive(
 ) -> int:
     """A PMTiles v3 archive at ``out`` of the tiles ``keys`` (z, x, y; XYZ rows), each read by
     ``data`` in Hilbert order; returns the tiles written."""
+    count, tmp = _stage(out, keys, data, tile_type=tile_type, metadata=metadata)
+    try:
+        os.replace(tmp, out)
+    except OSError as exc:
+        raise TilesetError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    finally:
+        tmp.unlink(missing_ok=True)
+    return count
 
+
+def _stage(
+    out: Path,
+    keys: Iterable[tuple[int, int, int]],
+    data: Callable[[int, int, int], bytes],
+    *,
+    tile_type: int,
+    metadata: Mapping[str, object],
+) -> tuple[int, Path]:
+    """``write_archive``'s archive complete under a temporary name beside ``out``: (tiles
+    written, that name); the caller renames it into place (or removes it)."""
     ordered = sorted((zxy_to_tileid(z, x, y), z, x, y) for z, x, y in set(keys))
     if not ordered:
         raise TilesetError(f"{out}: no tiles to write")
@@ -236,12 +266,13 @@ def write_archive(
                 blobs.seek(0)
                 while chunk := blobs.read(1 << 20):
                     f.write(chunk)
-        os.replace(tmp, out)
     except OSError as exc:
-        raise TilesetError(f"{out}: cannot write ({exc.strerror or exc})") from None
-    finally:
         tmp.unlink(missing_ok=True)
-    return len(ordered)
+        raise TilesetError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return len(ordered), tmp
 
 
 def _directories(entries: list[Entry]) -> tuple[bytes, bytes]:
