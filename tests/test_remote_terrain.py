@@ -394,3 +394,29 @@ def test_a_geographic_quantized_mesh_layer(geographic: str, tmp_path: Path) -> N
     with lodscape.open(geographic, imagery_cache=tmp_path) as scene:
         _, depth = scene.render(cam)
     assert np.isfinite(depth).mean() > 0.6
+
+
+def test_availability_past_the_listed_levels_follows_the_last_listed() -> None:
+    """Servers list the first levels in layer.json (Cesium's metadata availability lists the
+    rest in tiles): below them, a tile is asked for where its listed ancestor is."""
+    from lodscape.store.remote import ServerTiles
+
+    tiles = ServerTiles(
+        "t",
+        "http://127.0.0.1:1/{z}/{x}/{y}.terrain",
+        "quantized-mesh",
+        geographic=True,
+        tms=True,
+        maxzoom=12,
+        # level 0: both roots; level 1: only the north-east quarter (TMS row 1, column 3)
+        available=[[(0, 0, 1, 0)], [(3, 1, 3, 1)]],
+    )
+    try:
+        x = np.array([3, 2, 24, 24, 16])
+        y = np.array([0, 0, 0, 7, 8])  # rows from the north
+        assert tiles.has(1, x[:2], y[:2]).tolist() == [True, False]
+        # level 4: 32 x 16 tiles; (24, 0) and (24, 7) lie under (3, 0) of level 1, (16, 8) not
+        assert tiles.has(4, x[2:], y[2:]).tolist() == [True, True, False]
+        assert not tiles.has(13, np.array([0]), np.array([0])).any()  # past maxzoom
+    finally:
+        tiles.close()

@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
-from urllib.parse import urljoin
+from urllib.parse import urljoin, urlsplit
 
 import numpy as np
 from numpy.typing import NDArray
@@ -144,14 +144,16 @@ class ServerTiles:
         nx = 1 << (z + 1) if self.geographic else 1 << z
         ny = 1 << z
         ok = (z >= self.minzoom) & (z <= self.maxzoom) & (x >= 0) & (x < nx) & (y >= 0) & (y < ny)
-        if self.available is None:
+        if not self.available:
             return ok
-        if z >= len(self.available):
-            return np.zeros_like(ok)
-        row = ny - 1 - y if self.tms else y
+        # levels past the listed ones (servers that list the first levels in layer.json and
+        # the rest in tiles' metadata): the listed ancestor says, and a 404 is a hole
+        up = max(z - (len(self.available) - 1), 0)
+        lz, lx, ly = z - up, x >> up, y >> up
+        row = (1 << lz) - 1 - ly if self.tms else ly
         hit = np.zeros_like(ok)
-        for x0, y0, x1, y1 in self.available[z]:
-            hit |= (x >= x0) & (x <= x1) & (row >= y0) & (row <= y1)
+        for x0, y0, x1, y1 in self.available[lz]:
+            hit |= (lx >= x0) & (lx <= x1) & (row >= y0) & (row <= y1)
         return ok & hit
 
     def tile(self, z: int, x: int, y: int) -> _Mesh | _Raster | None:
@@ -656,6 +658,9 @@ def _from_layer(url: str, cache: TileCache | None, timeout: float) -> ServerTile
             raise ValueError("no tiles template")
         version = str(layer.get("version", "1.0.0"))
         template = urljoin(url, templates[0].replace("{version}", version))
+        query = urlsplit(url).query
+        if query and not urlsplit(template).query:
+            template += "?" + query  # an access token on the layer goes with its tiles
         projection = str(layer.get("projection", "EPSG:4326")).upper()
         if projection not in ("EPSG:4326", "EPSG:3857"):
             raise ValueError(f"projection {projection} (EPSG:4326 or EPSG:3857)")
