@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from _synthetic import AnalyticSource
+from _synthetic import AnalyticSource, fbm_heights
 from lodscape.terrain.mesh import build_mesh, grid_coordinates, grid_indices, ring_indices
 from lodscape.terrain.pyramid import TileTree, _upsample, build_tree
 
@@ -100,3 +100,29 @@ def test_neighbour_meshes_share_their_edges() -> None:
     xs, _ = grid_coordinates(z, x, y, s)
     xs2, _ = grid_coordinates(z + 1, 2 * x + 1, 2 * y, s)
     assert xs[-1] == xs2[-1]
+
+
+def test_blocks_give_the_tree_a_whole_walk_gives() -> None:
+    """The finest levels walked in blocks (bounded memory) give every statistic the whole walk
+    gives: a Web Mercator source (no reprojection lattice), holes, ragged edges."""
+    from affine import Affine
+
+    from lodscape.terrain.source import ArraySource
+
+    h = fbm_heights(600, seed=4).astype(np.float64)
+    h[200:260, 100:300] = np.nan
+    src = ArraySource(
+        h[:, :530], Affine(9.0, 0, 1_000_123.0, 0, -9.0, 5_000_321.0), crs="EPSG:3857"
+    )
+    whole = build_tree(src, block_tiles=1 << 20)
+    for tiles in (2, 8):
+        blocked = build_tree(src, block_tiles=tiles)
+        assert blocked.height_range == whole.height_range
+        assert blocked.roughness == pytest.approx(whole.roughness, rel=1e-9)
+        np.testing.assert_array_equal(blocked.twist, whole.twist)
+        for a, b in zip(whole.levels, blocked.levels, strict=True):
+            assert (a.z, a.x0, a.y0) == (b.z, b.x0, b.y0)
+            for f in ("exists", "min_h", "max_h", "error"):
+                np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    with pytest.raises(ValueError, match="power of two"):
+        build_tree(src, block_tiles=3)

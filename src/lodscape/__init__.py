@@ -12,7 +12,9 @@ import typing as _typing
 #: GDAL's block cache, in MB, unless the user chose one: GDAL's own default is 5 % of the RAM
 #: (1.2 GB on a 24 GB machine), which a flight over new ground fills a block at a time, so the
 #: process grows for the whole flight. Set before GDAL first reads it (at its first raster).
-_os.environ.setdefault("GDAL_CACHEMAX", "256")
+#: Tiles read small windows (of overviews, the file's or sidecar ones): 64 MB costs no time
+#: on a 16385² DEM against 256 MB, and keeps 190 MB out of the peak.
+_os.environ.setdefault("GDAL_CACHEMAX", "64")
 
 from lodscape.errors import CameraError, LodscapeError, SourceError
 from lodscape.lod.camera import Camera

@@ -68,8 +68,8 @@ class SceneOptions:
     workers: int = 4
     #: Clear colour (RGB, 0..1) where no terrain is drawn.
     background: tuple[float, float, float] = SKY
-    #: Anisotropic texture filtering cap (1 turns it off): sharper ground at grazing angles, and
-    #: free on a GPU, but it makes a frame about 2.4x slower on Mesa's llvmpipe.
+    #: Anisotropic texture filtering cap (1 turns it off): sharper ground at grazing angles.
+    #: Software rasterisers (llvmpipe) always get 1.
     anisotropy: float = 16.0
     #: Stream tiles through the staged pipeline (never waiting on a load: missing tiles are
     #: drawn from their ancestors) instead of loading every missing tile before drawing.

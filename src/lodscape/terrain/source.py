@@ -15,6 +15,7 @@ scale and offset are applied); vertical units are not converted.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -61,7 +62,7 @@ _EDGE_POINTS = 64
 _LATTICE = 16
 _LATTICE_TOL = 1e-3
 #: Level-0 pixels read per strip while building the coarse overview (bounds memory at open).
-_STRIP_PIXELS = 1 << 23
+_STRIP_PIXELS = 1 << 21
 
 F64 = NDArray[np.float64]
 B = NDArray[np.bool_]
@@ -663,13 +664,22 @@ class RasterSource(_GridSource):
         self._scale = float(ds.scales[band - 1] if ds.scales else 1.0)
         self._offset = float(ds.offsets[band - 1] if ds.offsets else 0.0)
         overviews = []
-        for index, _factor in enumerate(ds.overviews(band)):
+        where = self.path
+        if not ds.overviews(band) and max(ds.width, ds.height) > SIDECAR_MIN_SIZE:
+            # no overviews of its own: coarse levels would read every pixel under them
+            where = sidecar_overviews(self.path, ds, band, self._nodata) or self.path
+        with rasterio.open(where) as holder:
+            count = len(holder.overviews(band if where == self.path else 1))
+        for index in range(count):
             try:
-                ov = rasterio.open(self.path, overview_level=index)
+                ov = rasterio.open(where, overview_level=index)
             except Exception:  # an overview GDAL cannot open is simply not used
                 continue
             self._overview_ds.append(ov)
             overviews.append((len(self._overview_ds) - 1, ov.height, ov.width))
+        #: The sidecar VRT whose overviews are read (None: the file's own, if any).
+        self.sidecar = None if where == self.path else where
+        self._overview_band = band if where == self.path else 1
         self._setup(name, crs, ds.transform, (ds.height, ds.width), overviews)
 
     def _read_raw(self, overview: int | None, r0: int, r1: int, c0: int, c1: int) -> tuple[F64, B]:
@@ -679,8 +689,9 @@ class RasterSource(_GridSource):
             if self._closed:
                 raise SourceError(f"{self.name}: source is closed")
             ds = self._ds if overview is None else self._overview_ds[overview]
+            band = self._band if overview is None else self._overview_band
             try:
-                data = ds.read(self._band, window=window, masked=True)
+                data = ds.read(band, window=window, masked=True)
             except Exception as exc:  # GDAL errors surface as several rasterio classes
                 raise SourceError(f"{self.name}: read failed: {_one_line(exc)}") from None
         raw = np.ma.getdata(data)
@@ -704,6 +715,88 @@ class RasterSource(_GridSource):
                 if ds is not None:
                     ds.close()
             self._overview_ds = []
+
+
+#: Rasters wider or taller than this without overviews of their own get sidecar overviews.
+SIDECAR_MIN_SIZE = 4096
+
+_GDAL_TYPES = {
+    "uint8": "Byte",
+    "int8": "Int8",
+    "uint16": "UInt16",
+    "int16": "Int16",
+    "uint32": "UInt32",
+    "int32": "Int32",
+    "float32": "Float32",
+    "float64": "Float64",
+}
+
+
+def overview_cache() -> str:
+    """Where sidecar overviews are kept: ``$LODSCAPE_CACHE`` or the user's cache folder."""
+    base = os.environ.get("LODSCAPE_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "lodscape"
+    )
+    return os.path.join(base, "overviews")
+
+
+def sidecar_overviews(path: str, ds: Any, band: int, nodata: float | None) -> str | None:
+    """Overviews (averages, factors 2, 4, … down to 256 pixels) of a raster that has none,
+    built once as ``gdaladdo`` would, but beside a VRT of the band in the overview cache, so
+    the user's folder is never written to; the VRT's path (None where they cannot be built:
+    the raster is read without them, as before)."""
+    import hashlib
+    import html
+
+    from rasterio.enums import Resampling
+
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None  # not a plain file (/vsi…): read as it is
+    full = os.path.abspath(path)
+    key = hashlib.sha1(
+        f"{full}|{st.st_size}|{st.st_mtime_ns}|{band}|{nodata}".encode()
+    ).hexdigest()[:16]
+    folder = overview_cache()
+    stem = re.sub(r"[^A-Za-z0-9._-]", "_", os.path.basename(path))[:60]
+    vrt = os.path.join(folder, f"{stem}-{key}.vrt")
+    if os.path.exists(vrt) and os.path.exists(vrt + ".ovr"):
+        return vrt
+    dtype = _GDAL_TYPES.get(str(ds.dtypes[band - 1]))
+    if dtype is None:
+        return None
+    nd = nodata if nodata is not None else ds.nodatavals[band - 1]
+    nd_xml = "" if nd is None else f"<NoDataValue>{float(nd)!r}</NoDataValue>"
+    t = ds.transform
+    doc = (
+        f'<VRTDataset rasterXSize="{ds.width}" rasterYSize="{ds.height}">'
+        f"<SRS>{html.escape(ds.crs.to_wkt())}</SRS>"
+        f"<GeoTransform>{t.c!r}, {t.a!r}, {t.b!r}, {t.f!r}, {t.d!r}, {t.e!r}</GeoTransform>"
+        f'<VRTRasterBand dataType="{dtype}" band="1">{nd_xml}<SimpleSource>'
+        f'<SourceFilename relativeToVRT="0">{html.escape(full)}</SourceFilename>'
+        f"<SourceBand>{band}</SourceBand></SimpleSource></VRTRasterBand></VRTDataset>"
+    )
+    factors = []
+    f = 2
+    while max(ds.width, ds.height) / f >= 256:
+        factors.append(f)
+        f *= 2
+    tmp = os.path.join(folder, f".{stem}-{key}.{os.getpid()}.vrt")
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with open(tmp, "w") as out:
+            out.write(doc)
+        with rasterio.Env(COMPRESS_OVERVIEW="DEFLATE"), rasterio.open(tmp, "r+") as v:
+            v.build_overviews(factors, Resampling.average)
+        os.replace(tmp + ".ovr", vrt + ".ovr")
+        os.replace(tmp, vrt)
+    except Exception:  # no space, a read-only cache, a GDAL that cannot: read without them
+        for leftover in (tmp, tmp + ".ovr"):
+            with contextlib.suppress(OSError):
+                os.unlink(leftover)
+        return None
+    return vrt
 
 
 class ArraySource(_GridSource):
