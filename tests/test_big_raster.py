@@ -65,8 +65,15 @@ def _mosaic(folder: Path) -> Path:
 
 
 _PROBE = """
-import json, resource, sys, time
+import json, sys, time
 import lodscape
+
+def hwm():
+    # this process's own peak (VmHWM): getrusage's maxrss keeps the parent's across exec
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+
 t = time.perf_counter()
 scene = lodscape.open(sys.argv[1])
 opened = time.perf_counter() - t
@@ -74,7 +81,7 @@ cam = scene.overview_camera(320, 200)
 rgb, depth = scene.render(cam)
 src = scene.source.source
 print(json.dumps({
-    "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    "peak_mb": hwm(),
     "open_s": opened,
     "shape": list(src.shape),
     "sidecar": src.sidecar,

@@ -546,7 +546,8 @@ def _print_stats(scene: Scene) -> None:
 def _render(
     scene: Scene, camera: Camera, output: Path, depth_path: Path | None, quiet: bool
 ) -> None:
-    rgb, depth = scene.render(camera)
+    # the distance is read back only when it is asked for
+    rgb, depth = scene.render(camera, depth=depth_path is not None)
     _mode_notice(scene)
     _save_image(output, rgb)
     if depth_path is not None:
