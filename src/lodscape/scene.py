@@ -404,12 +404,14 @@ class Scene:
             # the same items and passes again, drawing normals and labels
             cp = self._city_pass
             if cp is not None:
-                cp.labels, last = True, cp.last
+                cp.use_labels(True)
+                last = cp.last
             try:
                 labelled, _ = renderer.draw_labels(cam, items, after=self._city_passes(renderer))
             finally:
                 if cp is not None:
-                    cp.labels, cp.last = False, last
+                    cp.use_labels(False)
+                    cp.last = last
         t3 = time.perf_counter()
         loader.finish(plan)
         stream: dict[str, float] = {}

@@ -107,8 +107,9 @@ layout(std140) uniform Frame { mat4 f_mvp; mat4 f_rot; vec4 f_offset; vec4 f_sun
 uniform vec3 u_sun;
 #define SUN u_sun
 #endif
-uniform int u_labels;    // a dataset's pass: the view-space normal and the object's label
-uniform float u_label;
+#ifdef LABELS
+uniform float u_label;   // a dataset's pass: the view-space normal and the object's label
+#endif
 in vec3 v_normal;
 in vec2 v_uv;
 in float v_dist;
@@ -117,12 +118,12 @@ in vec3 v_view_normal;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
-    if (u_labels != 0) {
-        vec3 m = normalize(v_view_normal);
-        f_color = vec4(dot(m, v_view) > 0.0 ? -m : m, u_label);
-        f_dist = v_dist;
-        return;
-    }
+#ifdef LABELS
+    vec3 m = normalize(v_view_normal);
+    f_color = vec4(dot(m, v_view) > 0.0 ? -m : m, u_label);
+    f_dist = v_dist;
+    return;
+#endif
     vec3 n = normalize(v_normal);
     float light = 0.45 + 0.55 * max(dot(n, SUN), 0.0) + 0.1 * n.z;
     vec3 albedo = texture(u_materials, vec3(v_uv / u_repeat, u_layer)).rgb;
@@ -270,6 +271,10 @@ class CityPass:
         self._iprog: Any = iprog
         self._meshes: dict[tuple[int, str], moderngl.VertexArray] = {}
         self._tris: dict[tuple[int, str], int] = {}
+        #: Per mesh and per street-object model: its vertex, index and instance buffers (what
+        #: the label pass's vertex arrays are made of).
+        self._buffers: dict[Any, tuple[Any, Any, Any]] = {}
+        self._blocks = blocks
         for key, geo in model.geometry.items():
             if not len(geo.triangles):
                 continue
@@ -279,6 +284,7 @@ class CityPass:
                 ctx.vertex_array(prog, [(vbo, "3f 3f 2f", "in_pos", "in_normal", "in_uv")], ibo, 4)
             )
             self._meshes[key] = vao
+            self._buffers[key] = (vbo, ibo, None)
         self._models: dict[tuple[str, str], tuple[moderngl.VertexArray, int]] = {}
         #: Per street-object kind, its instances' storage buffer (the buffers' path).
         self._instances: dict[str, moderngl.Buffer] = {}
@@ -295,6 +301,7 @@ class CityPass:
                     layout.append((ibuf, "4f 1f/i", "in_inst", "in_heading"))
                 vao = self._keep(ctx.vertex_array(iprog, layout, ibo, 4))
                 self._models[(kind, mat)] = (vao, len(geo.triangles))
+                self._buffers[(kind, mat)] = (vbo, ibo, ibuf)
         # materials: one texture array, a layer each (deduplicated by name), mipmapped
         names = sorted({mat for _, mat in model.geometry} | {mat for _, mat in self._models}) or [
             "plaster"
@@ -343,8 +350,10 @@ class CityPass:
         self._frame = 0
         self.last = CityStats()
         self._node_queries = 0
-        #: Draw labels and normals (``Renderer.draw_labels``) instead of colours.
+        #: Draw labels and normals (``Renderer.draw_labels``) instead of colours: the label
+        #: variants of the programs and their vertex arrays, swapped in by ``use_labels``.
         self.labels = False
+        self._other: tuple[Any, Any, dict[Any, Any], dict[Any, Any]] | None = None
 
     def reset(self) -> None:
         """Forget last frame's visibility (occlusion culling starts from nothing seen)."""
@@ -395,8 +404,9 @@ class CityPass:
             prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))
             prog["u_rot"].write(np.ascontiguousarray(rot.T, np.float32))
             prog["u_offset"].write(np.asarray(offset, np.float32))
-            prog["u_sun"].write(sun.astype(np.float32))
-            prog["u_materials"].value = 0
+            if not self.labels:  # the label variants sample and light nothing
+                prog["u_sun"].write(sun.astype(np.float32))
+                prog["u_materials"].value = 0
         self._materials.use(0)
         self._bprog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))
 
@@ -405,6 +415,45 @@ class CityPass:
         if self.buffers:
             self._instances[kind].bind_to_storage_buffer(1)
 
+    def use_labels(self, on: bool) -> None:
+        """Draw with the label variants (normals and labels, ``render.labels``) or the colour
+        programs; the variants are made when first asked for."""
+        if on == self.labels:
+            return
+        if self._other is None:
+            self._other = self._label_variants()
+        mine = (self._prog, self._iprog, self._meshes, self._models)
+        self._prog, self._iprog, self._meshes, self._models = self._other
+        self._other = mine
+        self.labels = on
+
+    def _label_variants(self) -> tuple[Any, Any, dict[Any, Any], dict[Any, Any]]:
+        ctx, blocks = self.ctx, self._blocks
+        frag = _variant(_FRAGMENT, *blocks, "LABELS")
+        prog: Any = self._keep(
+            ctx.program(vertex_shader=_variant(_VERTEX, *blocks), fragment_shader=frag)
+        )
+        iprog: Any = self._keep(
+            ctx.program(vertex_shader=_variant(_VERTEX, "INSTANCED", *blocks), fragment_shader=frag)
+        )
+        if self.buffers:
+            for p in (prog, iprog):
+                p["Frame"].binding = 0
+        # the label variants read no texture coordinates: the linker drops them, the layout skips
+        attrs = ("3f 3f 8x", "in_pos", "in_normal")
+        meshes: dict[Any, Any] = {}
+        for mesh_key in self._meshes:
+            vbo, ibo, _ = self._buffers[mesh_key]
+            meshes[mesh_key] = self._keep(ctx.vertex_array(prog, [(vbo, *attrs)], ibo, 4))
+        models: dict[Any, Any] = {}
+        for model_key, (_, ntri) in self._models.items():
+            vbo, ibo, ibuf = self._buffers[model_key]
+            layout: list[Any] = [(vbo, *attrs)]
+            if not self.buffers:
+                layout.append((ibuf, "4f 1f/i", "in_inst", "in_heading"))
+            models[model_key] = (self._keep(ctx.vertex_array(iprog, layout, ibo, 4)), ntri)
+        return prog, iprog, meshes, models
+
     def _label(self, prog: Any, kind: str | None) -> None:
         """The label pass: ``prog`` draws ``kind``'s label (None: buildings)."""
         if self.labels:
@@ -412,6 +461,8 @@ class CityPass:
 
     def _use(self, prog: Any, mat: str) -> None:
         """Point ``prog`` at ``mat``'s layer of the material array."""
+        if self.labels:
+            return
         prog["u_layer"].value = float(self._layer[mat])
         prog["u_repeat"].value = material(mat).repeat
 
@@ -429,8 +480,6 @@ class CityPass:
     def _draw(self, camera: Camera, options: CityOptions, fbo: moderngl.Framebuffer) -> CityStats:
         self._fbo = fbo
         self._uniforms(camera)
-        for prog in (self._prog, self._iprog):
-            prog["u_labels"].value = int(self.labels)
         self._label(self._prog, None)
         self.ctx.enable_only(moderngl.DEPTH_TEST)
         if options.is_naive:

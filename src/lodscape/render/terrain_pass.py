@@ -133,15 +133,15 @@ void main() {
     ivec2 size = textureSize(u_tex, 0);
     ivec2 texel = clamp(ivec2(floor(v_uv * vec2(size))), ivec2(0), size - 1);
     if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
-    if (u_labels != 0) {
+#ifdef LABELS
 #ifdef HEIGHT_NORMALS
-        f_color = labelled(v_normal, v_view, u_class_label[0]);
+    f_color = labelled(v_normal, v_view, u_class_label[0]);
 #else
-        f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[0]);
+    f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[0]);
 #endif
-        f_dist = v_dist;
-        return;
-    }
+    f_dist = v_dist;
+    return;
+#endif
     if (underside(v_view)) {
         f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
         f_dist = v_dist;
@@ -180,15 +180,15 @@ void main() {
     ivec2 size = textureSize(u_tex, 0);
     int here = cls(ivec2(floor(v_uv * vec2(size))), size);
     if (here == 255) discard;
-    if (u_labels != 0) {
+#ifdef LABELS
 #ifdef HEIGHT_NORMALS
-        f_color = labelled(v_normal, v_view, u_class_label[here]);
+    f_color = labelled(v_normal, v_view, u_class_label[here]);
 #else
-        f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[here]);
+    f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[here]);
 #endif
-        f_dist = v_dist;
-        return;
-    }
+    f_dist = v_dist;
+    return;
+#endif
     if (underside(v_view)) {
         f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
         f_dist = v_dist;
@@ -243,7 +243,6 @@ uniform float u_c;         // |u_eye|^2 - 1, from float64 on the CPU
 uniform vec3 u_inv_axes;   // 1/a, 1/a, 1/b
 uniform vec3 u_sun;        // towards the sun, world
 uniform vec3 u_colour;
-uniform int u_labels;      // a dataset's pass: the normal (view space) and the no-data label
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
@@ -259,7 +258,11 @@ void main() {
     float t = u_c / (-b + sqrt(disc));
     vec3 n = normalize((u_eye + t * dp) * u_inv_axes);
     float light = 0.35 + 0.65 * max(dot(n, u_sun), 0.0);
-    f_color = u_labels != 0 ? vec4(n * u_to_world, NO_DATA_LABEL) : vec4(u_colour * light, 1.0);
+#ifdef LABELS
+    f_color = vec4(n * u_to_world, NO_DATA_LABEL);  // the view-space normal, the no-data label
+#else
+    f_color = vec4(u_colour * light, 1.0);
+#endif
     f_dist = t;
 }
 """
@@ -268,16 +271,18 @@ _ELLIPSOID_FRAGMENT = _ELLIPSOID_FRAGMENT.replace("NO_DATA_LABEL", f"{float(labe
 #: Colour of the ellipsoid where there is no terrain: the no-data grey, lit as the tint is.
 ELLIPSOID_GREY = (NODATA_GREY / 255.0,) * 3
 
-#: A dataset's second pass (``Renderer.draw_labels``): with ``u_labels`` 1 a fragment writes
-#: its view-space normal (towards the camera) and its semantic class (``LABELS``) into an
-#: RGBA32F target instead of its colour; ``u_class_label`` maps a ground class to its label.
+#: A dataset's second pass (``Renderer.draw_labels``): compiled with LABELS, a fragment writes
+#: its view-space normal (towards the camera) and its semantic class (``render.labels``) into
+#: an RGBA32F target instead of its colour; ``u_class_label`` maps a ground class to its label.
+#: A variant, not a branch: the colour programs carry none of it.
 _LABELS = """
-uniform int u_labels;
+#ifdef LABELS
 uniform float u_class_label[16];
 vec4 labelled(vec3 n, vec3 view, float label) {
     n = normalize(n);
     return vec4(dot(n, view) > 0.0 ? -n : n, label);
 }
+#endif
 """
 _FRAGMENT_SHADER = _FRAGMENT_SHADER.replace("UNDERSIDE_GLSL", _UNDERSIDE + _LABELS)
 _LANDCOVER_FRAGMENT_SHADER = _LANDCOVER_FRAGMENT_SHADER.replace(
@@ -383,9 +388,15 @@ class Renderer:
         self._indices: dict[int, tuple[moderngl.Buffer, int]] = {}
         make_current(self.ctx)
         fragment = _FRAGMENT_SHADER if ground == "imagery" else _LANDCOVER_FRAGMENT_SHADER
+        self._fragment = fragment
         self._program = self._track(
             self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=fragment)
         )
+        #: The label pass's variants (``draw_labels``), made when first asked for, and the
+        #: vertex arrays it makes for its tiles (released when it ends).
+        self._labels_prog: moderngl.Program | None = None
+        self._label_vaos: dict[int, moderngl.VertexArray] = {}
+        self._ellipsoid_labels: tuple[moderngl.Program, moderngl.VertexArray] | None = None
         self._u_mvp = self._uniform("u_mvp")
         self._u_rot = self._uniform("u_rot")
         self._u_offset = self._uniform("u_offset")
@@ -699,28 +710,80 @@ class Renderer:
         if self.ring:
             raise RuntimeError("draw_labels reads back at once: no read ring")
         stats = self.last_stats
+        main = self._program
+        self._bind(self._label_program())
+        if self._tess is not None:
+            self._tess.use_labels(True, labels.ground_labels(self._classes))
         try:
             out = self._draw(camera, items, None, after, labelled=True)
         finally:
-            self._set_labels(False)
+            self._bind(main)
+            if self._tess is not None:
+                self._tess.use_labels(False, labels.ground_labels(self._classes))
+            for vao in self._label_vaos.values():
+                self._free(vao)
+            self._label_vaos.clear()
             self.last_stats = stats
         return out  # type: ignore[return-value]
 
-    def _set_labels(self, on: bool) -> None:
-        programs = [self._program]
-        if self._tess is not None:
-            programs.append(self._tess.program)
-        if self._ellipsoid is not None:
-            programs.append(self._ellipsoid[0])
-        table = labels.ground_labels(self._classes)
-        for prog in programs:
-            u = prog.get("u_labels", None)
-            if isinstance(u, moderngl.Uniform):
-                u.value = int(on)
+    def _label_program(self) -> moderngl.Program:
+        """The label pass's variant of the terrain program (made when first asked for)."""
+        if self._labels_prog is None:
+            prog = self._track(
+                self.ctx.program(
+                    vertex_shader=_VERTEX_SHADER,
+                    fragment_shader=_with_define(self._fragment, "LABELS"),
+                )
+            )
+            self._set_units(prog)
             u = prog.get("u_class_label", None)
-            if on and isinstance(u, moderngl.Uniform):
+            if isinstance(u, moderngl.Uniform):
                 # the compiler keeps only the slots a shader reads (one, for imagery)
+                table = labels.ground_labels(self._classes)
                 u.write(table[: u.array_length].tobytes())
+            self._labels_prog = prog
+        return self._labels_prog
+
+    def _set_units(self, prog: moderngl.Program) -> None:
+        """A terrain program's samplers on their texture units."""
+        for unit, name in (
+            (0, "u_tex"),
+            (4, "u_ground_materials"),
+            *((LAYER_UNIT + i, f"u_layer{i}") for i in range(MAX_OVERLAYS)),
+        ):
+            u = prog.get(name, None)
+            if isinstance(u, moderngl.Uniform):
+                u.value = unit
+
+    def _bind(self, prog: moderngl.Program) -> None:
+        """Draw the CPU terrain with ``prog`` (the colour program or its label variant)."""
+        self._program = prog
+        self._u_mvp = self._uniform("u_mvp")
+        self._u_rot = self._uniform("u_rot")
+        self._u_offset = self._uniform("u_offset")
+        self._u_up = self._uniform("u_up")
+        self._u_skirt = self._uniform("u_skirt")
+        self._u_uv = self._uniform("u_uv")
+        self._u_morph = self._uniform("u_morph")
+
+    def _vao_of(self, key: int, tile: _Tile) -> moderngl.VertexArray:
+        """A tile's vertex array for the bound program: its own, or (the label pass) one made
+        for the pass over the same buffers."""
+        if self._program is tile.vao.program:
+            return tile.vao
+        vao = self._label_vaos.get(key)
+        if vao is None:
+            content: list[tuple[Any, ...]] = [(tile.vbo, *_VERTEX_FORMAT)]
+            if tile.morph is not None:
+                content.append((tile.morph, "3f", "in_morph"))
+            ibo = tile.ibo if tile.ibo is not None else self._indices[tile.segments][0]
+            vao = self._track(
+                self.ctx.vertex_array(  # type: ignore[no-untyped-call]
+                    self._program, content, index_buffer=ibo, index_element_size=4
+                )
+            )
+            self._label_vaos[key] = vao
+        return vao
 
     def _draw(
         self,
@@ -764,10 +827,7 @@ class Renderer:
         fbo.clear(float("inf"), 0.0, 0.0, 0.0)
         fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
         if self.ellipsoid:
-            self._ellipsoid_program()
-        self._set_labels(labelled)
-        if self.ellipsoid:
-            self._draw_ellipsoid(camera)
+            self._draw_ellipsoid(camera, labelled)
         # no culling: skirts and steep faces are seen from both sides
         ctx.enable_only(moderngl.DEPTH_TEST)
         ctx.wireframe = self.wireframe
@@ -778,7 +838,9 @@ class Renderer:
         tints = _tints([it.key for it in items], self.lod_colours)
         if self._materials is not None:
             self._materials.use(4)
-            self._uniform("u_sun").write(_sun_view(camera))
+            sun = self._program.get("u_sun", None)  # the label variant lights nothing
+            if isinstance(sun, moderngl.Uniform):
+                sun.write(_sun_view(camera))
         if self._tess is not None:
             if self._materials is not None:
                 self._tess.set_sun(_sun_view(camera))
@@ -819,23 +881,24 @@ class Renderer:
             self._u_uv.value = item.uv
             self._u_morph.value = float(item.morph) if ct.morph is not None else 0.0
             tex.use(0)
+            vao = self._vao_of(item.key, ct)
             if item.runs is None:
-                ct.vao.render(moderngl.TRIANGLES)
+                vao.render(moderngl.TRIANGLES)
                 triangles += ct.triangles
                 calls += 1
                 continue
             for first, count in item.runs:
-                ct.vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
+                vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
                 triangles += count
                 calls += 1
         self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
         return self._finish(camera, fbo, after, labelled)
 
-    def _draw_ellipsoid(self, camera: Camera) -> None:
+    def _draw_ellipsoid(self, camera: Camera, labelled: bool = False) -> None:
         """The ellipsoid behind everything (no depth written: any terrain drawn wins), its
         distance in the distance attachment where the terrain leaves it showing."""
         self.ctx.enable_only(moderngl.NOTHING)
-        p, vao = self._ellipsoid_program()
+        p, vao = self._ellipsoid_program(labelled)
         axes = np.array([WGS84_A, WGS84_A, WGS84_B])
         eye = camera.position / axes  # float64 until the upload
         ty = math.tan(math.radians(camera.fov_y) / 2.0)
@@ -855,15 +918,24 @@ class Renderer:
                 u.write(np.ascontiguousarray(value).tobytes())
         vao.render(moderngl.TRIANGLES, vertices=3)
 
-    def _ellipsoid_program(self) -> tuple[moderngl.Program, moderngl.VertexArray]:
-        if self._ellipsoid is None:
-            program = self._track(
-                self.ctx.program(
-                    vertex_shader=_ELLIPSOID_VERTEX, fragment_shader=_ELLIPSOID_FRAGMENT
-                )
+    def _ellipsoid_program(
+        self, labelled: bool = False
+    ) -> tuple[moderngl.Program, moderngl.VertexArray]:
+        """The ellipsoid's program (or its label variant) and its empty vertex array."""
+        got = self._ellipsoid_labels if labelled else self._ellipsoid
+        if got is None:
+            fragment = (
+                _with_define(_ELLIPSOID_FRAGMENT, "LABELS") if labelled else _ELLIPSOID_FRAGMENT
             )
-            self._ellipsoid = (program, self._track(self.ctx.vertex_array(program, [])))
-        return self._ellipsoid
+            program = self._track(
+                self.ctx.program(vertex_shader=_ELLIPSOID_VERTEX, fragment_shader=fragment)
+            )
+            got = (program, self._track(self.ctx.vertex_array(program, [])))
+            if labelled:
+                self._ellipsoid_labels = got
+            else:
+                self._ellipsoid = got
+        return got
 
     def _layers(self, item: DrawItem) -> list[tuple[moderngl.Texture, tuple[float, float, float]]]:
         """A tile's imagery layers as textures: a layer tile not uploaded (failed, or not in
@@ -964,10 +1036,14 @@ class Renderer:
             self._tess.close()
             self._tess = None
         self._free(self._clear)
-        if self._ellipsoid is not None:
-            self._free(self._ellipsoid[1])
-            self._free(self._ellipsoid[0])
-            self._ellipsoid = None
+        for pair in (self._ellipsoid, self._ellipsoid_labels):
+            if pair is not None:
+                self._free(pair[1])
+                self._free(pair[0])
+        self._ellipsoid = self._ellipsoid_labels = None
+        if self._labels_prog is not None:
+            self._free(self._labels_prog)
+            self._labels_prog = None
         self._free(self._program)
         self._closed = True
         if self._owns_ctx:
@@ -1051,6 +1127,12 @@ class Renderer:
             self._free(target.colour_fbo)
         for obj in (target.fbo, target.color, target.dist, target.depth):
             self._free(obj)
+
+
+def _with_define(source: str, name: str) -> str:
+    """A shader's source with ``#define name`` after its version line."""
+    head, _, rest = source.lstrip("\n").partition("\n")
+    return f"{head}\n#define {name}\n{rest}"
 
 
 def _ground_windows(keys: Sequence[int], camera: Camera) -> list[tuple[float, float, float]]:

@@ -271,18 +271,35 @@ class TessTerrain:
                 f"({ctx.info.get('GL_RENDERER', '?')}) offers {ctx.version_code / 100:.1f}"
             )
         self.ctx = ctx
-        frag = fragment_shader.replace("#version 330", "#version 410\n#define HEIGHT_NORMALS")
-        self.program = ctx.program(
+        self._fragment = fragment_shader
+        self.program, self._p = self._make_program(())
+        #: The label pass's program, its uniforms and its patches (made when first asked for),
+        #: swapped in by ``use_labels``.
+        self._other: tuple[Any, dict[str, moderngl.Uniform], dict[int, Any]] | None = None
+        self.labelling = False
+        self._tiles: dict[int, _Tile] = {}
+        self._frames: OrderedDict[tuple[int, int, int], moderngl.Texture] = OrderedDict()
+        self._patches: dict[int, tuple[moderngl.Buffer, moderngl.VertexArray, int]] = {}
+        self._query = ctx.query(primitives=True)
+        self.px_per_segment = 4.0
+
+    def _make_program(
+        self, defines: tuple[str, ...]
+    ) -> tuple[moderngl.Program, dict[str, moderngl.Uniform]]:
+        head = "\n".join(
+            ["#version 410", "#define HEIGHT_NORMALS", *(f"#define {d}" for d in defines)]
+        )
+        program = self.ctx.program(
             vertex_shader=_VERTEX,
             tess_control_shader=_CONTROL,
             tess_evaluation_shader=_EVALUATION,
-            fragment_shader=frag,
+            fragment_shader=self._fragment.replace("#version 330", head),
         )
-        self._p: dict[str, moderngl.Uniform] = {}
-        for name in self.program:
-            member = self.program[name]
+        p: dict[str, moderngl.Uniform] = {}
+        for name in program:
+            member = program[name]
             if isinstance(member, moderngl.Uniform):
-                self._p[name] = member
+                p[name] = member
         for unit, name in (
             (0, "u_tex"),
             (1, "u_frame"),
@@ -291,13 +308,25 @@ class TessTerrain:
             (4, "u_ground_materials"),
             *((LAYER_UNIT + i, f"u_layer{i}") for i in range(MAX_OVERLAYS)),
         ):
-            if name in self._p:
-                self._p[name].value = unit
-        self._tiles: dict[int, _Tile] = {}
-        self._frames: OrderedDict[tuple[int, int, int], moderngl.Texture] = OrderedDict()
-        self._patches: dict[int, tuple[moderngl.Buffer, moderngl.VertexArray, int]] = {}
-        self._query = ctx.query(primitives=True)
-        self.px_per_segment = 4.0
+            if name in p:
+                p[name].value = unit
+        return program, p
+
+    def use_labels(self, on: bool, class_labels: NDArray[np.float32]) -> None:
+        """Draw with the label pass's program (normals and labels, ``render.labels``) or the
+        colour one; ``class_labels`` maps a ground class to its label."""
+        if on == self.labelling:
+            return
+        if self._other is None:
+            program, p = self._make_program(("LABELS",))
+            self._other = (program, p, {})
+        mine = (self.program, self._p, self._patches)
+        self.program, self._p, self._patches = self._other
+        self._other = mine
+        self.labelling = on
+        u = self._p.get("u_class_label")
+        if on and u is not None:
+            u.write(class_labels[: u.array_length].tobytes())
 
     # --- resources --------------------------------------------------------------------------
 
@@ -343,11 +372,14 @@ class TessTerrain:
         for tex in self._frames.values():
             tex.release()
         self._frames.clear()
-        for buf, vao, _ in self._patches.values():
-            vao.release()
-            buf.release()
-        self._patches.clear()
-        self.program.release()
+        spare = [] if self._other is None else [self._other]
+        for program, _, patches in [(self.program, self._p, self._patches), *spare]:
+            for buf, vao, _ in patches.values():
+                vao.release()
+                buf.release()
+            patches.clear()
+            program.release()
+        self._other = None
 
     def _frame(self, z: int, y: int, s: int) -> moderngl.Texture:
         key = (z, y, s)
