@@ -232,8 +232,9 @@ def test_a_thousand_draws_leak_no_gl_objects(gl_ctx: Any) -> None:
             counts.append(r.live_objects())
     assert gl_ctx.error == "GL_NO_ERROR"
     # program + the clear layer texture + the ellipsoid's program and VAO + two index buffers +
-    # two tiles x (VBO, VAO, texture) + FBO with three attachments
-    assert counts == [1 + 1 + 2 + 2 + 2 * 3 + 4] * 250
+    # two tiles x (VBO, VAO, texture) + FBO with three attachments; the textures have nothing
+    # to cut, so the variant without a discard too: its program and a VAO per tile
+    assert counts == [1 + 1 + 2 + 2 + 2 * 3 + 4 + 1 + 2] * 250
     r.close()
     assert r.live_objects() == 0
     r.close()  # idempotent
@@ -335,3 +336,28 @@ def test_the_ellipsoid_stands_behind_the_terrain(gl_ctx: Any, alt: float, pitch:
             look = Camera(LON, LAT, 500.0, pitch=-90, width=32, height=32).with_clip(1.0, 1e4)
             _, d2 = r.draw(look, [_item(1, 0.0)])
             assert float(np.median(d2)) == pytest.approx(800.0, abs=2.0)
+
+
+def test_tiles_with_nothing_to_cut_draw_the_same_without_the_discard(gl_ctx: Any) -> None:
+    """A texture with alpha everywhere is drawn by the variant without a discard (the depth
+    test may run first): the picture and distance are those of the cutting program."""
+    r = Renderer(96, 64, ctx=gl_ctx)
+    try:
+        textures = [np.full((32, 32, 3), 50 + 60 * k, np.uint8) for k in range(3)]
+        for k in range(3):
+            r.upload(_patch(k, lon=LON + 0.004 * k, segments=16))
+            r.upload_texture(k + TEX, textures[k])
+        cam = Camera(LON + 0.004, LAT - 0.01, H + 600.0, pitch=-35, width=96, height=64)
+        cam = cam.with_clip(1.0, 2e4)
+        items = [_item(k, 5.0) for k in range(3)]
+        assert r._whole == {TEX, TEX + 1, TEX + 2}
+        rgb_whole, d_whole = r.draw(cam, items)
+        whole = set(r._whole)
+        r._whole.clear()  # as if every texture had something to cut
+        rgb_cut, d_cut = r.draw(cam, items)
+        r._whole.update(whole)
+        np.testing.assert_array_equal(rgb_whole, rgb_cut)
+        np.testing.assert_array_equal(d_whole, d_cut)
+        assert np.isfinite(d_whole).mean() > 0.3
+    finally:
+        r.close()

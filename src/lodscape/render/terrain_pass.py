@@ -130,9 +130,13 @@ void main() {
     // read from the base level's nearest texel: mipmaps average it with the no-data around, and
     // a steep face seen edge-on (a coarse mip) would otherwise be cut open (textureLod does
     // the same but is pathologically slow on llvmpipe)
+#ifndef WHOLE
+    // (the WHOLE variant draws tiles whose texture has no such texel: no discard at all, so
+    // the depth test may run before the shader)
     ivec2 size = textureSize(u_tex, 0);
     ivec2 texel = clamp(ivec2(floor(v_uv * vec2(size))), ivec2(0), size - 1);
     if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
+#endif
 #ifdef LABELS
 #ifdef HEIGHT_NORMALS
     f_color = labelled(v_normal, v_view, u_class_label[0]);
@@ -396,6 +400,11 @@ class Renderer:
         #: vertex arrays it makes for its tiles (released when it ends).
         self._labels_prog: moderngl.Program | None = None
         self._label_vaos: dict[int, moderngl.VertexArray] = {}
+        #: Texture keys with no texel to cut (alpha everywhere), the program variant that
+        #: draws their tiles without a discard, and its vertex arrays per tile.
+        self._whole: set[int] = set()
+        self._whole_prog: moderngl.Program | None = None
+        self._whole_vaos: dict[int, moderngl.VertexArray] = {}
         self._ellipsoid_labels: tuple[moderngl.Program, moderngl.VertexArray] | None = None
         self._u_mvp = self._uniform("u_mvp")
         self._u_rot = self._uniform("u_rot")
@@ -641,6 +650,8 @@ class Renderer:
             tex.anisotropy = self._anisotropy
         # a full mip chain adds a third to the base level
         self._textures[key] = (tex, image.nbytes * 4 // 3)
+        if image.shape[2] == 3 or bool((image[..., 3] >= 128).all()):
+            self._whole.add(key)  # nothing to cut: its tiles draw without a discard
 
     def release(self, key: int) -> None:
         """Free the GL objects of mesh or texture ``key`` (one not resident is ignored)."""
@@ -648,6 +659,10 @@ class Renderer:
         texture = self._textures.pop(key, None)
         if texture is not None:
             self._free(texture[0])
+        self._whole.discard(key)
+        whole_vao = self._whole_vaos.pop(key, None)
+        if whole_vao is not None:
+            self._free(whole_vao)
         if self._gpu_tiles.pop(key, None) is not None:
             assert self._tess is not None
             self._tess.release(key)
@@ -771,7 +786,8 @@ class Renderer:
         for the pass over the same buffers."""
         if self._program is tile.vao.program:
             return tile.vao
-        vao = self._label_vaos.get(key)
+        made = self._whole_vaos if self._program is self._whole_prog else self._label_vaos
+        vao = made.get(key)
         if vao is None:
             content: list[tuple[Any, ...]] = [(tile.vbo, *_VERTEX_FORMAT)]
             if tile.morph is not None:
@@ -782,8 +798,21 @@ class Renderer:
                     self._program, content, index_buffer=ibo, index_element_size=4
                 )
             )
-            self._label_vaos[key] = vao
+            made[key] = vao
         return vao
+
+    def _whole_program(self) -> moderngl.Program:
+        """The colour program without the cut (made when first asked for)."""
+        if self._whole_prog is None:
+            prog = self._track(
+                self.ctx.program(
+                    vertex_shader=_VERTEX_SHADER,
+                    fragment_shader=_with_define(self._fragment, "WHOLE"),
+                )
+            )
+            self._set_units(prog)
+            self._whole_prog = prog
+        return self._whole_prog
 
     def _draw(
         self,
@@ -855,24 +884,33 @@ class Renderer:
             )
             self.last_stats = DrawStats(calls, triangles, submit_s * 1e3)
             return self._finish(camera, fbo, after, labelled)
-        self._u_rot.write(np.ascontiguousarray(rot.T, dtype=np.float32))
         triangles = calls = 0
         cpu_tiles = [t for t in tiles if isinstance(t, _Tile)]
         view_projections = [camera.view_projection(tile.center) for tile in cpu_tiles]
-        u_ground = self._program.get("u_ground", None)
-        u_tint = self._program.get("u_tint", None)
-        u_layers = self._program.get("u_layers", None)
-        uniforms = {"u_layer_uv": self._program.get("u_layer_uv", None)}
-        if isinstance(u_layers, moderngl.Uniform):
-            u_layers.value = len(layers[0]) if layers else 0
-        for item, ct, tex, mvp, g, tint, lay in zip(
-            items, cpu_tiles, textures, view_projections, ground, tints, layers, strict=True
-        ):
-            bind_layers(uniforms, lay)
-            if isinstance(u_ground, moderngl.Uniform):
-                u_ground.value = g
-            if isinstance(u_tint, moderngl.Uniform):
-                u_tint.value = tint
+        # tiles whose texture has nothing to cut first, by the variant without a discard
+        main = self._program
+        whole = [
+            self.ground == "imagery" and not labelled and item.texture in self._whole
+            for item in items
+        ]
+        order = [i for i, w in enumerate(whole) if w] + [i for i, w in enumerate(whole) if not w]
+        uniforms: dict[str, Any] = {}
+        for n, i in enumerate(order):
+            if n == 0 or whole[i] != whole[order[n - 1]]:
+                self._bind(self._whole_program() if whole[i] else main)
+                self._u_rot.write(np.ascontiguousarray(rot.T, dtype=np.float32))
+                uniforms = {
+                    name: self._program.get(name, None)
+                    for name in ("u_ground", "u_tint", "u_layers", "u_layer_uv")
+                }
+                if isinstance(uniforms["u_layers"], moderngl.Uniform):
+                    uniforms["u_layers"].value = len(layers[0]) if layers else 0
+            item, ct, tex, mvp = items[i], cpu_tiles[i], textures[i], view_projections[i]
+            bind_layers(uniforms, layers[i])
+            if isinstance(uniforms["u_ground"], moderngl.Uniform):
+                uniforms["u_ground"].value = ground[i]
+            if isinstance(uniforms["u_tint"], moderngl.Uniform):
+                uniforms["u_tint"].value = tints[i]
             # GLSL matrices are column-major: upload the transpose of the row-major numpy one
             self._u_mvp.write(np.ascontiguousarray(mvp.T, dtype=np.float32))
             self._u_offset.write(np.asarray(_view_offset(rot, ct.center, camera), np.float32))
@@ -891,6 +929,8 @@ class Renderer:
                 vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
                 triangles += count
                 calls += 1
+        if self._program is not main:
+            self._bind(main)
         self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
         return self._finish(camera, fbo, after, labelled)
 
@@ -1041,9 +1081,13 @@ class Renderer:
                 self._free(pair[1])
                 self._free(pair[0])
         self._ellipsoid = self._ellipsoid_labels = None
-        if self._labels_prog is not None:
-            self._free(self._labels_prog)
-            self._labels_prog = None
+        for vao in self._whole_vaos.values():
+            self._free(vao)
+        self._whole_vaos.clear()
+        for prog in (self._labels_prog, self._whole_prog):
+            if prog is not None:
+                self._free(prog)
+        self._labels_prog = self._whole_prog = None
         self._free(self._program)
         self._closed = True
         if self._owns_ctx:
