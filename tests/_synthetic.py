@@ -285,3 +285,77 @@ def _reprojected(d0: np.ndarray, c0: Any, d1: np.ndarray, c1: Any) -> np.ndarray
     idx = np.nonzero(ok)
     out[idx[0][smooth], idx[1][smooth]] = np.abs(got - z[ok])[smooth] * c1.scale / z[ok][smooth]
     return out
+
+
+def periodic_fbm(n: int, seed: int = 3, relief: float = 800.0) -> NDArray[np.float32]:
+    """Spectral fBm of period n (Hurst 0.8), n + 1 samples a side (the first row and column
+    repeated): copies side by side join without a seam."""
+    rng = np.random.default_rng(seed)
+    k = np.hypot(*np.meshgrid(np.fft.fftfreq(n), np.fft.fftfreq(n)))
+    k[0, 0] = 1.0
+    spectrum = (rng.standard_normal((n, n)) + 1j * rng.standard_normal((n, n))) * k**-1.8
+    spectrum[0, 0] = 0.0
+    h = np.fft.ifft2(spectrum).real
+    h = (h - h.min()) / (h.max() - h.min()) * relief + 200.0
+    return np.pad(h, ((0, 1), (0, 1)), mode="wrap").astype(np.float32)
+
+
+def mosaic_dem(folder: Path, copies: int, tile: int = 1024) -> Path:
+    """A VRT of copies² copies of a seamless (tile + 1)² fBm GeoTIFF (2 m, UTM 17N): a raw DEM
+    of (tile · copies + 1)² pixels, read through GDAL as any user's file, a few MB on disk."""
+    from html import escape
+
+    import rasterio
+
+    base = folder / "tile.tif"
+    write_dem(str(base), periodic_fbm(tile), crs="EPSG:32617", west=500000.0,
+              north=4000000.0, res=2.0)  # fmt: skip
+    with rasterio.open(base) as ds:
+        wkt = ds.crs.to_wkt()
+    size = tile * copies + 1
+    sources = "".join(
+        f'<SimpleSource><SourceFilename relativeToVRT="1">tile.tif</SourceFilename>'
+        f"<SourceBand>1</SourceBand>"
+        f'<SrcRect xOff="0" yOff="0" xSize="{tile + 1}" ySize="{tile + 1}"/>'
+        f'<DstRect xOff="{i * tile}" yOff="{j * tile}" xSize="{tile + 1}" ySize="{tile + 1}"/>'
+        "</SimpleSource>"
+        for j in range(copies)
+        for i in range(copies)
+    )
+    vrt = folder / f"mosaic{size}.vrt"
+    vrt.write_text(
+        f'<VRTDataset rasterXSize="{size}" rasterYSize="{size}"><SRS>{escape(wkt)}</SRS>'
+        "<GeoTransform>500000.0, 2.0, 0.0, 4000000.0, 0.0, -2.0</GeoTransform>"
+        f'<VRTRasterBand dataType="Float32" band="1">{sources}</VRTRasterBand></VRTDataset>'
+    )
+    return vrt
+
+
+#: Run as ``python -c PEAK_PROBE DEM`` in a fresh process: open DEM, render its overview at
+#: 320×200, print JSON of the process's own peak RSS (VmHWM: getrusage's maxrss keeps a
+#: parent's peak across exec), the open and render times, the raster's shape and its sidecar.
+PEAK_PROBE = """
+import json, sys, time
+import lodscape
+
+def hwm():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+
+t = time.perf_counter()
+scene = lodscape.open(sys.argv[1])
+opened = time.perf_counter() - t
+t = time.perf_counter()
+rgb, depth = scene.render(scene.overview_camera(320, 200))
+src = scene.source.source
+print(json.dumps({
+    "peak_mb": hwm(),
+    "open_s": opened,
+    "render_s": time.perf_counter() - t,
+    "shape": list(src.shape),
+    "sidecar": getattr(src, "sidecar", None),
+    "ground": float((depth < 1e30).mean()),
+    "tiles": scene.last.selection["tiles"],
+}))
+"""

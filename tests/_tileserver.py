@@ -19,11 +19,14 @@ import io
 import re
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 
 import numpy as np
 
-__all__ = ["TileServer", "tile_colour"]
+__all__ = ["TileServer", "serve_tileset", "tile_colour"]
 
 
 def tile_colour(z: int, x: int, y: int) -> tuple[int, int, int]:
@@ -190,3 +193,42 @@ class TileServer:
     def close(self) -> None:
         self.httpd.shutdown()
         self.httpd.server_close()
+
+
+@contextmanager
+def serve_tileset(site: Path) -> Iterator[str]:
+    """``lodscape serve``'s app over ``site`` on a free loopback port, on its own thread: its
+    base URL while the block runs."""
+    import asyncio
+    import socket
+
+    from aiohttp import web
+
+    from lodscape.serve import TileService, make_app
+
+    service = TileService(site)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    loop = asyncio.new_event_loop()
+    runner = web.AppRunner(make_app(service))
+    ready = threading.Event()
+
+    def serve() -> None:
+        asyncio.set_event_loop(loop)
+        loop.run_until_complete(runner.setup())
+        loop.run_until_complete(web.TCPSite(runner, "127.0.0.1", port).start())
+        ready.set()
+        loop.run_forever()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    assert ready.wait(30)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        asyncio.run_coroutine_threadsafe(runner.cleanup(), loop).result(30)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(30)
+        loop.close()
+        service.close()

@@ -4,11 +4,9 @@ flight with no local file, and one-line errors for servers that fail."""
 
 from __future__ import annotations
 
-import asyncio
 import io
 import json
 import math
-import socket
 import threading
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -19,18 +17,13 @@ import pytest
 
 import lodscape
 from _synthetic import fbm_tileset, run_cli
+from _tileserver import serve_tileset
 from lodscape.dataset import Origin, conventions
 from lodscape.geo.frames import ecef_to_geodetic, geodetic_to_ecef
 from lodscape.geo.tiles import ORIGIN, lonlat_to_merc, merc_to_lonlat
 from lodscape.store.remote import interpolate_mesh, level_error, open_server
 
 pytestmark = pytest.mark.gl
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")
@@ -41,32 +34,8 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def served(site: Path) -> Iterator[str]:
     """``lodscape serve``'s app on loopback."""
-    from aiohttp import web
-
-    from lodscape.serve import TileService, make_app
-
-    service = TileService(site)
-    port = _free_port()
-    loop = asyncio.new_event_loop()
-    runner = web.AppRunner(make_app(service))
-    ready = threading.Event()
-
-    def serve() -> None:
-        asyncio.set_event_loop(loop)
-        loop.run_until_complete(runner.setup())
-        loop.run_until_complete(web.TCPSite(runner, "127.0.0.1", port).start())
-        ready.set()
-        loop.run_forever()
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    assert ready.wait(30)
-    yield f"http://127.0.0.1:{port}"
-    asyncio.run_coroutine_threadsafe(runner.cleanup(), loop).result(30)
-    loop.call_soon_threadsafe(loop.stop)
-    thread.join(30)
-    loop.close()
-    service.close()
+    with serve_tileset(site) as url:
+        yield url
 
 
 def _camera(site: Path) -> lodscape.Camera:

@@ -12,7 +12,6 @@ import sqlite3
 import struct
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import closing
@@ -24,9 +23,9 @@ import numpy as np
 import pytest
 
 from _synthetic import helsinki_tileset
+from _tileserver import serve_tileset
 from lodscape.cli import main
 from lodscape.data import sample_city_path
-from lodscape.serve import TileService, make_app
 from lodscape.store.quantized_mesh import decode
 
 
@@ -45,30 +44,8 @@ def _free_port() -> int:
 
 @pytest.fixture(scope="module")
 def server(site: Path) -> Iterator[str]:
-    from aiohttp import web
-
-    service = TileService(site)
-    port = _free_port()
-    loop = asyncio.new_event_loop()
-    runner = web.AppRunner(make_app(service))
-    ready = threading.Event()
-
-    def serve() -> None:
-        asyncio.set_event_loop(loop)
-        loop.run_until_complete(runner.setup())
-        loop.run_until_complete(web.TCPSite(runner, "127.0.0.1", port).start())
-        ready.set()
-        loop.run_forever()
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    assert ready.wait(30)
-    yield f"http://127.0.0.1:{port}"
-    asyncio.run_coroutine_threadsafe(runner.cleanup(), loop).result(30)
-    loop.call_soon_threadsafe(loop.stop)
-    thread.join(30)
-    loop.close()
-    service.close()
+    with serve_tileset(site) as url:
+        yield url
 
 
 def _some_tile(site: Path, table: str) -> tuple[int, int, int]:

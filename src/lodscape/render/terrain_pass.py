@@ -406,18 +406,8 @@ class Renderer:
         self._whole_prog: moderngl.Program | None = None
         self._whole_vaos: dict[int, moderngl.VertexArray] = {}
         self._ellipsoid_labels: tuple[moderngl.Program, moderngl.VertexArray] | None = None
-        self._u_mvp = self._uniform("u_mvp")
-        self._u_rot = self._uniform("u_rot")
-        self._u_offset = self._uniform("u_offset")
-        self._u_up = self._uniform("u_up")
-        self._u_skirt = self._uniform("u_skirt")
-        self._u_uv = self._uniform("u_uv")
-        self._u_morph = self._uniform("u_morph")
-        self._uniform("u_tex").value = 0
-        for i in range(MAX_OVERLAYS):
-            u = self._program.get(f"u_layer{i}", None)
-            if isinstance(u, moderngl.Uniform):
-                u.value = LAYER_UNIT + i
+        self._bind(self._program)
+        self._set_units(self._program)
         # what an imagery layer shows where it has no tile (yet): nothing
         self._clear = self._track(self.ctx.texture((1, 1), 4, bytes(4)))
         #: Draw the ellipsoid (height 0) behind the terrain: the world outside the data.
@@ -744,13 +734,7 @@ class Renderer:
     def _label_program(self) -> moderngl.Program:
         """The label pass's variant of the terrain program (made when first asked for)."""
         if self._labels_prog is None:
-            prog = self._track(
-                self.ctx.program(
-                    vertex_shader=_VERTEX_SHADER,
-                    fragment_shader=_with_define(self._fragment, "LABELS"),
-                )
-            )
-            self._set_units(prog)
+            prog = self._variant("LABELS")
             u = prog.get("u_class_label", None)
             if isinstance(u, moderngl.Uniform):
                 # the compiler keeps only the slots a shader reads (one, for imagery)
@@ -804,15 +788,18 @@ class Renderer:
     def _whole_program(self) -> moderngl.Program:
         """The colour program without the cut (made when first asked for)."""
         if self._whole_prog is None:
-            prog = self._track(
-                self.ctx.program(
-                    vertex_shader=_VERTEX_SHADER,
-                    fragment_shader=_with_define(self._fragment, "WHOLE"),
-                )
-            )
-            self._set_units(prog)
-            self._whole_prog = prog
+            self._whole_prog = self._variant("WHOLE")
         return self._whole_prog
+
+    def _variant(self, define: str) -> moderngl.Program:
+        """The terrain program compiled with ``define``, its samplers on their units."""
+        prog = self._track(
+            self.ctx.program(
+                vertex_shader=_VERTEX_SHADER, fragment_shader=_with_define(self._fragment, define)
+            )
+        )
+        self._set_units(prog)
+        return prog
 
     def _draw(
         self,
