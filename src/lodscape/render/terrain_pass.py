@@ -403,6 +403,9 @@ class Renderer:
         #: Texture keys with no texel to cut (alpha everywhere), the program variant that
         #: draws their tiles without a discard, and its vertex arrays per tile.
         self._whole: set[int] = set()
+        #: Draw the tiles whose texture has nothing to cut by the variant without a discard
+        #: (False: every tile by the cutting program, as before; for the benchmark).
+        self.no_discard = True
         self._whole_prog: moderngl.Program | None = None
         self._whole_vaos: dict[int, moderngl.VertexArray] = {}
         self._ellipsoid_labels: tuple[moderngl.Program, moderngl.VertexArray] | None = None
@@ -877,7 +880,10 @@ class Renderer:
         # tiles whose texture has nothing to cut first, by the variant without a discard
         main = self._program
         whole = [
-            self.ground == "imagery" and not labelled and item.texture in self._whole
+            self.no_discard
+            and self.ground == "imagery"
+            and not labelled
+            and item.texture in self._whole
             for item in items
         ]
         order = [i for i, w in enumerate(whole) if w] + [i for i, w in enumerate(whole) if not w]
