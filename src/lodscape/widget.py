@@ -41,9 +41,10 @@ function render({ model, el }) {
   let url = null;
   let busy = false;
   const show = () => {
-    const data = model.get("frame");
+    const data = model.get("frame");  // a DataView over the message's buffer
     if (data && data.byteLength) {
-      const blob = new Blob([data.buffer ? data.buffer : data], { type: "image/jpeg" });
+      const bytes = new Uint8Array(data.buffer, data.byteOffset, data.byteLength);
+      const blob = new Blob([bytes], { type: "image/jpeg" });
       if (url) URL.revokeObjectURL(url);
       url = URL.createObjectURL(blob);
       img.src = url;
