@@ -180,7 +180,9 @@ def terrarium() -> Iterator[_Terrarium]:
     server.close()
 
 
-def test_terrarium_heights_are_the_servers(terrarium: _Terrarium, tmp_path: Path) -> None:
+def test_terrarium_heights_are_the_servers(
+    terrarium: _Terrarium, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     spec = f"terrarium:{MAXZOOM}:{terrarium.url}/{{z}}/{{x}}/{{y}}.png"
     heights, tree = open_server(spec, cache_dir=tmp_path)
     try:
@@ -196,6 +198,9 @@ def test_terrarium_heights_are_the_servers(terrarium: _Terrarium, tmp_path: Path
         # outside what the server has: no data, not a made-up height
         _h2, ok2 = heights.sample(*lonlat_to_merc(np.array([9.0]), np.array([46.0])), 10.0)
         assert not ok2.any()
+        heights.sample(*lonlat_to_merc(np.array([9.5]), np.array([46.5])), 10.0)
+        said = capsys.readouterr().err
+        assert said.count("a hole is drawn") == 1, said  # the first missing tile, said once
         assert tree.zmax == MAXZOOM
         assert level_error(0, 64) == pytest.approx(6378137.0 * 2 * math.pi * 0.25 / 65)
     finally:

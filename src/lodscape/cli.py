@@ -130,7 +130,10 @@ ImageryStrictOpt = Annotated[
 ]
 CacheOpt = Annotated[
     Path | None,
-    typer.Option(help="Folder for the imagery cache (default: $XDG_CACHE_HOME/lodscape)."),
+    typer.Option(
+        help="Folder for the imagery cache (default: $LODSCAPE_CACHE, else "
+        "$XDG_CACHE_HOME/lodscape)."
+    ),
 ]
 
 
@@ -1214,10 +1217,8 @@ def view(
             from lodscape.view import load_camera
 
             camera = load_camera(camera_file, w, h)
-        elif opened.city is not None:
-            camera = opened.city_camera(w, h, fov)
         else:
-            camera = opened.overview_camera(w, h, fov)
+            camera = opened.default_camera(w, h, fov)
         lattice = parse_source(source).has_lattice
 
         def other(with_detail: bool) -> Scene:

@@ -249,6 +249,8 @@ class Scene:
         self.city: Any = None
         self.city_options: Any = None
         self._city_pass: Any = None
+        #: The last frame's camera, its clip distances fitted (what ``capture`` reports).
+        self._drawn: Camera | None = None
         self.last: FrameStats | None = None
         self._said_late = False
 
@@ -284,12 +286,15 @@ class Scene:
         """Render ``camera`` (default: the overview at ``width``×``height``, or the city's
         camera when a city is draped) as a ``Picture``, which a notebook shows inline."""
         if camera is None:
-            if self.city is not None:
-                camera = self.city_camera(width, height)
-            else:
-                camera = self.overview_camera(width, height)
+            camera = self.default_camera(width, height)
         rgb, depth = self.render(camera)
         return Picture(rgb, depth, camera)
+
+    def default_camera(self, width: int = 1280, height: int = 720, fov_y: float = 60.0) -> Camera:
+        """The city's camera where a city is draped, else the overview."""
+        if self.city is not None:
+            return self.city_camera(width, height, fov_y)
+        return self.overview_camera(width, height, fov_y)
 
     def widget(self, camera: Camera | None = None, width: int = 640, height: int = 400) -> Any:
         """A notebook widget showing ``camera`` (default: ``show()``'s) that the user flies
@@ -337,7 +342,8 @@ class Scene:
         # the GL's view axes (x right, y up, z backwards) to OpenCV's (x right, y down, z ahead)
         normals = got[..., :3] * np.array([1.0, -1.0, -1.0], np.float32)
         labels = np.rint(got[..., 3]).clip(0, 255).astype(np.uint8)
-        return Capture(rgb, dist, np.ascontiguousarray(normals), labels, self.prepare(camera))
+        assert self._drawn is not None
+        return Capture(rgb, dist, np.ascontiguousarray(normals), labels, self._drawn)
 
     def render_behind(self, camera: Camera, ring: int = 3) -> NDArray[np.uint8] | None:
         """Render ``camera`` and return the picture of ``ring - 1`` frames before (None for the
@@ -399,6 +405,7 @@ class Scene:
         rgb, dist = renderer.draw(
             cam, items, background=self._options.background, after=self._city_passes(renderer)
         )
+        self._drawn = cam
         labelled = None
         if labels:
             # the same items and passes again, drawing normals and labels

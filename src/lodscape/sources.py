@@ -19,6 +19,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape._cache import user_cache
 from lodscape.errors import LodscapeError, SourceError
 from lodscape.scene import Scene, SceneOptions
 from lodscape.store.provider import FractalProvider, Provider, RasterProvider
@@ -223,10 +224,7 @@ class _Ground:
 
 def _cache_dir(cache: str | PathLike[str] | None) -> Path:
     """Where HTTP tiles are kept: the given folder, else the user's cache."""
-    if cache is not None:
-        return Path(cache)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
-    return Path(base) / "lodscape"
+    return Path(cache) if cache is not None else user_cache()
 
 
 def _terrain(

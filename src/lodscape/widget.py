@@ -124,7 +124,7 @@ class SceneWidget(anywidget.AnyWidget):  # type: ignore[misc]
             raise ValueError(f"Expected a positive size, got {width}x{height}")
         self.scene = scene
         if camera is None:
-            camera = scene.show(None, width, height).camera
+            camera = scene.default_camera(width, height)
         self._camera = camera.moved(width=width, height=height)
         self.quality = int(quality)
         self.picture: Any = None

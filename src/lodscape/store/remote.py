@@ -18,7 +18,7 @@ import io
 import json
 import math
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,6 +32,7 @@ from lodscape.errors import SourceError
 from lodscape.geo.frames import WGS84_A
 from lodscape.geo.keys import grid_of, is_texture, tile_of
 from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, merc_to_lonlat, tile_size
+from lodscape.imagery.layers import warn_stderr
 from lodscape.imagery.sources import HttpSource, ImageryError, TileCache, TileMissing
 from lodscape.store.provider import RasterProvider
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, QuantizedMeshError, decode
@@ -109,8 +110,10 @@ class ServerTiles:
         available: list[list[tuple[int, int, int, int]]] | None = None,
         cache: TileCache | None = None,
         timeout: float = 10.0,
+        warn: Callable[[str], None] = warn_stderr,
     ) -> None:
         self.name = name
+        self._warn = warn
         self.kind = kind
         self.geographic = geographic
         self.tms = tms
@@ -132,6 +135,7 @@ class ServerTiles:
         self._decoded: ByteLRU[tuple[int, int, int], _Mesh | _Raster | None] = ByteLRU()
         self._lock = threading.Lock()
         self._inflight: dict[tuple[int, int, int], Future[Any]] = {}
+        #: Tiles the server answered 404 for (drawn as holes; the first said on stderr).
         self.missing = 0
 
     @property
@@ -199,8 +203,12 @@ class ServerTiles:
         row = (1 << z) - 1 - y if self.tms else y
         try:
             data = self.http.fetch(z, x, row)
-        except TileMissing:
-            self.missing += 1
+        except TileMissing as exc:
+            with self._lock:
+                self.missing += 1
+                first = self.missing == 1
+            if first:
+                self._warn(f"terrain: {exc}; where {self.name} has no tile, a hole is drawn")
             return None
         if self.kind == "quantized-mesh":
             return _decode_mesh(data)

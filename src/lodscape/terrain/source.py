@@ -34,6 +34,7 @@ from rasterio.transform import Affine
 from rasterio.windows import Window
 from scipy.ndimage import distance_transform_edt
 
+from lodscape._cache import user_cache
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import MAX_LAT, ORIGIN, Bbox, lonlat_to_merc
 
@@ -668,8 +669,11 @@ class RasterSource(_GridSource):
         if not ds.overviews(band) and max(ds.width, ds.height) > SIDECAR_MIN_SIZE:
             # no overviews of its own: coarse levels would read every pixel under them
             where = sidecar_overviews(self.path, ds, band, self._nodata) or self.path
-        with rasterio.open(where) as holder:
-            count = len(holder.overviews(band if where == self.path else 1))
+        if where == self.path:
+            count = len(ds.overviews(band))
+        else:
+            with rasterio.open(where) as sidecar:
+                count = len(sidecar.overviews(1))
         for index in range(count):
             try:
                 ov = rasterio.open(where, overview_level=index)
@@ -733,11 +737,8 @@ _GDAL_TYPES = {
 
 
 def overview_cache() -> str:
-    """Where sidecar overviews are kept: ``$LODSCAPE_CACHE`` or the user's cache folder."""
-    base = os.environ.get("LODSCAPE_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "lodscape"
-    )
-    return os.path.join(base, "overviews")
+    """Where sidecar overviews are kept: ``overviews`` in lodscape's cache folder."""
+    return str(user_cache() / "overviews")
 
 
 def sidecar_overviews(path: str, ds: Any, band: int, nodata: float | None) -> str | None:
