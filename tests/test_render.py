@@ -359,3 +359,46 @@ def test_tiles_with_nothing_to_cut_draw_the_same_without_the_discard(gl_ctx: Any
         assert np.isfinite(d_whole).mean() > 0.3
     finally:
         r.close()
+
+
+@pytest.mark.parametrize("clockwise", [False, True])
+def test_an_irregular_mesh_shows_its_top_from_above_and_its_underside_from_below(
+    renderer: Renderer, clockwise: bool
+) -> None:
+    """The surface's underside is told by the rasteriser's facing: a mesh wound either way
+    (RTIN clockwise, quantized-mesh counter-clockwise) is turned to face up when uploaded."""
+    from lodscape.render.terrain_pass import wound_up
+    from lodscape.terrain.mesh import grid_indices
+
+    grid = _patch(7)
+    s = grid.segments
+    tris = grid_indices(s).reshape(-1, 3)[: 2 * s * s].astype(np.uint32)  # no skirts
+    if clockwise:
+        tris = tris[:, [0, 2, 1]]
+    verts = grid.vertices[: (s + 1) ** 2]
+    mesh = TileMesh(7, 0, verts, grid.center, grid.up, indices=tris)
+    fixed = wound_up(verts, tris, grid.up.astype(np.float64))
+    p = verts[:, :3].astype(np.float64)
+    normals = np.cross(p[fixed[:, 1]] - p[fixed[:, 0]], p[fixed[:, 2]] - p[fixed[:, 0]])
+    assert (normals @ grid.up > 0).all()
+    renderer.upload(mesh)
+    renderer.upload_texture(7 + TEX, np.full((8, 8, 3), 200, np.uint8))
+    dark = (round(0.16 * 255), round(0.16 * 255), round(0.18 * 255))  # the underside
+    for alt, pitch in ((H + 1500.0, -90.0), (H - 1500.0, 90.0)):
+        cam = Camera(LON, LAT, alt, pitch=pitch, width=64, height=48).with_clip(1.0, 1e4)
+        rgb, _ = renderer.draw(cam, [_item(7)], background=MAGENTA)
+        centre = rgb[20:28, 28:36].reshape(-1, 3)
+        want = np.array((200, 200, 200) if alt > H else dark)
+        assert np.abs(centre.astype(int) - want).max() <= 2, (alt, centre[0])
+
+
+def test_a_renderer_holds_the_code_of_as_many_layers_as_asked(gl_ctx: Any) -> None:
+    with Renderer(32, 24, ctx=gl_ctx, ellipsoid=False, layers=0) as r:
+        _put(r, 1, _quadrant_texture())
+        cam = Camera(LON, LAT, H + 2000.0, pitch=-90, width=32, height=24).with_clip(1.0, 1e4)
+        r.draw(cam, [_item(1)])
+        layered = DrawItem(1, 1 + TEX, 0.0, layers=((1 + TEX, (0.0, 0.0, 1.0)),))
+        with pytest.raises(ValueError, match="at most 0 imagery layers"):
+            r.draw(cam, [layered])
+    with pytest.raises(ValueError, match="at most 4"):
+        Renderer(32, 24, ctx=gl_ctx, layers=5)

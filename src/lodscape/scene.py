@@ -26,7 +26,7 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 from lodscape.lod.view import TerrainView
 from lodscape.render import Renderer
-from lodscape.render.tess_pass import TessellationUnavailable
+from lodscape.render.tess_pass import MAX_OVERLAYS, TessellationUnavailable
 from lodscape.store.provider import Provider, RasterProvider
 from lodscape.stream import RealClock, StreamOptions
 from lodscape.stream.loader import Loader
@@ -640,6 +640,8 @@ class Scene:
                 "ground": self.ground,
                 "ellipsoid": opts.ellipsoid,
                 "compress": opts.compress_textures,
+                # more than a renderer can draw is refused by the frame that carries them
+                "layers": min(len(self.provider.layers), MAX_OVERLAYS),
             }
             try:
                 self._renderer = Renderer(

@@ -52,18 +52,27 @@ _T = TypeVar("_T", bound=_GLObject)
 #: normal, turned to the outside, faces away from the eye; past the data's edge or a hole's rim)
 #: it is a dark curtain, not the ground's colours seen from beneath. A skirt, which hangs plumb,
 #: is part of it where it hangs above the eye (seen from above, skirts fill cracks in the
-#: ground's colours).
+#: ground's colours). The CPU meshes are wound counter-clockwise seen from above (``upload``
+#: makes them so), so their back faces are the surface seen from below: the rasteriser's
+#: facing, where the tessellated mode (HEIGHT_NORMALS) works the normal out per fragment.
 _UNDERSIDE = """
 uniform mat3 u_rot;      // the tile's frame -> view
 uniform vec3 u_up;       // the terrain's outside (up at the tile's centre), in its frame
 in float v_skirt;
 const vec3 UNDERSIDE = vec3(0.16, 0.16, 0.18);
+#ifdef HEIGHT_NORMALS
 bool underside(vec3 view) {
     vec3 up = u_rot * u_up;
     vec3 n = cross(dFdx(view), dFdy(view));
     if (dot(n, up) < 0.0) n = -n;
     return v_skirt > 0.0 ? dot(view, up) > 0.0 : dot(n, view) > 1e-3 * length(n) * length(view);
 }
+#else
+in float v_above;        // how far the fragment is above the eye, along the tile's up
+bool underside(vec3 view) {
+    return v_skirt > 0.0 ? v_above > 0.0 : !gl_FrontFacing;
+}
+#endif
 """
 
 _VERTEX_SHADER = """
@@ -86,6 +95,7 @@ out float v_dist;
 out vec2 v_ground;
 out vec3 v_view;
 out float v_skirt;
+out float v_above;
 void main() {
     vec3 p = in_pos + u_morph * in_morph - in_skirt * u_skirt * u_up;
     v_skirt = in_skirt;
@@ -94,8 +104,9 @@ void main() {
     v_tuv = in_uv;
     v_ground = vec2(u_ground.x + in_uv.x * u_ground.z, u_ground.y - in_uv.y * u_ground.z);
     v_view = u_offset + u_rot * p;
-    // linear in view space, so perspective-correct interpolation keeps it exact per fragment
+    // both linear in view space, so perspective-correct interpolation keeps them exact
     v_dist = -v_view.z;
+    v_above = dot(v_view, u_rot * u_up);
 }
 """
 
@@ -103,7 +114,12 @@ _FRAGMENT_SHADER = """
 #version 330
 uniform sampler2D u_tex;
 uniform vec4 u_tint;     // the viewer's LOD colouring: a colour and how much of it
-// imagery layers over the terrain's own texture, bottom to top, each with its own window
+// imagery layers over the terrain's own texture, bottom to top, each with its own window; a
+// program holds the code of as many as its scene has (LAYERS): a software rasteriser runs
+// every branch a uniform would skip, and four layer lookups cost a fifth of a frame there
+#ifndef LAYERS
+#define LAYERS 4
+#endif
 uniform sampler2D u_layer0;
 uniform sampler2D u_layer1;
 uniform sampler2D u_layer2;
@@ -152,10 +168,18 @@ void main() {
         return;
     }
     vec3 c = texture(u_tex, v_uv).rgb;
+#if LAYERS > 0
     if (u_layers > 0) c = over(c, u_layer0, u_layer_uv[0]);
+#endif
+#if LAYERS > 1
     if (u_layers > 1) c = over(c, u_layer1, u_layer_uv[1]);
+#endif
+#if LAYERS > 2
     if (u_layers > 2) c = over(c, u_layer2, u_layer_uv[2]);
+#endif
+#if LAYERS > 3
     if (u_layers > 3) c = over(c, u_layer3, u_layer_uv[3]);
+#endif
     f_color = vec4(mix(c, u_tint.rgb, u_tint.a), 1.0);
     f_dist = v_dist;
 }
@@ -233,7 +257,7 @@ _ELLIPSOID_VERTEX = """
 void main() {
     // one triangle over the whole viewport
     vec2 p = vec2(float((gl_VertexID & 1) << 2) - 1.0, float((gl_VertexID & 2) << 1) - 1.0);
-    gl_Position = vec4(p, 0.0, 1.0);
+    gl_Position = vec4(p, 1.0, 1.0);   // the far plane: only where nothing was drawn
 }
 """
 
@@ -372,6 +396,7 @@ class Renderer:
         ground: str = "imagery",
         ellipsoid: bool = True,
         compress: bool = False,
+        layers: int = MAX_OVERLAYS,
     ) -> None:
         if terrain_mode not in ("cpu", "gpu"):
             raise ValueError(f"terrain mode is cpu or gpu, got {terrain_mode!r}")
@@ -391,7 +416,12 @@ class Renderer:
         # one index buffer per segment count, shared by its tiles and freed with the last of them
         self._indices: dict[int, tuple[moderngl.Buffer, int]] = {}
         make_current(self.ctx)
+        if not 0 <= layers <= MAX_OVERLAYS:
+            raise ValueError(f"at most {MAX_OVERLAYS} imagery layers, got {layers}")
+        #: Imagery layers a tile may carry: the programs hold the code of this many.
+        self.layers = layers
         fragment = _FRAGMENT_SHADER if ground == "imagery" else _LANDCOVER_FRAGMENT_SHADER
+        fragment = _with_define(fragment, f"LAYERS {layers}")
         self._fragment = fragment
         self._program = self._track(
             self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=fragment)
@@ -420,10 +450,10 @@ class Renderer:
         if ground == "landcover":
             from lodscape.imagery.landcover import ground_layers
 
-            layers = ground_layers()
+            stack = ground_layers()
             mats = self._track(
                 self.ctx.texture_array(
-                    (layers.shape[2], layers.shape[1], layers.shape[0]), 4, layers.tobytes()
+                    (stack.shape[2], stack.shape[1], stack.shape[0]), 4, stack.tobytes()
                 )
             )
             mats.build_mipmaps()
@@ -559,6 +589,7 @@ class Renderer:
                 raise ValueError(f"mesh {mesh.key}: expected (N, 6) vertices and (M, 3) indices")
             if indices.size and int(indices.max()) >= vertices.shape[0]:
                 raise ValueError(f"mesh {mesh.key}: index beyond its {len(vertices)} vertices")
+            indices = wound_up(vertices, indices, np.asarray(mesh.up, np.float64))
             ibo = self._track(self.ctx.buffer(indices))
             s = 0
         elif vertices.shape != ((s + 1) ** 2 + 4 * s, 6) or s < 1:
@@ -845,8 +876,6 @@ class Renderer:
         fbo.color_mask = (_NONE, _ALL)  # type: ignore[assignment]
         fbo.clear(float("inf"), 0.0, 0.0, 0.0)
         fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
-        if self.ellipsoid:
-            self._draw_ellipsoid(camera, labelled)
         # no culling: skirts and steep faces are seen from both sides
         ctx.enable_only(moderngl.DEPTH_TEST)
         ctx.wireframe = self.wireframe
@@ -873,7 +902,7 @@ class Renderer:
                 ],
             )
             self.last_stats = DrawStats(calls, triangles, submit_s * 1e3)
-            return self._finish(camera, fbo, after, labelled)
+            return self._finish(camera, fbo, after, labelled, ellipsoid=self.ellipsoid)
         triangles = calls = 0
         cpu_tiles = [t for t in tiles if isinstance(t, _Tile)]
         view_projections = [camera.view_projection(tile.center) for tile in cpu_tiles]
@@ -925,12 +954,20 @@ class Renderer:
         if self._program is not main:
             self._bind(main)
         self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
-        return self._finish(camera, fbo, after, labelled)
+        return self._finish(camera, fbo, after, labelled, ellipsoid=self.ellipsoid)
 
-    def _draw_ellipsoid(self, camera: Camera, labelled: bool = False) -> None:
-        """The ellipsoid behind everything (no depth written: any terrain drawn wins), its
-        distance in the distance attachment where the terrain leaves it showing."""
-        self.ctx.enable_only(moderngl.NOTHING)
+    def _draw_ellipsoid(
+        self, camera: Camera, fbo: moderngl.Framebuffer, labelled: bool = False
+    ) -> None:
+        """The ellipsoid behind everything, drawn after the terrain at the far plane where the
+        depth buffer is still clear (the depth test runs before its shader, so the pixels the
+        terrain covers cost nothing), no depth written (the city's passes then draw as over
+        the sky); its distance in the distance attachment."""
+        ctx = self.ctx
+        ctx.wireframe = False
+        ctx.enable_only(moderngl.DEPTH_TEST)
+        ctx.depth_func = "<="
+        fbo.depth_mask = False
         p, vao = self._ellipsoid_program(labelled)
         axes = np.array([WGS84_A, WGS84_A, WGS84_B])
         eye = camera.position / axes  # float64 until the upload
@@ -950,6 +987,8 @@ class Renderer:
             if isinstance(u, moderngl.Uniform):
                 u.write(np.ascontiguousarray(value).tobytes())
         vao.render(moderngl.TRIANGLES, vertices=3)
+        fbo.depth_mask = True
+        ctx.depth_func = "<"
 
     def _ellipsoid_program(
         self, labelled: bool = False
@@ -973,8 +1012,10 @@ class Renderer:
     def _layers(self, item: DrawItem) -> list[tuple[moderngl.Texture, tuple[float, float, float]]]:
         """A tile's imagery layers as textures: a layer tile not uploaded (failed, or not in
         yet) is transparent, so the layer below shows."""
-        if len(item.layers) > MAX_OVERLAYS:
-            raise ValueError(f"at most {MAX_OVERLAYS} imagery layers, got {len(item.layers)}")
+        if len(item.layers) > self.layers:
+            raise ValueError(
+                f"this renderer draws at most {self.layers} imagery layers, got {len(item.layers)}"
+            )
         out = []
         for key, window in item.layers:
             entry = self._textures.get(key) if key >= 0 else None
@@ -987,8 +1028,13 @@ class Renderer:
         fbo: moderngl.Framebuffer,
         after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]],
         labelled: bool = False,
+        *,
+        ellipsoid: bool = False,
     ) -> tuple[NDArray[Any], NDArray[np.float32]]:
-        """The other passes, then the read-back."""
+        """The ellipsoid where the terrain left the sky, the other passes, then the
+        read-back."""
+        if ellipsoid:
+            self._draw_ellipsoid(camera, fbo, labelled)
         for extra in after:
             extra(camera, fbo)
             fbo.use()
@@ -1164,6 +1210,24 @@ class Renderer:
             self._free(target.colour_fbo)
         for obj in (target.fbo, target.color, target.dist, target.depth):
             self._free(obj)
+
+
+def wound_up(
+    vertices: NDArray[np.float32], indices: NDArray[np.uint32], up: NDArray[np.float64]
+) -> NDArray[np.uint32]:
+    """``indices`` with every triangle counter-clockwise seen from ``up`` (the surface shader
+    tells its underside by the rasteriser's facing); plumb ones (skirts) are left as they are.
+    Meshers and tilesets wind either way (RTIN clockwise, quantized-mesh counter-clockwise)."""
+    if not indices.size:
+        return indices
+    p = vertices[:, :3].astype(np.float64)
+    a, b, c = p[indices[:, 0]], p[indices[:, 1]], p[indices[:, 2]]
+    flip = np.cross(b - a, c - a) @ up < 0.0
+    if not flip.any():
+        return indices
+    out = indices.copy()
+    out[flip, 1], out[flip, 2] = indices[flip, 2], indices[flip, 1]
+    return out
 
 
 def _with_define(source: str, name: str) -> str:

@@ -214,7 +214,8 @@ def bind_layers(uniforms: Mapping[str, Any], layers: Layers) -> None:
     for i, (tex, window) in enumerate(layers):
         tex.use(LAYER_UNIT + i)
         uv[i] = window
-    u.write(uv.tobytes())
+    # the compiler keeps the slots of the layers a program holds (``Renderer.layers``)
+    u.write(uv[: u.array_length].tobytes())
 
 
 class TessellationUnavailable(LodscapeError):
