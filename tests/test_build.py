@@ -11,6 +11,7 @@ import sys
 import time
 from contextlib import closing
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -37,10 +38,11 @@ def dem(tmp_path_factory: pytest.TempPathFactory) -> str:
     )
 
 
-@pytest.fixture(scope="module")
-def tileset(dem: str, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("lods") / "site.lods"
-    build([dem], out, executor=PoolExecutor(2, processes=False))
+@pytest.fixture(scope="module", params=["rtin", "greedy"])
+def tileset(dem: str, tmp_path_factory: pytest.TempPathFactory, request: Any) -> Path:
+    """The DEM built by each mesher: what holds of one tileset holds of both."""
+    out = tmp_path_factory.mktemp("lods") / f"site-{request.param}.lods"
+    build([dem], out, BuildOptions(mesher=request.param), executor=PoolExecutor(2, processes=False))
     return out
 
 
@@ -239,17 +241,18 @@ def test_processes_and_dask_make_the_same_tiles_as_threads(
     dem: str, tileset: Path, tmp_path: Path
 ) -> None:
     want = _tiles(tileset)
+    options = BuildOptions(mesher=tileset.stem.removeprefix("site-"))  # the fixture's mesher
     procs = tmp_path / "procs.lods"
     executor = PoolExecutor(2, processes=True)
     try:
-        build([dem], procs, executor=executor)
+        build([dem], procs, options, executor=executor)
     finally:
         executor.close()
     assert _tiles(procs) == want
     dask = tmp_path / "dask.lods"
     executor = DaskExecutor(None, workers=2)
     try:
-        report = build([dem], dask, executor=executor)
+        report = build([dem], dask, options, executor=executor)
     finally:
         executor.close()
     assert "dask" in report.executor

@@ -1059,6 +1059,13 @@ def build(
     sea_level: SeaLevelOpt = "0",
     band: BandOpt = None,
     nodata: NodataOpt = None,
+    mesher: Annotated[
+        str,
+        typer.Option(
+            help="How tiles are meshed: rtin (halves of halves) or greedy (Delaunay "
+            "refinement: fewer triangles for the same error, slower to build)."
+        ),
+    ] = "rtin",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Build a tileset from INPUTS once, to render, fly or serve it anywhere. Run it again after
@@ -1086,6 +1093,7 @@ def build(
             sea_level=_sea_level(sea_level),
             band=band,
             nodata=nodata,
+            mesher=mesher,
         )
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None

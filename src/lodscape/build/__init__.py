@@ -30,6 +30,7 @@ from lodscape.store.tileset import (
     TilesetWriter,
     lonlat_bounds,
 )
+from lodscape.terrain.greedy import MESHERS
 from lodscape.terrain.points import POINT_SUFFIXES, grid_points, read_points, write_grid
 from lodscape.terrain.pyramid import LevelSpan, level_range, level_span
 from lodscape.terrain.rtin import Rtin
@@ -72,9 +73,15 @@ class BuildOptions:
     #: The rasters' height band (None: their only one) and a nodata value they do not declare.
     band: int | None = None
     nodata: float | None = None
+    #: How each tile's surface is meshed within its budget: "rtin" (right-triangulated
+    #: irregular networks, halves of halves of the tile) or "greedy" (Delaunay refinement,
+    #: points where the error is: fewer triangles for the same measured error).
+    mesher: str = "rtin"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "fill", str(parse_fill(self.fill)))
+        if self.mesher not in MESHERS:
+            raise ValueError(f"mesher is one of {', '.join(MESHERS)}, got {self.mesher!r}")
         if not (math.isfinite(self.error_texels) and self.error_texels >= 0.0):
             raise ValueError(f"Expected error_texels >= 0, got {self.error_texels}")
         if self.resolution is not None and not self.resolution > 0.0:
@@ -146,6 +153,7 @@ def build(
             options.sea_level,
             options.band,
             options.nodata,
+            options.mesher,
         )
         plan = _plan(source, span.zmin, max(span.zmax, imagery_zmax))
         manifest = _manifest(source, options, inputs, span, height_range, imagery_zmax)
@@ -163,6 +171,8 @@ def build(
         if pending:
             # one numba compile here, not one per worker thread racing for it
             Rtin(np.zeros((3, 3)))
+            if options.mesher == "greedy":
+                _compile_tin_error()
             executor = executor or executor_for()
         label = executor.label if executor is not None else "none"
         made = len(pending)
@@ -373,6 +383,23 @@ def _plan(source: HeightSource, zmin: int, zmax: int) -> list[tuple[int, int, in
         hit |= source.covers(np.clip(cx, left, right), np.clip(cy, bottom, top))
         out.extend(zip([z] * int(hit.sum()), x[hit].tolist(), y[hit].tolist(), strict=True))
     return out
+
+
+def _compile_tin_error() -> None:
+    """``tin_sample_error`` compiled once, before worker threads race for it."""
+    from lodscape.terrain.greedy import tin_sample_error
+
+    grid = np.array([0.0, 1.0])
+    tin_sample_error(
+        np.array([[0, 1, 2]], np.int32),
+        np.array([[0, 0], [1, 0], [0, 1]], np.int32),
+        grid,
+        grid[::-1].copy(),
+        np.zeros((2, 2)),
+        np.array([0.2]),
+        np.array([0.8]),
+        np.array([0.0]),
+    )
 
 
 def _manifest(

@@ -22,6 +22,7 @@ from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, encode, quantize
 from lodscape.store.tileset import TIN_GRID, TileRecord
+from lodscape.terrain.greedy import greedy_mesh, tin_sample_error
 from lodscape.terrain.mesh import grid_coordinates
 from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
@@ -55,6 +56,8 @@ class Job:
     #: The rasters' height band (None: their only one) and an undeclared nodata value.
     band: int | None = None
     nodata: float | None = None
+    #: How tiles are meshed (``terrain.greedy.MESHERS``): "rtin" or "greedy".
+    mesher: str = "rtin"
 
 
 _sources: dict[tuple[Any, ...], HeightSource] = {}
@@ -159,8 +162,7 @@ def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
         # a triangle that holds data and no data has a huge error: it splits down to the grid,
         # so the mesh's rim follows the data's within a cell; then triangles touching a point
         # without data are left out, and the vertices only they used
-        rtin = Rtin(np.where(valid, heights, heights + _RIM))
-        verts, tris = rtin.mesh(budget)
+        rtin, verts, tris = _mesh(job, np.where(valid, heights, heights + _RIM), budget)
         keep = valid[verts[:, 1], verts[:, 0]][tris].all(axis=1)
         if not keep.any():
             return TileRecord(z, x, y)
@@ -169,8 +171,7 @@ def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
         renumber[used] = np.arange(used.size)
         verts, tris = verts[used], renumber[tris[keep]].astype(np.int32)
     else:
-        rtin = Rtin(heights)
-        verts, tris = rtin.mesh(budget)
+        rtin, verts, tris = _mesh(job, heights, budget)
     vh = heights[verts[:, 1], verts[:, 0]].astype(np.float64)
     b = bounds(t)
     lon_col, _ = merc_to_lonlat(xs, np.zeros_like(xs))
@@ -203,12 +204,29 @@ def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
             inside = cells[ri, ci]
             pxm, pym, ph = pxm[inside], pym[inside], ph[inside]
         plon, plat = merc_to_lonlat(pxm, pym)
-        error = max(error, _sample_error(rtin.errors, budget, qlon, qlat, qh, plon, plat, ph))
+        if rtin is not None:
+            found = _sample_error(rtin.errors, budget, qlon, qlat, qh, plon, plat, ph)
+        else:
+            found = tin_sample_error(tris, verts, qlon, qlat, qh, plon, plat, ph)
+        error = max(error, found)
     error += _sag(tris, verts, side, b)
     imagery = None
     if z <= max(job.texture_zmax, job.imagery_zmax):
         imagery = _texture(job, src, z, x, y)
     return TileRecord(z, x, y, error, hmin, hmax, stored, imagery)
+
+
+def _mesh(
+    job: Job, heights: NDArray[np.floating], budget: float
+) -> tuple[Rtin | None, NDArray[np.int32], NDArray[np.int32]]:
+    """A tile's mesh within ``budget`` by the job's mesher, with RTIN's error pyramid (which
+    locates samples faster than a search) when RTIN cut it."""
+    if job.mesher == "greedy":
+        verts, tris = greedy_mesh(heights, budget)
+        return None, verts, tris
+    rtin = Rtin(heights)
+    verts, tris = rtin.mesh(budget)
+    return rtin, verts, tris
 
 
 def _dequantize(q: NDArray[np.uint16], lo: float, hi: float) -> NDArray[np.float64]:

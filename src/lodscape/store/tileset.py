@@ -251,7 +251,11 @@ class _Transaction:
 
 def _identity(manifest: dict[str, Any]) -> Any:
     """What must match for a build to resume: the inputs and the options that shape tiles."""
-    return (manifest.get("schema"), manifest.get("provenance"), manifest.get("options"))
+    options = manifest.get("options")
+    if isinstance(options, dict):
+        # builds written before the mesher was an option were all RTIN's
+        options = {"mesher": "rtin", **options}
+    return (manifest.get("schema"), manifest.get("provenance"), options)
 
 
 # --- reading ---------------------------------------------------------------------------------
