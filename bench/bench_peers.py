@@ -1,0 +1,885 @@
+"""lodscape against Panda3D's terrains, same machine, same DEM, same cameras, same texture.
+
+Peers (Panda3D from PyPI: ``pip install 'lodscape[bench]'`` or ``pip install panda3d``),
+offscreen on EGL as lodscape is:
+
+- ``GeoMipTerrain`` (CPU geomipmapping), its LOD factor tuned per camera, by bisection, to the
+  coarsest setting whose *measured* screen-space error stays within 2 px. The rule is
+  lodscape's: a block's error is the largest vertical difference between its drawn mesh and the
+  DEM's samples within it, projected at the distance from the eye to the block's box
+  (H = h·d/dist, d = viewport height / (2·tan(fovy/2))), over the blocks in view. Block sizes
+  32, 64 and 128 are tried and the one drawing fewest triangles kept; blocks are flattened
+  into few geoms (``AFM_strong``) for the timed frames.
+- ``ShaderTerrainMesh`` (GPU chunked LOD with CLOD, Panda3D's recommended terrain), chunk
+  size 16, its target triangle width tuned per camera, by bisection over 0.5..64 px, to the
+  widest whose measured error per pixel (below) stays within 2 px; where none does (its finest
+  level cannot follow the DEM: its vertices sit at texel corners, their heights filtered
+  between texel centres), its finest setting. Its error at the default width (10 px) is
+  printed too.
+- lodscape: ``lodscape.open(dem)`` with its defaults (max SSE 2 px, its own bound: a tile's
+  measured error at the nearest point of its box).
+
+Measured error per pixel, the same for all three: each drawn pixel's surface point (Panda3D: a
+second draw writing world positions into a float target; lodscape: its distance read back,
+through geodetic coordinates and the DEM's CRS) against the DEM's bilinear surface there: the
+vertical difference projected at the pixel's distance, its largest value over the pixels on
+the DEM. The full-resolution mesh itself measures up to about 0.8 px this way (a triangle is not
+the bilinear patch).
+
+DEMs: the sample (``jacksboro.tif``, 403×344 geographic) and a 4097² spectral fBm (5 m, UTM
+17N, ``bench_spine``'s). Panda3D gets the DEM's own grid in metres (a geographic grid by its
+cell size at the centre latitude; flat, where lodscape draws it on the ellipsoid: 18 m of drop
+15 km off centre), padded with its edge values to the size each terrain needs, and one texture:
+lodscape's own tint (hypsometric colour × hillshade) of the whole DEM at its resolution.
+Cameras are given over the DEM's grid and converted for both.
+
+Per engine and DEM, a fresh process (its own GL context; peak RSS is ``VmHWM``): the time from
+opening the DEM to the first frame read back, then per camera 3 warm-up frames and the median
+of ``--repeat`` (20) frames at 1280×720, colour and depth read back by both (lodscape its RGB
+and float32 distance, Panda3D its RGBA and depth textures copied to RAM).
+
+    python bench/bench_peers.py [--repeat 20] [--size 4097] [--dem sample|fbm|both]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+W, H, FOV_Y = 1280, 720, 60.0
+MAX_SSE = 2.0
+#: Cameras over the DEM: position as fractions of its width (east) and height (from the north
+#: edge), altitude above the DEM's highest point as a share of its extent, heading (clockwise
+#: from grid north) and pitch.
+CAMERAS = {
+    "overview": (0.5, 1.25, 0.75, 0.0, -35.0),
+    "oblique": (0.5, 0.9, 0.12, 0.0, -25.0),
+    "low": (0.3, 0.75, 0.015, 30.0, -10.0),
+    "down": (0.5, 0.5, 0.25, 0.0, -89.0),
+}
+
+
+def peak_rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+# --- the data ---------------------------------------------------------------------------------
+
+
+def prepare(dem: Path, out: Path) -> dict[str, Any]:
+    """The DEM's heights, its grid in metres, the shared texture and the cameras."""
+    import rasterio
+    from rasterio.warp import transform as warp
+
+    from lodscape.imagery.tint import tint
+
+    with rasterio.open(dem) as ds:
+        z = ds.read(1).astype(np.float32)
+        tr, crs = ds.transform, ds.crs
+    rows, cols = z.shape
+    if crs.is_geographic:
+        lat0 = math.radians(tr.f + tr.e * rows / 2)
+        a, e2 = 6378137.0, 6.69437999014e-3
+        s = 1 - e2 * math.sin(lat0) ** 2
+        m_lat = math.radians(1) * a * (1 - e2) / s**1.5
+        m_lon = math.radians(1) * a * math.cos(lat0) / math.sqrt(s)
+        dx, dy = abs(tr.a) * m_lon, abs(tr.e) * m_lat
+    else:
+        dx, dy = abs(tr.a), abs(tr.e)
+    lo, hi = float(z.min()), float(z.max())
+    bordered = np.pad(z, 1, mode="edge")
+    # tint wants a square grid: pad to a square and crop the colours back
+    n = max(rows, cols)
+    sq = np.pad(bordered, ((0, n - rows), (0, n - cols)), mode="edge")
+    rgb = tint(sq, np.ones(sq.shape, bool), math.sqrt(dx * dy), (lo, hi))[:rows, :cols]
+    np.save(out / "heights.npy", z)
+    np.save(out / "texture.npy", np.ascontiguousarray(rgb))
+    extent = max(rows * dy, cols * dx)
+    cams = {}
+    for name, (fx, fy, fa, heading, pitch) in CAMERAS.items():
+        col, row = fx * (cols - 1), fy * (rows - 1)
+        alt = hi + fa * extent
+        x, y = tr * (col + 0.5, row + 0.5)
+        lon, lat = (v[0] for v in warp(crs, "EPSG:4326", [x], [y]))
+        # grid north as a true bearing at the camera (meridian convergence)
+        x2, y2 = tr * (col + 0.5, row + 0.5 - 100.0)
+        lon2, lat2 = (v[0] for v in warp(crs, "EPSG:4326", [x2], [y2]))
+        east = (lon2 - lon) * math.cos(math.radians(lat))
+        conv = math.degrees(math.atan2(east, lat2 - lat))
+        cams[name] = {
+            "col": col, "row": row, "alt": alt, "heading": heading, "pitch": pitch,
+            "lon": lon, "lat": lat, "true_heading": heading + conv,
+        }  # fmt: skip
+    meta = {"dem": str(dem), "dx": dx, "dy": dy, "lo": lo, "hi": hi, "cameras": cams}
+    (out / "meta.json").write_text(json.dumps(meta))
+    return meta
+
+
+# --- the measured error, per pixel, the same for every engine ---------------------------------
+
+
+def _dem_at(z: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Bilinear DEM heights at fractional (col, row) of its samples; NaN outside the samples."""
+    rows, cols = z.shape
+    inside = (col >= 0) & (col <= cols - 1) & (row >= 0) & (row <= rows - 1)
+    c = np.clip(col, 0, cols - 1.000001)
+    r = np.clip(row, 0, rows - 1.000001)
+    c0, r0 = np.floor(c).astype(np.int64), np.floor(r).astype(np.int64)
+    fc, fr = c - c0, r - r0
+    top = z[r0, c0] * (1 - fc) + z[r0, c0 + 1] * fc
+    bottom = z[r0 + 1, c0] * (1 - fc) + z[r0 + 1, c0 + 1] * fc
+    return np.where(inside, top * (1 - fr) + bottom * fr, np.nan)
+
+
+def pixel_sse(dh: np.ndarray, dist: np.ndarray) -> dict[str, float]:
+    """Per pixel on the DEM: the drawn surface's vertical distance to the DEM's, projected at
+    the pixel's distance (H = h·d/dist); its largest value and its 99.9th percentile."""
+    d = H / (2 * math.tan(math.radians(FOV_Y / 2)))
+    ok = np.isfinite(dh) & np.isfinite(dist) & (dist > 0)
+    sse = np.abs(dh[ok]) * d / dist[ok]
+    if not sse.size:
+        return {"pixel_sse_max": float("nan"), "pixel_sse_p999": float("nan"), "pixels": 0}
+    return {
+        "pixel_sse_max": float(sse.max()),
+        "pixel_sse_p999": float(np.percentile(sse, 99.9)),
+        "pixels": int(sse.size),
+    }
+
+
+# --- lodscape ---------------------------------------------------------------------------------
+
+
+def _lodscape_error(
+    meta: dict[str, Any], z: np.ndarray, cam: Any, depth: np.ndarray
+) -> dict[str, float]:
+    """lodscape's frame measured as the peers' are: each pixel's point, from its distance,
+    to geodetic height and the DEM's grid (through the DEM's CRS)."""
+    import rasterio
+    from pyproj import Transformer
+
+    from lodscape.geo.frames import ecef_to_geodetic
+
+    t = math.tan(math.radians(cam.fov_y) / 2)
+    x = ((np.arange(W) + 0.5) / W * 2 - 1) * t * W / H
+    y = (1 - (np.arange(H) + 0.5) / H * 2) * t
+    xx, yy = np.meshgrid(x, y)
+    ok = np.isfinite(depth.ravel())
+    far = np.where(np.isfinite(depth), depth, 0.0)[..., None].astype(np.float64)
+    view = np.stack([xx, yy, -np.ones_like(xx)], -1) * far
+    world = cam.position + view.reshape(-1, 3) @ cam.rotation
+    lon, lat, h = ecef_to_geodetic(world[ok])
+    with rasterio.open(meta["dem"]) as ds:
+        to = Transformer.from_crs("EPSG:4326", ds.crs, always_xy=True)
+        inv = ~ds.transform
+    gx, gy = to.transform(lon, lat)
+    col, row = inv * (np.asarray(gx), np.asarray(gy))
+    dh = np.full(depth.size, np.nan)
+    dh[ok] = h - _dem_at(z, np.asarray(col) - 0.5, np.asarray(row) - 0.5)
+    dist = np.linalg.norm(world - cam.position, axis=1)
+    return pixel_sse(dh, dist)
+
+
+def run_lodscape(data: Path, repeat: int) -> dict[str, Any]:
+    import lodscape
+    from lodscape import Camera
+
+    meta = json.loads((data / "meta.json").read_text())
+    z = np.load(data / "heights.npy").astype(np.float64)
+    t0 = time.perf_counter()
+    scene = lodscape.open(meta["dem"], lodscape.SceneOptions(anisotropy=1.0))
+    out: dict[str, Any] = {"cameras": {}}
+    for i, (name, c) in enumerate(meta["cameras"].items()):
+        cam = Camera(
+            c["lon"], c["lat"], c["alt"], heading=c["true_heading"], pitch=c["pitch"],
+            fov_y=FOV_Y, width=W, height=H,
+        )  # fmt: skip
+        scene.render(cam)
+        if i == 0:
+            out["first_frame_s"] = time.perf_counter() - t0
+        for _ in range(3):
+            scene.render(cam)
+        times = []
+        for _ in range(repeat):
+            t = time.perf_counter()
+            rgb, depth = scene.render(cam)
+            times.append(time.perf_counter() - t)
+        assert depth.shape == (H, W)
+        assert rgb.shape == (H, W, 3)
+        st = scene.frame_stats()
+        out["cameras"][name] = {
+            "frame_ms": statistics.median(times) * 1e3,
+            "triangles": int(st["triangles"]),
+            "max_sse": float(st["max_sse_px"]),
+            "draw_calls": int(st["draw_calls"]),
+            "ground": float(np.isfinite(depth).mean()),
+            **_lodscape_error(meta, z, scene.prepare(cam), depth),
+        }
+    scene.close()
+    out["peak_rss_mb"] = peak_rss_mb()
+    return out
+
+
+# --- Panda3D ----------------------------------------------------------------------------------
+
+
+def _panda() -> Any:
+    from panda3d.core import loadPrcFileData
+
+    loadPrcFileData(
+        "",
+        f"load-display p3headlessgl\nwindow-type offscreen\nwin-size {W} {H}\n"
+        "audio-library-name null\nsync-video false\nnotify-level-display fatal\n"
+        "notify-level-device fatal\nframebuffer-srgb false\n",
+    )
+    from direct.showbase.ShowBase import ShowBase
+
+    base = ShowBase(windowType="offscreen")
+    hfov = 2 * math.degrees(math.atan(math.tan(math.radians(FOV_Y / 2)) * W / H))
+    base.camLens.setFov(hfov, FOV_Y)
+    base.camLens.setNearFar(1.0, 2.0e5)
+    base.disableMouse()
+    return base
+
+
+def _readback(base: Any) -> tuple[Any, Any]:
+    from panda3d.core import GraphicsOutput, Texture
+
+    colour, depth = Texture(), Texture()
+    base.win.addRenderTexture(colour, GraphicsOutput.RTMCopyRam, GraphicsOutput.RTPColor)
+    base.win.addRenderTexture(depth, GraphicsOutput.RTMCopyRam, GraphicsOutput.RTPDepth)
+    return colour, depth
+
+
+def _frame(base: Any, colour: Any, depth: Any) -> tuple[np.ndarray, np.ndarray]:
+    base.graphicsEngine.renderFrame()
+    rgb = np.frombuffer(colour.getRamImage(), np.uint8)
+    z = np.frombuffer(depth.getRamImage(), np.uint8)
+    return rgb, z
+
+
+class _Probe:
+    """A float target the terrain is drawn into a second time, by a shader writing each
+    fragment's world position: the surface Panda3D drew, exactly, to measure against the DEM."""
+
+    def __init__(self, base: Any) -> None:
+        from panda3d.core import (
+            FrameBufferProperties,
+            GraphicsOutput,
+            GraphicsPipe,
+            Texture,
+            WindowProperties,
+        )
+
+        fbp = FrameBufferProperties()
+        fbp.setRgbaBits(32, 32, 32, 32)
+        fbp.setFloatColor(True)
+        fbp.setDepthBits(24)
+        self.base = base
+        self.buffer = base.graphicsEngine.makeOutput(
+            base.pipe, "probe", -2, fbp, WindowProperties.size(W, H),
+            GraphicsPipe.BF_refuse_window, base.win.getGsg(), base.win,
+        )  # fmt: skip
+        self.texture = Texture()
+        self.buffer.addRenderTexture(self.texture, GraphicsOutput.RTMCopyRam)
+        self.buffer.setClearColor((0, 0, 0, 0))
+        self.camera = base.makeCamera(self.buffer, lens=base.camLens)
+        self.camera.reparentTo(base.camera)
+        self.buffer.setActive(False)
+
+    def measure(self, node: Any, shader: Any, meta: dict[str, Any], z: np.ndarray,
+                size: int) -> dict[str, float]:  # fmt: skip
+        """Draw ``node`` with ``shader`` into the float target; the per-pixel error."""
+        from panda3d.core import TransparencyAttrib  # noqa: F401
+
+        base = self.base
+        main = node.getShader()
+        node.setShader(shader, 100)
+        base.win.setActive(False)
+        self.buffer.setActive(True)
+        base.graphicsEngine.renderFrame()
+        base.graphicsEngine.renderFrame()
+        self.buffer.setActive(False)
+        base.win.setActive(True)
+        if main is not None:
+            node.setShader(main)
+        else:
+            node.clearShader()
+        img = np.frombuffer(self.texture.getRamImage(), np.float32).reshape(H, W, 4)
+        world = img[..., 2::-1].astype(np.float64).reshape(-1, 3)  # Panda3D keeps BGRA
+        drawn = img[..., 3].ravel() > 0.5
+        col = world[:, 0] / meta["dx"]
+        row = (size - 1) - world[:, 1] / meta["dy"]
+        dh = np.where(drawn, world[:, 2] - _dem_at(z, col, row), np.nan)
+        eye = np.array(base.camera.getPos(base.render))
+        return pixel_sse(dh, np.linalg.norm(world - eye, axis=1))
+
+
+_PROBE_VERTEX = """
+#version 330
+in vec4 p3d_Vertex;
+uniform mat4 p3d_ModelViewProjectionMatrix;
+uniform mat4 p3d_ModelMatrix;
+out vec3 world;
+void main() {
+  gl_Position = p3d_ModelViewProjectionMatrix * p3d_Vertex;
+  world = (p3d_ModelMatrix * p3d_Vertex).xyz;
+}
+"""
+
+_PROBE_FRAGMENT = """
+#version 330
+in vec3 world;
+out vec4 color;
+void main() { color = vec4(world, 1.0); }
+"""
+
+
+def _texture(rgb: np.ndarray, size: int) -> Any:
+    """The shared texture on a size² canvas (edge padded), Panda's rows bottom-up, BGR."""
+    from panda3d.core import SamplerState, Texture
+
+    rows, cols, _ = rgb.shape
+    img = np.pad(rgb, ((0, size - rows), (0, size - cols), (0, 0)), mode="edge")
+    tex = Texture("ground")
+    tex.setup2dTexture(size, size, Texture.T_unsigned_byte, Texture.F_rgb)
+    tex.setRamImage(np.ascontiguousarray(img[::-1, :, ::-1]).tobytes())
+    tex.setMinfilter(SamplerState.FT_linear_mipmap_linear)
+    tex.setMagfilter(SamplerState.FT_linear)
+    tex.setWrapU(SamplerState.WM_clamp)
+    tex.setWrapV(SamplerState.WM_clamp)
+    return tex
+
+
+def _place(base: Any, c: dict[str, float], size: int, dx: float, dy: float) -> None:
+    """A camera over the grid: image row r is at y = (size - 1 - r)·dy; heading clockwise."""
+    base.camera.setPos(c["col"] * dx, (size - 1 - c["row"]) * dy, c["alt"])
+    base.camera.setHpr(-c["heading"], c["pitch"], 0.0)
+
+
+def _geoms(root: Any) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every GeomNode under ``root``: vertices (N, 3) in root space and triangles (M, 3)."""
+    from panda3d.core import GeomVertexReader  # noqa: F401  (the module must be loaded)
+
+    out = []
+    for path in root.findAllMatches("**/+GeomNode"):
+        mat = np.array(path.getMat(root), dtype=np.float64).reshape(4, 4)
+        node = path.node()
+        for g in range(node.getNumGeoms()):
+            geom = node.getGeom(g)
+            vdata = geom.getVertexData()
+            fmt = vdata.getFormat().getArray(0)
+            col = fmt.getColumn("vertex")
+            stride = fmt.getStride() // 4
+            raw = np.frombuffer(memoryview(vdata.getArray(0)), np.float32)
+            v = raw.reshape(-1, stride)[:, col.getStart() // 4 : col.getStart() // 4 + 3]
+            v = np.c_[v.astype(np.float64), np.ones(len(v))] @ mat[:, :3]
+            for p in range(geom.getNumPrimitives()):
+                prim = geom.getPrimitive(p).decompose()
+                if prim.isIndexed():
+                    dt = {1: np.uint8, 2: np.uint16, 4: np.uint32}[prim.getIndexStride()]
+                    idx = np.frombuffer(memoryview(prim.getVertices()), dt).astype(np.int64)
+                else:
+                    first = prim.getFirstVertex()
+                    idx = np.arange(first, first + prim.getNumVertices(), dtype=np.int64)
+                out.append((v, idx.reshape(-1, 3)))
+    return out
+
+
+def _mesh_errors(
+    geoms: list[tuple[np.ndarray, np.ndarray]], hf: np.ndarray, cache: dict[Any, Any]
+) -> np.ndarray:
+    """Per geom (a block): the largest |DEM − mesh| over the DEM samples under its triangles
+    (heightfield units), and the box of those samples: (B, 7) err, x0, y0, z0, x1, y1, z1 in
+    grid units. ``cache`` keeps blocks already measured (same corner, same triangles)."""
+    size = hf.shape[0]
+    rows = []
+    for v, tris in geoms:
+        gx = np.rint(v[:, 0]).astype(np.int64)
+        gy = np.rint(v[:, 1]).astype(np.int64)
+        used = np.unique(tris)
+        x0, x1 = int(gx[used].min()), int(gx[used].max())
+        y0, y1 = int(gy[used].min()), int(gy[used].max())
+        key = (x0, y0, x1, y1, hash(tris.tobytes()))
+        got = cache.get(key)
+        if got is None:
+            got = _block_error(gx, gy, v[:, 2], tris, hf)
+            block = hf[size - 1 - y1 : size - y0, x0 : x1 + 1]
+            got = (got, x0, y0, float(block.min()), x1, y1, float(block.max()))
+            cache[key] = got
+        rows.append(got)
+    return np.array(rows, dtype=np.float64).reshape(-1, 7)
+
+
+def _block_error(
+    gx: np.ndarray, gy: np.ndarray, z: np.ndarray, tris: np.ndarray, hf: np.ndarray
+) -> float:
+    """The largest |DEM − mesh| over the DEM samples under a block's triangles."""
+    size = hf.shape[0]
+    p = np.stack([gx[tris], gy[tris]], -1)  # (M, 3, 2)
+    zt = z[tris]
+    # canonical order per triangle, then group triangles of one shape
+    order = np.lexsort((p[:, :, 1], p[:, :, 0]), axis=1)
+    p = np.take_along_axis(p, order[:, :, None], 1)
+    zt = np.take_along_axis(zt, order, 1)
+    rel = (p[:, 1:] - p[:, :1]).reshape(len(p), 4)
+    shapes, inverse = np.unique(rel, axis=0, return_inverse=True)
+    err = 0.0
+    for k, (ax, ay, bx, by) in enumerate(shapes):
+        det = ax * by - ay * bx
+        if det == 0 or max(abs(ax), abs(ay), abs(bx), abs(by)) <= 1:
+            continue  # degenerate or full-resolution: no sample between its corners
+        sel = np.flatnonzero(inverse.ravel() == k)
+        xs = np.arange(min(0, ax, bx), max(0, ax, bx) + 1)
+        ys = np.arange(min(0, ay, by), max(0, ay, by) + 1)
+        ox, oy = (a.ravel() for a in np.meshgrid(xs, ys))
+        # barycentric weights of the offsets in this shape
+        w1 = (ox * by - oy * bx) / det
+        w2 = (ax * oy - ay * ox) / det
+        w0 = 1 - w1 - w2
+        inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9)
+        ox, oy, w = ox[inside], oy[inside], np.stack([w0, w1, w2], -1)[inside]
+        sx = p[sel, 0, 0][:, None] + ox[None]
+        sy = p[sel, 0, 1][:, None] + oy[None]
+        ok = (sx >= 0) & (sx < size) & (sy >= 0) & (sy < size)
+        truth = hf[np.clip(size - 1 - sy, 0, size - 1), np.clip(sx, 0, size - 1)]
+        d = np.where(ok, np.abs(truth - zt[sel] @ w.T), 0.0)
+        err = max(err, float(d.max(initial=0.0)))
+    return err
+
+
+def _view_sse(blocks: np.ndarray, c: dict[str, float], size: int, meta: dict[str, Any]) -> float:
+    """The largest block error in pixels, over the blocks whose box is (partly) in view."""
+    dx, dy, lo, hi = meta["dx"], meta["dy"], meta["lo"], meta["hi"]
+    blocks = blocks[blocks[:, 0] > 0]
+    if not len(blocks):
+        return 0.0
+    scale = np.array([dx, dy, hi - lo])
+    offset = np.array([0.0, 0.0, lo])
+    a = blocks[:, 1:4] * scale + offset
+    b = blocks[:, 4:7] * scale + offset
+    eye = np.array([c["col"] * dx, (size - 1 - c["row"]) * dy, c["alt"]])
+    h, p = math.radians(c["heading"]), math.radians(c["pitch"])
+    fwd = np.array([math.sin(h) * math.cos(p), math.cos(h) * math.cos(p), math.sin(p)])
+    right = np.array([math.cos(h), -math.sin(h), 0.0])
+    up = np.cross(right, fwd)
+    ty = math.tan(math.radians(FOV_Y / 2))
+    tx = ty * W / H
+    # the boxes' eight corners, relative to the eye: (B, 8, 3)
+    pick = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], bool)
+    corners = np.where(pick[None], b[:, None, :], a[:, None, :]) - eye
+    zc, xc, yc = corners @ fwd, corners @ right, corners @ up
+    # outside the frustum when all corners are beyond one of its planes
+    out = (
+        (zc <= 0).all(1)
+        | (xc > tx * zc).all(1)
+        | (xc < -tx * zc).all(1)
+        | (yc > ty * zc).all(1)
+        | (yc < -ty * zc).all(1)
+    )
+    dist = np.linalg.norm(np.maximum(np.maximum(a - eye, 0.0), eye - b), axis=1)
+    sse = blocks[:, 0] * (hi - lo) * (H / (2 * ty)) / np.maximum(dist, 1e-3)
+    return float(sse[~out].max(initial=0.0))
+
+
+def _triangles(root: Any) -> int:
+    n = 0
+    for path in root.findAllMatches("**/+GeomNode"):
+        node = path.node()
+        for g in range(node.getNumGeoms()):
+            geom = node.getGeom(g)
+            for p in range(geom.getNumPrimitives()):
+                n += geom.getPrimitive(p).decompose().getNumFaces()
+    return n
+
+
+def _hf_image(hf: np.ndarray) -> Any:
+    from panda3d.core import PNMImage, StringStream
+
+    size = hf.shape[0]
+    q = np.rint(np.clip(hf, 0, 1) * 65535).astype(">u2")
+    img = PNMImage()
+    if not img.read(StringStream(f"P5 {size} {size} 65535\n".encode() + q.tobytes()), "hf.pgm"):
+        raise RuntimeError("Panda3D could not read the heightfield")
+    return img
+
+
+def run_geomip(data: Path, repeat: int) -> dict[str, Any]:
+    from panda3d.core import GeoMipTerrain, Shader
+
+    meta = json.loads((data / "meta.json").read_text())
+    z = np.load(data / "heights.npy")
+    z64 = z.astype(np.float64)
+    rgb = np.load(data / "texture.npy")
+    lo, hi, dx, dy = meta["lo"], meta["hi"], meta["dx"], meta["dy"]
+    rows, cols = z.shape
+    size = 2 ** math.ceil(math.log2(max(rows, cols) - 1)) + 1
+    base = _panda()
+    colour, depth = _readback(base)
+    hf = np.pad((z - lo) / (hi - lo), ((0, size - rows), (0, size - cols)), mode="edge")
+    hf = np.rint(hf * 65535) / 65535  # what the 16-bit heightfield holds
+    tex = _texture(rgb, size)
+    probe = _Probe(base)
+    probe_shader = Shader.make(Shader.SL_GLSL, _PROBE_VERTEX, _PROBE_FRAGMENT)
+
+    def terrain(block: int, factor: float, flatten: bool) -> Any:
+        t = GeoMipTerrain("terrain")
+        t.setHeightfield(_hf_image(hf))
+        t.setBlockSize(block)
+        t.setMinLevel(0)
+        t.setBruteforce(False)
+        t.setFactor(factor)
+        t.setFocalPoint(base.camera)
+        t.setAutoFlatten(GeoMipTerrain.AFM_strong if flatten else GeoMipTerrain.AFM_off)
+        root = t.getRoot()
+        root.setScale(dx, dy, hi - lo)
+        root.setZ(lo)
+        root.setTexture(tex)
+        return t
+
+    cache: dict[Any, Any] = {}
+
+    def sse(t: Any, c: dict[str, float]) -> float:
+        return _view_sse(_mesh_errors(_geoms(t.getRoot()), hf, cache), c, size, meta)
+
+    out: dict[str, Any] = {"cameras": {}}
+    tuned: dict[str, tuple[int, float]] = {}
+    t_tune = time.perf_counter()
+    for name, c in meta["cameras"].items():
+        _place(base, c, size, dx, dy)
+        best: tuple[int, float, int, float] | None = None
+        for block in (32, 64, 128):
+            if block >= size:
+                continue
+            # the level is floor(distance / factor): a larger factor draws finer
+            fine, coarse = 1e6, 1e-2
+            for _ in range(18):
+                mid = math.sqrt(fine * coarse)
+                t = terrain(block, mid, False)
+                t.generate()
+                ok = sse(t, c) <= MAX_SSE
+                t.getRoot().removeNode()
+                if ok:
+                    fine = mid
+                else:
+                    coarse = mid
+                if fine / coarse < 1.05:
+                    break
+            t = terrain(block, fine, False)
+            t.generate()
+            tris, err = _triangles(t.getRoot()), sse(t, c)
+            t.getRoot().removeNode()
+            if best is None or tris < best[2]:
+                best = (block, fine, tris, err)
+        assert best is not None
+        tuned[name] = (best[0], best[1])
+        out["cameras"][name] = {"block": best[0], "factor": best[1], "triangles": best[2],
+                                "max_sse": best[3]}  # fmt: skip
+    out["tuning_s"] = time.perf_counter() - t_tune
+
+    for i, (name, c) in enumerate(meta["cameras"].items()):
+        _place(base, c, size, dx, dy)
+        block, factor = tuned[name]
+        # two ways to draw it: its blocks as they are, updated every frame (a moving camera's
+        # loop), or flattened into few geoms and never updated (the static camera's best; an
+        # update after flattening loses the LOD and draws every sample): the faster is kept
+        best: dict[str, Any] | None = None
+        for flatten in (False, True):
+            t0 = time.perf_counter()
+            t = terrain(block, factor, flatten)
+            t.getRoot().reparentTo(base.render)
+            t.generate()
+            _frame(base, colour, depth)
+            first = time.perf_counter() - t0
+            times = []
+            for k in range(3 + repeat):
+                s = time.perf_counter()
+                if not flatten:
+                    t.update()
+                _frame(base, colour, depth)
+                if k >= 3:
+                    times.append(time.perf_counter() - s)
+            got = {
+                "frame_ms": statistics.median(times) * 1e3,
+                "first_s": first,
+                "flattened": flatten,
+                "drawn_triangles": _triangles(t.getRoot()),
+                **probe.measure(t.getRoot(), probe_shader, meta, z64, size),
+            }
+            t.getRoot().removeNode()
+            if best is None or got["frame_ms"] < best["frame_ms"]:
+                best = got
+        assert best is not None
+        if i == 0:
+            out["first_frame_s"] = best["first_s"]
+        out["cameras"][name].update(best)
+    out["peak_rss_mb"] = peak_rss_mb()
+    # the measure's floor: the full-resolution mesh (every sample a vertex) measured the same way
+    t = terrain(64 if size > 64 else size - 1, 1.0, True)
+    t.setBruteforce(True)
+    t.getRoot().reparentTo(base.render)
+    t.generate()
+    for name, c in meta["cameras"].items():
+        _place(base, c, size, dx, dy)
+        full = probe.measure(t.getRoot(), probe_shader, meta, z64, size)
+        out["cameras"][name]["floor_max"] = full["pixel_sse_max"]
+        out["cameras"][name]["floor_p999"] = full["pixel_sse_p999"]
+    t.getRoot().removeNode()
+    return out
+
+
+_STM_VERTEX = """
+#version 330
+in vec4 p3d_Vertex;
+uniform mat4 p3d_ModelViewProjectionMatrix;
+uniform mat4 p3d_ModelMatrix;
+uniform struct {
+  sampler2D data_texture;
+  sampler2D heightfield;
+  int view_index;
+  int terrain_size;
+  int chunk_size;
+} ShaderTerrainMesh;
+out vec2 terrain_uv;
+out vec3 world;
+void main() {
+  vec4 terrain_data = texelFetch(ShaderTerrainMesh.data_texture,
+                                 ivec2(gl_InstanceID, ShaderTerrainMesh.view_index), 0);
+  vec3 pos = p3d_Vertex.xyz;
+  float clod = smoothstep(0, 1, terrain_data.w);
+  pos.xy -= clod * fract(pos.xy * ShaderTerrainMesh.chunk_size / 2.0) * 2.0
+            / ShaderTerrainMesh.chunk_size;
+  pos *= terrain_data.z * float(ShaderTerrainMesh.chunk_size)
+         / float(ShaderTerrainMesh.terrain_size);
+  pos.z *= ShaderTerrainMesh.chunk_size;
+  pos.xy += terrain_data.xy / float(ShaderTerrainMesh.terrain_size);
+  terrain_uv = pos.xy;
+  pos.z += texture(ShaderTerrainMesh.heightfield, terrain_uv).x;
+  gl_Position = p3d_ModelViewProjectionMatrix * vec4(pos, 1);
+  world = (p3d_ModelMatrix * vec4(pos, 1)).xyz;
+}
+"""
+
+_STM_FRAGMENT = """
+#version 330
+in vec2 terrain_uv;
+uniform sampler2D p3d_Texture0;
+out vec4 color;
+void main() { color = vec4(texture(p3d_Texture0, terrain_uv).rgb, 1.0); }
+"""
+
+
+def run_stm(data: Path, repeat: int) -> dict[str, Any]:
+    from panda3d.core import SamplerState, Shader, ShaderTerrainMesh, Texture
+
+    meta = json.loads((data / "meta.json").read_text())
+    z = np.load(data / "heights.npy")
+    z64 = z.astype(np.float64)
+    rgb = np.load(data / "texture.npy")
+    lo, hi, dx, dy = meta["lo"], meta["hi"], meta["dx"], meta["dy"]
+    rows, cols = z.shape
+    size = max(64, 2 ** math.ceil(math.log2(max(rows, cols) - 1)))
+    base = _panda()
+    colour, depth = _readback(base)
+    out: dict[str, Any] = {"cameras": {}}
+    t0 = time.perf_counter()
+    hf = np.pad((z - lo) / (hi - lo), ((0, size - rows), (0, size - cols)), mode="edge")[
+        :size, :size
+    ]
+    htex = Texture("heightfield")
+    htex.setup2dTexture(size, size, Texture.T_unsigned_short, Texture.F_r16)
+    htex.setRamImage(np.ascontiguousarray(np.rint(hf[::-1] * 65535).astype(np.uint16)).tobytes())
+    htex.setMinfilter(SamplerState.FT_linear)
+    htex.setMagfilter(SamplerState.FT_linear)
+    htex.setWrapU(SamplerState.WM_clamp)
+    htex.setWrapV(SamplerState.WM_clamp)
+    stm = ShaderTerrainMesh()
+    stm.setHeightfield(htex)
+    stm.setTargetTriangleWidth(10.0)
+    stm.setChunkSize(16)
+    if not stm.generate():
+        raise RuntimeError("ShaderTerrainMesh.generate failed")
+    node = base.render.attachNewNode(stm)
+    # pixel centres at (i + 0.5)/size: the sample i at i·dx
+    node.setScale(size * dx, size * dy, hi - lo)
+    node.setPos(-0.5 * dx, -0.5 * dy, lo)
+    node.setShader(Shader.make(Shader.SL_GLSL, _STM_VERTEX, _STM_FRAGMENT))
+    node.setShaderInput("camera", base.camera)
+    node.setTexture(_texture(rgb, size))
+    _place(base, next(iter(meta["cameras"].values())), size, dx, dy)
+    _frame(base, colour, depth)
+    out["first_frame_s"] = time.perf_counter() - t0
+    probe = _Probe(base)
+    probe_shader = Shader.make(Shader.SL_GLSL, _STM_VERTEX, _PROBE_FRAGMENT)
+    t_tune = time.perf_counter()
+    for name, c in meta["cameras"].items():
+        _place(base, c, size, dx, dy)
+        # the widest target triangle width (pixels) whose measured error is within the bound
+        # (its 99.9th percentile over the pixels: the largest is the measure's own floor
+        # near the eye, where a triangle and the bilinear patch part)
+        wide, narrow = 64.0, 0.5
+        for _ in range(12):
+            mid = math.sqrt(wide * narrow)
+            stm.setTargetTriangleWidth(mid)
+            if probe.measure(node, probe_shader, meta, z64, size)["pixel_sse_p999"] <= MAX_SSE:
+                narrow = mid
+            else:
+                wide = mid
+            if wide / narrow < 1.05:
+                break
+        out["cameras"][name] = {"target_px": narrow}
+    out["tuning_s"] = time.perf_counter() - t_tune
+    for name, c in meta["cameras"].items():
+        _place(base, c, size, dx, dy)
+        stm.setTargetTriangleWidth(out["cameras"][name]["target_px"])
+        _frame(base, colour, depth)
+        for _ in range(3):
+            _frame(base, colour, depth)
+        times = []
+        for _ in range(repeat):
+            s = time.perf_counter()
+            _frame(base, colour, depth)
+            times.append(time.perf_counter() - s)
+        out["cameras"][name]["frame_ms"] = statistics.median(times) * 1e3
+        out["cameras"][name].update(probe.measure(node, probe_shader, meta, z64, size))
+        # its default, for reference
+        stm.setTargetTriangleWidth(10.0)
+        default = probe.measure(node, probe_shader, meta, z64, size)
+        out["cameras"][name]["default_sse_max"] = default["pixel_sse_max"]
+    out["peak_rss_mb"] = peak_rss_mb()
+    return out
+
+
+ENGINES = {"lodscape": run_lodscape, "geomip": run_geomip, "stm": run_stm}
+
+
+# --- the comparison ---------------------------------------------------------------------------
+
+
+def _px(c: dict[str, float]) -> str:
+    return f"{c['pixel_sse_p999']:4.2f}/{c['pixel_sse_max']:4.2f}"
+
+
+def worker(engine: str, data: Path, repeat: int) -> dict[str, Any]:
+    """``engine`` on ``data`` in a fresh process; its figures."""
+    res = subprocess.run(
+        [
+            sys.executable,
+            __file__,
+            "--worker",
+            engine,
+            "--data",
+            str(data),
+            "--repeat",
+            str(repeat),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if res.returncode != 0:
+        raise RuntimeError(f"{engine} failed:\n{res.stderr[-3000:]}")
+    got: dict[str, Any] = json.loads(res.stdout.strip().splitlines()[-1])
+    return got
+
+
+def compare(label: str, dem: Path, repeat: int, tmp: Path) -> None:
+    data = tmp / label
+    data.mkdir()
+    meta = prepare(dem, data)
+    print(f"\n## {label}: {dem.name}, grid {meta['dx']:.1f}×{meta['dy']:.1f} m")
+    res = {e: worker(e, data, repeat) for e in ENGINES}
+    print(
+        "per camera: frame ms (median), triangles, screen-space error in px (lodscape's bound; "
+        "for all, measured per pixel: 99.9th percentile / largest), ratio = peer frame / "
+        "lodscape frame (> 1: lodscape faster); full mesh: the measure's floor"
+    )
+    print(
+        f"{'camera':>9} | {'lodscape':>8} {'tris':>8} {'bound':>4} {'p99.9/max':>9} | "
+        f"{'GeoMip':>7} {'tris':>8} {'p99.9/max':>9} {'ratio':>6} | {'STM':>6} {'width':>6} "
+        f"{'p99.9/max':>9} {'ratio':>6} | full mesh"
+    )
+    ratios_g, ratios_s = [], []
+    for name in CAMERAS:
+        a, g, s = (res[e]["cameras"][name] for e in ENGINES)
+        rg, rs = g["frame_ms"] / a["frame_ms"], s["frame_ms"] / a["frame_ms"]
+        ratios_g.append(rg)
+        ratios_s.append(rs)
+        print(
+            f"{name:>9} | {a['frame_ms']:8.1f} {a['triangles']:8,d} "
+            f"{a['max_sse']:4.2f} {_px(a)} | "
+            f"{g['frame_ms']:7.1f} {g['triangles']:8,d} {_px(g)} ×{rg:5.2f} | "
+            f"{s['frame_ms']:6.1f} {s['target_px']:6.1f} {_px(s)} ×{rs:5.2f} | "
+            f"{g['floor_p999']:4.2f}/{g['floor_max']:4.2f}"
+        )
+    med = statistics.median
+    print(
+        "median frame ratio (peer / lodscape, >1: lodscape faster): "
+        f"GeoMipTerrain ×{med(ratios_g):.2f}, ShaderTerrainMesh ×{med(ratios_s):.2f}"
+    )
+    for e in ENGINES:
+        print(
+            f"{e:>9}: first frame {res[e]['first_frame_s']:.2f} s, "
+            f"peak RSS {res[e]['peak_rss_mb']:.0f} MB"
+            + (f", tuning {res[e]['tuning_s']:.0f} s" if "tuning_s" in res[e] else "")
+        )
+    print(
+        "GeoMipTerrain block size and factor per camera:",
+        {n: (c["block"], round(c["factor"], 1)) for n, c in res["geomip"]["cameras"].items()},
+    )
+    print(
+        "ShaderTerrainMesh at its default width (10 px), max SSE px per camera:",
+        {n: round(c["default_sse_max"], 2) for n, c in res["stm"]["cameras"].items()},
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeat", type=int, default=20)
+    ap.add_argument("--size", type=int, default=4097)
+    ap.add_argument("--dem", choices=("sample", "fbm", "both"), default="both")
+    ap.add_argument("--worker", choices=tuple(ENGINES))
+    ap.add_argument("--data", type=Path)
+    args = ap.parse_args()
+    if args.worker:
+        print(json.dumps(ENGINES[args.worker](args.data, args.repeat)))
+        return
+    try:
+        import panda3d  # noqa: F401
+    except ImportError:
+        sys.exit("bench_peers needs Panda3D: pip install panda3d")
+    import lodscape.data
+    from bench_spine import write
+
+    with tempfile.TemporaryDirectory() as t:
+        tmp = Path(t)
+        if args.dem in ("sample", "both"):
+            compare(
+                "sample", Path(lodscape.data.__file__).parent / "jacksboro.tif", args.repeat, tmp
+            )
+        if args.dem in ("fbm", "both"):
+            path = tmp / "fbm.tif"
+            write(path, args.size)
+            compare(f"fbm{args.size}", path, args.repeat, tmp)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    main()
