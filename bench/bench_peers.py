@@ -800,12 +800,23 @@ def worker(engine: str, data: Path, repeat: int) -> dict[str, Any]:
     return got
 
 
-def compare(label: str, dem: Path, repeat: int, tmp: Path) -> None:
+def compare(
+    label: str, dem: Path, repeat: int, tmp: Path, engines: tuple[str, ...] = tuple(ENGINES)
+) -> None:
     data = tmp / label
     data.mkdir()
     meta = prepare(dem, data)
     print(f"\n## {label}: {dem.name}, grid {meta['dx']:.1f}×{meta['dy']:.1f} m")
-    res = {e: worker(e, data, repeat) for e in ENGINES}
+    res = {e: worker(e, data, repeat) for e in engines}
+    if set(engines) != set(ENGINES):
+        for e, r in res.items():
+            for name, c in r["cameras"].items():
+                print(f"{e:>9} {name:>9}: " + ", ".join(f"{k} {v:.2f}" for k, v in c.items()))
+            print(
+                f"{e:>9}: first frame {r['first_frame_s']:.2f} s, "
+                f"peak RSS {r['peak_rss_mb']:.0f} MB"
+            )
+        return
     print(
         "per camera: frame ms (median), triangles, screen-space error in px (lodscape's bound; "
         "for all, measured per pixel: 99.9th percentile / largest), ratio = peer frame / "
@@ -857,12 +868,18 @@ def main() -> None:
     ap.add_argument("--dem", choices=("sample", "fbm", "both"), default="both")
     ap.add_argument("--worker", choices=tuple(ENGINES))
     ap.add_argument("--data", type=Path)
+    ap.add_argument(
+        "--engines", nargs="+", choices=tuple(ENGINES), default=list(ENGINES),
+        help="a subset (its figures alone, no table): e.g. lodscape, with PYTHONPATH on another "
+        "checkout's src to compare two versions",
+    )  # fmt: skip
     args = ap.parse_args()
     if args.worker:
         print(json.dumps(ENGINES[args.worker](args.data, args.repeat)))
         return
     try:
-        import panda3d  # noqa: F401
+        if set(args.engines) != {"lodscape"}:
+            import panda3d  # noqa: F401
     except ImportError:
         sys.exit("bench_peers needs Panda3D: pip install panda3d")
     import lodscape.data
@@ -871,13 +888,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as t:
         tmp = Path(t)
         if args.dem in ("sample", "both"):
-            compare(
-                "sample", Path(lodscape.data.__file__).parent / "jacksboro.tif", args.repeat, tmp
-            )
+            sample = Path(lodscape.data.__file__).parent / "jacksboro.tif"
+            compare("sample", sample, args.repeat, tmp, tuple(args.engines))
         if args.dem in ("fbm", "both"):
             path = tmp / "fbm.tif"
             write(path, args.size)
-            compare(f"fbm{args.size}", path, args.repeat, tmp)
+            compare(f"fbm{args.size}", path, args.repeat, tmp, tuple(args.engines))
 
 
 if __name__ == "__main__":

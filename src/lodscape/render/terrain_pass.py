@@ -915,7 +915,11 @@ class Renderer:
             and item.texture in self._whole
             for item in items
         ]
-        order = [i for i, w in enumerate(whole) if w] + [i for i, w in enumerate(whole) if not w]
+        # the variant without a discard first, then the cutting one; each near tiles first, so
+        # the depth test spares the shading of what they hide
+        centres = np.array([t.center for t in cpu_tiles]).reshape(-1, 3)
+        near = np.linalg.norm(centres - camera.position, axis=1)
+        order = sorted(range(len(items)), key=lambda i: (not whole[i], near[i]))
         uniforms: dict[str, Any] = {}
         for n, i in enumerate(order):
             if n == 0 or whole[i] != whole[order[n - 1]]:
