@@ -353,11 +353,13 @@ void main() { color = vec4(world, 1.0); }
 
 
 def _texture(rgb: np.ndarray, size: int) -> Any:
-    """The shared texture on a size² canvas (edge padded), Panda's rows bottom-up, BGR."""
+    """The shared texture on a size² canvas (edge padded or cropped), Panda's rows bottom-up,
+    BGR."""
     from panda3d.core import SamplerState, Texture
 
     rows, cols, _ = rgb.shape
-    img = np.pad(rgb, ((0, size - rows), (0, size - cols), (0, 0)), mode="edge")
+    pad = ((0, max(0, size - rows)), (0, max(0, size - cols)), (0, 0))
+    img = np.pad(rgb, pad, mode="edge")[:size, :size]
     tex = Texture("ground")
     tex.setup2dTexture(size, size, Texture.T_unsigned_byte, Texture.F_rgb)
     tex.setRamImage(np.ascontiguousarray(img[::-1, :, ::-1]).tobytes())
@@ -565,23 +567,30 @@ def run_geomip(data: Path, repeat: int) -> dict[str, Any]:
     for name, c in meta["cameras"].items():
         _place(base, c, size, dx, dy)
         best: tuple[int, float, int, float] | None = None
-        for block in (32, 64, 128):
+        # small blocks follow the error more closely but make many nodes: on a large DEM the
+        # tuning (and Panda3D's culling) would take too long
+        for block in (32, 64, 128) if size <= 1025 else (64,):
             if block >= size:
                 continue
-            # the level is floor(distance / factor): a larger factor draws finer
+            # the level is floor(distance / factor) (GeoMipTerrain's rule): a larger factor
+            # draws finer. One terrain per block size, updated as the factor changes (as a
+            # moving camera's would be: only the blocks whose level changes are rebuilt)
             fine, coarse = 1e6, 1e-2
-            for _ in range(18):
+            t = terrain(block, math.sqrt(fine * coarse), False)
+            t.generate()
+            for step in range(18):
                 mid = math.sqrt(fine * coarse)
-                t = terrain(block, mid, False)
-                t.generate()
-                ok = sse(t, c) <= MAX_SSE
-                t.getRoot().removeNode()
-                if ok:
+                t.setFactor(mid)
+                base.camera.setX(base.camera.getX() + (1e-3 if step % 2 else -1e-3))
+                t.update()
+                if sse(t, c) <= MAX_SSE:
                     fine = mid
                 else:
                     coarse = mid
                 if fine / coarse < 1.05:
                     break
+            t.getRoot().removeNode()
+            _place(base, c, size, dx, dy)
             t = terrain(block, fine, False)
             t.generate()
             tris, err = _triangles(t.getRoot()), sse(t, c)
@@ -700,9 +709,9 @@ def run_stm(data: Path, repeat: int) -> dict[str, Any]:
     colour, depth = _readback(base)
     out: dict[str, Any] = {"cameras": {}}
     t0 = time.perf_counter()
-    hf = np.pad((z - lo) / (hi - lo), ((0, size - rows), (0, size - cols)), mode="edge")[
-        :size, :size
-    ]
+    # a power of two: a 2^k + 1 grid loses its last row and column
+    pad = ((0, max(0, size - rows)), (0, max(0, size - cols)))
+    hf = np.pad((z - lo) / (hi - lo), pad, mode="edge")[:size, :size]
     htex = Texture("heightfield")
     htex.setup2dTexture(size, size, Texture.T_unsigned_short, Texture.F_r16)
     htex.setRamImage(np.ascontiguousarray(np.rint(hf[::-1] * 65535).astype(np.uint16)).tobytes())
@@ -804,10 +813,20 @@ def compare(
     label: str, dem: Path, repeat: int, tmp: Path, engines: tuple[str, ...] = tuple(ENGINES)
 ) -> None:
     data = tmp / label
-    data.mkdir()
-    meta = prepare(dem, data)
+    if (data / "meta.json").exists():
+        meta = json.loads((data / "meta.json").read_text())  # a kept --workdir: reused
+    else:
+        data.mkdir(parents=True, exist_ok=True)
+        meta = prepare(dem, data)
     print(f"\n## {label}: {dem.name}, grid {meta['dx']:.1f}×{meta['dy']:.1f} m")
-    res = {e: worker(e, data, repeat) for e in engines}
+    res = {}
+    for e in engines:
+        kept = data / f"{e}.json"
+        if kept.exists():
+            res[e] = json.loads(kept.read_text())  # a kept --workdir: measured already
+            continue
+        res[e] = worker(e, data, repeat)
+        kept.write_text(json.dumps(res[e]))
     if set(engines) != set(ENGINES):
         for e, r in res.items():
             for name, c in r["cameras"].items():
@@ -869,6 +888,11 @@ def main() -> None:
     ap.add_argument("--worker", choices=tuple(ENGINES))
     ap.add_argument("--data", type=Path)
     ap.add_argument(
+        "--workdir", type=Path,
+        help="keep the data and each engine's figures here (a run again reuses them; "
+        "default: a temporary folder)",
+    )  # fmt: skip
+    ap.add_argument(
         "--engines", nargs="+", choices=tuple(ENGINES), default=list(ENGINES),
         help="a subset (its figures alone, no table): e.g. lodscape, with PYTHONPATH on another "
         "checkout's src to compare two versions",
@@ -886,13 +910,14 @@ def main() -> None:
     from bench_spine import write
 
     with tempfile.TemporaryDirectory() as t:
-        tmp = Path(t)
+        tmp = args.workdir or Path(t)
         if args.dem in ("sample", "both"):
             sample = Path(lodscape.data.__file__).parent / "jacksboro.tif"
             compare("sample", sample, args.repeat, tmp, tuple(args.engines))
         if args.dem in ("fbm", "both"):
-            path = tmp / "fbm.tif"
-            write(path, args.size)
+            path = tmp / f"fbm{args.size}.tif"
+            if not path.exists():
+                write(path, args.size)
             compare(f"fbm{args.size}", path, args.repeat, tmp, tuple(args.engines))
 
 
