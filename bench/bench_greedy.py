@@ -3,10 +3,9 @@
 DEMs: the embedded sample (Jacksboro, 403×344, 90 m) and a spectral fBm (Hurst 0.8, 5 m, UTM
 17N) of ``--size``² samples. Each is built ``--builds`` times per mesher (alternating, from an
 empty file, the default thread pool) and the median build time kept; then, per tileset, the
-terrain's stored bytes (gzipped quantized-mesh) and triangles, the share of tiles within their
-level's budget, and the median of 9 frames (1280×720, colour and distance read back, after
-the tiles are resident) from three views of the data, with the triangles drawn and the largest
-screen-space error.
+terrain's stored bytes (gzipped quantized-mesh) and triangles, and the median of 9 frames
+(1280×720, colour and distance read back, after the tiles are resident) from three views of the
+data, with the triangles drawn and the largest screen-space error.
 
     python bench/bench_greedy.py [--size 1025] [--builds 3]
 """
@@ -21,24 +20,20 @@ import time
 from contextlib import closing
 from pathlib import Path
 
-import numpy as np
-
 import lodscape
 from bench_spine import write
 from lodscape.build import BuildOptions, build
-from lodscape.build.tiles import level_budget
 from lodscape.data import sample_dem_path
 from lodscape.store.quantized_mesh import decode
 
 
-def stored(path: Path) -> tuple[int, int, float]:
-    """Terrain bytes, triangles, and the share of tiles within their level's budget."""
+def stored(path: Path) -> tuple[int, int]:
+    """Terrain bytes (gzipped quantized-mesh) and triangles."""
     with closing(sqlite3.connect(path)) as db:
-        rows = db.execute("SELECT z, y, error, data FROM terrain").fetchall()
-    nbytes = sum(len(d) for *_, d in rows)
-    tris = sum(len(decode(bytes(d)).triangles) for *_, d in rows)
-    within = np.mean([e <= level_budget(1.0, 256, z, y) * (1 + 1e-9) for z, y, e, _ in rows])
-    return nbytes, tris, float(within)
+        rows = db.execute("SELECT data FROM terrain").fetchall()
+    nbytes = sum(len(d) for (d,) in rows)
+    tris = sum(len(decode(bytes(d)).triangles) for (d,) in rows)
+    return nbytes, tris
 
 
 def frames(path: Path) -> list[tuple[str, float, int, float]]:
@@ -84,12 +79,11 @@ def main() -> None:
             got = {}
             for mesher in times:
                 path = tmp / f"{label}-{mesher}-0.lods"
-                nbytes, tris, within = stored(path)
+                nbytes, tris = stored(path)
                 got[mesher] = (statistics.median(times[mesher]), nbytes, tris)
                 print(
                     f"{mesher:>7}: build {got[mesher][0]:.2f} s (median of {args.builds}), "
-                    f"terrain {nbytes / 1e6:.2f} MB, {tris:,d} triangles stored, "
-                    f"{100 * within:.1f} % of tiles within budget"
+                    f"terrain {nbytes / 1e6:.2f} MB, {tris:,d} triangles stored"
                 )
                 for name, ms, drawn, sse in frames(path):
                     print(f"{name:>18}: {ms:6.1f} ms, {drawn:8,d} triangles, max SSE {sse:.2f} px")
