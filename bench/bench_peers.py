@@ -393,6 +393,13 @@ void main() { color = vec4(world, 1.0); }
 """
 
 
+def _load(data: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarray]:
+    """What ``prepare`` wrote: the metadata, the heights (float32 and float64), the texture."""
+    z = np.load(data / "heights.npy")
+    meta = json.loads((data / "meta.json").read_text())
+    return meta, z, z.astype(np.float64), np.load(data / "texture.npy")
+
+
 def _texture(rgb: np.ndarray, size: int) -> Any:
     """The shared texture on a size² canvas (edge padded or cropped), Panda's rows bottom-up,
     BGR."""
@@ -567,10 +574,7 @@ def _hf_image(hf: np.ndarray) -> Any:
 def run_geomip(data: Path, repeat: int) -> dict[str, Any]:
     from panda3d.core import GeoMipTerrain, Shader
 
-    meta = json.loads((data / "meta.json").read_text())
-    z = np.load(data / "heights.npy")
-    z64 = z.astype(np.float64)
-    rgb = np.load(data / "texture.npy")
+    meta, z, z64, rgb = _load(data)
     lo, hi, dx, dy = meta["lo"], meta["hi"], meta["dx"], meta["dy"]
     rows, cols = z.shape
     size = 2 ** math.ceil(math.log2(max(rows, cols) - 1)) + 1
@@ -739,10 +743,7 @@ void main() { color = vec4(texture(p3d_Texture0, terrain_uv).rgb, 1.0); }
 def run_stm(data: Path, repeat: int) -> dict[str, Any]:
     from panda3d.core import SamplerState, Shader, ShaderTerrainMesh, Texture
 
-    meta = json.loads((data / "meta.json").read_text())
-    z = np.load(data / "heights.npy")
-    z64 = z.astype(np.float64)
-    rgb = np.load(data / "texture.npy")
+    meta, z, z64, rgb = _load(data)
     lo, hi, dx, dy = meta["lo"], meta["hi"], meta["dx"], meta["dy"]
     rows, cols = z.shape
     size = max(64, 2 ** math.ceil(math.log2(max(rows, cols) - 1)))

@@ -22,7 +22,7 @@ from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, encode, quantize
 from lodscape.store.tileset import TIN_GRID, TileRecord
-from lodscape.terrain.greedy import greedy_mesh, tin_sample_error
+from lodscape.terrain.greedy import barycentric, greedy_mesh, tin_sample_error
 from lodscape.terrain.mesh import grid_coordinates
 from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
@@ -280,12 +280,9 @@ def _sample_error(
                 ax, ay, bx, by, cx, cy = cx, cy, ax, ay, mx, my
             else:
                 ax, ay, bx, by, cx, cy = bx, by, cx, cy, mx, my
-        x0, y0, x1, y1, x2, y2 = lon[ax], lat[ay], lon[bx], lat[by], lon[cx], lat[cy]
-        det = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
-        if det == 0.0:
+        ok, w0, w1 = barycentric(lon[ax], lat[ay], lon[bx], lat[by], lon[cx], lat[cy], px, py)
+        if not ok:
             continue
-        w0 = ((y1 - y2) * (px - x2) + (x2 - x1) * (py - y2)) / det
-        w1 = ((y2 - y0) * (px - x2) + (x0 - x2) * (py - y2)) / det
         v = w0 * h[ay, ax] + w1 * h[by, bx] + (1.0 - w0 - w1) * h[cy, cx]
         e = abs(v - ph[k])
         if e > worst:

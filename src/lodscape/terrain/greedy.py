@@ -18,7 +18,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["MESHERS", "greedy_mesh", "tin_sample_error"]
+__all__ = ["MESHERS", "barycentric", "greedy_mesh", "tin_sample_error"]
 
 #: The meshers a tileset build can use.
 MESHERS = ("rtin", "greedy")
@@ -94,14 +94,14 @@ def tin_sample_error(
         for j in range(start[cell], start[cell + 1]):
             t = members[j]
             a, b, d = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-            x0, y0 = lon[vertices[a, 0]], lat[vertices[a, 1]]
-            x1, y1 = lon[vertices[b, 0]], lat[vertices[b, 1]]
-            x2, y2 = lon[vertices[d, 0]], lat[vertices[d, 1]]
-            det = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
-            if det == 0.0:
+            ok, w0, w1 = barycentric(
+                lon[vertices[a, 0]], lat[vertices[a, 1]],
+                lon[vertices[b, 0]], lat[vertices[b, 1]],
+                lon[vertices[d, 0]], lat[vertices[d, 1]],
+                px, py,
+            )  # fmt: skip
+            if not ok:
                 continue
-            w0 = ((y1 - y2) * (px - x2) + (x2 - x1) * (py - y2)) / det
-            w1 = ((y2 - y0) * (px - x2) + (x0 - x2) * (py - y2)) / det
             w2 = 1.0 - w0 - w1
             low = min(w0, w1, w2)
             if low > best:
@@ -117,6 +117,20 @@ def tin_sample_error(
         if e > worst:
             worst = e
     return worst
+
+
+@numba.njit(cache=True, inline="always")  # type: ignore[misc]
+def barycentric(
+    x0: float, y0: float, x1: float, y1: float, x2: float, y2: float, px: float, py: float
+) -> tuple[bool, float, float]:
+    """Whether the triangle is not degenerate, and the weights of its first two corners at
+    (px, py) (the third's is 1 − both)."""
+    det = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
+    if det == 0.0:
+        return False, 0.0, 0.0
+    w0 = ((y1 - y2) * (px - x2) + (x2 - x1) * (py - y2)) / det
+    w1 = ((y2 - y0) * (px - x2) + (x0 - x2) * (py - y2)) / det
+    return True, w0, w1
 
 
 @numba.njit(cache=True, inline="always")  # type: ignore[misc]
