@@ -198,9 +198,18 @@ def _lodscape_error(
     return pixel_sse(dh, dist)
 
 
+def _camera(c: dict[str, float]) -> Any:
+    """A bench camera as lodscape's (true heading: grid north turned by the convergence)."""
+    from lodscape import Camera
+
+    return Camera(
+        c["lon"], c["lat"], c["alt"], heading=c["true_heading"], pitch=c["pitch"],
+        fov_y=FOV_Y, width=W, height=H,
+    )  # fmt: skip
+
+
 def run_lodscape(data: Path, repeat: int) -> dict[str, Any]:
     import lodscape
-    from lodscape import Camera
 
     meta = json.loads((data / "meta.json").read_text())
     z = np.load(data / "heights.npy").astype(np.float64)
@@ -208,10 +217,7 @@ def run_lodscape(data: Path, repeat: int) -> dict[str, Any]:
     scene = lodscape.open(meta["dem"], lodscape.SceneOptions(anisotropy=1.0))
     out: dict[str, Any] = {"cameras": {}}
     for i, (name, c) in enumerate(meta["cameras"].items()):
-        cam = Camera(
-            c["lon"], c["lat"], c["alt"], heading=c["true_heading"], pitch=c["pitch"],
-            fov_y=FOV_Y, width=W, height=H,
-        )  # fmt: skip
+        cam = _camera(c)
         scene.render(cam)
         if i == 0:
             out["first_frame_s"] = time.perf_counter() - t0
@@ -242,10 +248,7 @@ def run_lodscape(data: Path, repeat: int) -> dict[str, Any]:
     # bound is a guarantee measured at each tile's nearest point, the measure is what was drawn
     base_options = scene.view.options
     for name, c in meta["cameras"].items():
-        cam = Camera(
-            c["lon"], c["lat"], c["alt"], heading=c["true_heading"], pitch=c["pitch"],
-            fov_y=FOV_Y, width=W, height=H,
-        )  # fmt: skip
+        cam = _camera(c)
         loose, tight = 64.0, MAX_SSE
         for _ in range(10):
             mid = math.sqrt(loose * tight)
@@ -348,8 +351,6 @@ class _Probe:
     def measure(self, node: Any, shader: Any, meta: dict[str, Any], z: np.ndarray,
                 size: int) -> dict[str, float]:  # fmt: skip
         """Draw ``node`` with ``shader`` into the float target; the per-pixel error."""
-        from panda3d.core import TransparencyAttrib  # noqa: F401
-
         base = self.base
         main = node.getShader()
         node.setShader(shader, 100)
@@ -426,8 +427,6 @@ def _place(base: Any, c: dict[str, float], size: int, dx: float, dy: float) -> N
 
 def _geoms(root: Any) -> list[tuple[np.ndarray, np.ndarray]]:
     """Every GeomNode under ``root``: vertices (N, 3) in root space and triangles (M, 3)."""
-    from panda3d.core import GeomVertexReader  # noqa: F401  (the module must be loaded)
-
     out = []
     for path in root.findAllMatches("**/+GeomNode"):
         mat = np.array(path.getMat(root), dtype=np.float64).reshape(4, 4)

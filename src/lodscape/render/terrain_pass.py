@@ -902,11 +902,10 @@ class Renderer:
                 ],
             )
             self.last_stats = DrawStats(calls, triangles, submit_s * 1e3)
-            return self._finish(camera, fbo, after, labelled, ellipsoid=self.ellipsoid)
+            return self._finish(camera, fbo, after, labelled)
         triangles = calls = 0
         cpu_tiles = [t for t in tiles if isinstance(t, _Tile)]
         view_projections = [camera.view_projection(tile.center) for tile in cpu_tiles]
-        # tiles whose texture has nothing to cut first, by the variant without a discard
         main = self._program
         whole = [
             self.no_discard
@@ -958,7 +957,7 @@ class Renderer:
         if self._program is not main:
             self._bind(main)
         self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
-        return self._finish(camera, fbo, after, labelled, ellipsoid=self.ellipsoid)
+        return self._finish(camera, fbo, after, labelled)
 
     def _draw_ellipsoid(
         self, camera: Camera, fbo: moderngl.Framebuffer, labelled: bool = False
@@ -1032,12 +1031,10 @@ class Renderer:
         fbo: moderngl.Framebuffer,
         after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]],
         labelled: bool = False,
-        *,
-        ellipsoid: bool = False,
     ) -> tuple[NDArray[Any], NDArray[np.float32]]:
         """The ellipsoid where the terrain left the sky, the other passes, then the
         read-back."""
-        if ellipsoid:
+        if self.ellipsoid:
             self._draw_ellipsoid(camera, fbo, labelled)
         for extra in after:
             extra(camera, fbo)
