@@ -4,11 +4,9 @@ every executor, and clear failures on bad input (real GeoTIFFs, real SQLite, rea
 from __future__ import annotations
 
 import os
-import signal
 import sqlite3
 import subprocess
 import sys
-import time
 from contextlib import closing
 from pathlib import Path
 from typing import Any
@@ -259,101 +257,22 @@ def test_processes_and_dask_make_the_same_tiles_as_threads(
     assert _tiles(dask) == want
 
 
-def _descendants(pid: int) -> set[int]:
-    """Every process under ``pid`` (Linux /proc; empty elsewhere)."""
-    parents: dict[int, int] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
+def test_a_dask_build_starts_beside_another_dashboard() -> None:
+    """Port 8787 taken (a user's Jupyter or Dask dashboard): the local cluster starts anyway,
+    with no warning (the suite turns warnings into errors)."""
+    import socket
+
+    with socket.socket() as sock:
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
+            sock.bind(("127.0.0.1", 8787))
+            sock.listen()
         except OSError:
-            continue
-        parents[int(stat.parent.name)] = int(fields[1])
-    out: set[int] = set()
-    frontier = {pid}
-    while frontier:
-        frontier = {c for c, p in parents.items() if p in frontier} - out
-        out |= frontier
-    return out
-
-
-def _alive(pid: int) -> bool:
-    """Whether ``pid`` runs (a zombie, dead and not yet reaped by init, does not)."""
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
-def test_a_killed_build_resumes_without_redoing_tiles(tmp_path: Path) -> None:
-    big = write_dem(
-        str(tmp_path / "big.tif"),
-        fbm_heights(1025, seed=8),
-        crs="EPSG:32617",
-        west=EAST,
-        north=NORTH,
-        res=5.0,
-    )
-    out = tmp_path / "big.lods"
-    cmd = [
-        sys.executable,
-        "-m",
-        "lodscape.cli",
-        "build",
-        big,
-        "-o",
-        str(out),
-        "-q",
-        "--workers",
-        "1",
-    ]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    done = 0
-    children: set[int] = set()
-    deadline = time.monotonic() + 120
-    try:
-        while time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.2)
-            if out.exists():
-                try:
-                    with closing(sqlite3.connect(f"file:{out}?mode=ro", uri=True, timeout=1)) as db:
-                        done, total = db.execute("SELECT SUM(done), COUNT(*) FROM plan").fetchone()
-                except sqlite3.Error:
-                    continue
-                if done and 0 < done < total // 2:
-                    break
-    finally:
-        children = _descendants(proc.pid)
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    assert proc.returncode == -signal.SIGKILL, "the build finished before it could be killed"
-    assert done
-    if sys.platform.startswith("linux"):
-        # the pool's worker and multiprocessing's resource tracker end with the build
-        assert children, "the build's worker process was not seen"
-        gone = time.monotonic() + 15
-        while time.monotonic() < gone and any(_alive(c) for c in children):
-            time.sleep(0.2)
-        assert not [c for c in children if _alive(c)], "a worker outlived the killed build"
-    with pytest.raises(TilesetError, match="stopped at"):
-        TilesetProvider(out)
-    with closing(sqlite3.connect(out)) as db:
-        assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
-        finished = {r for r in db.execute("SELECT z, x, y FROM plan WHERE done = 1")}
-        before = {r[:3]: r[3] for r in db.execute("SELECT z, x, y, data FROM terrain")}
-    # every finished tile is whole, and none is there without its done mark
-    assert set(before) <= finished
-    report = build([big], out)
-    assert report.resumed
-    assert report.built == report.planned - len(finished)
-    with closing(sqlite3.connect(out)) as db:
-        assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
-        after = {r[:3]: r[3] for r in db.execute("SELECT z, x, y, data FROM terrain")}
-    assert all(after[k] == v for k, v in before.items())
-    fresh = tmp_path / "fresh.lods"
-    build([big], fresh)
-    assert _tiles(fresh) == _tiles(out)
-    assert not Path(str(out) + "-wal").exists()
+            pass  # taken already: the case itself
+        executor = DaskExecutor(None, workers=1)
+        try:
+            assert list(executor.imap(abs, [(-2,), (3,)])) in ([2, 3], [3, 2])
+        finally:
+            executor.close()
 
 
 def test_points_are_triangulated_and_built(tmp_path: Path) -> None:

@@ -257,6 +257,14 @@ NodataOpt = Annotated[
         "--nodata", callback=_finite, help="A nodata value the DEM uses but does not declare."
     ),
 ]
+ZUnitsOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--z-units",
+        help="The DEM's height unit: m, ft, us-ft, or metres per unit (default: the band's "
+        "unit, a vertical CRS's, else a projected CRS's own; metres where nothing says).",
+    ),
+]
 
 
 def _sea_level(text: str) -> float | None:
@@ -301,6 +309,7 @@ class TerrainFlags:
     sea_level: str = "0"
     band: int | None = None
     nodata: float | None = None
+    z_units: str | None = None
     ellipsoid: bool = True
     morph: bool = True
     compress_textures: bool = False
@@ -351,6 +360,7 @@ class TerrainFlags:
             sea_level=_sea_level(self.sea_level),
             band=self.band,
             nodata=self.nodata,
+            z_units=self.z_units,
             city_options=self.city_options(),
         )
 
@@ -387,6 +397,7 @@ _TERRAIN_FLAGS = [
         ("sea_level", SeaLevelOpt, "0"),
         ("band", BandOpt, None),
         ("nodata", NodataOpt, None),
+        ("z_units", ZUnitsOpt, None),
         ("ellipsoid", EllipsoidOpt, True),
         ("morph", MorphOpt, True),
         ("compress_textures", CompressOpt, False),
@@ -934,6 +945,7 @@ def demo(
 @app.command()
 def info(
     source: Annotated[str, typer.Argument(help="A DEM (any GDAL raster) or a .lods tileset.")],
+    z_units: ZUnitsOpt = None,
 ) -> None:
     """Print a source's footprint, resolution, heights and tile levels (and for a tileset, its
     size and provenance)."""
@@ -941,7 +953,7 @@ def info(
     from lodscape.store.provider import RefinedProvider
     from lodscape.store.tileset import TIN_GRID
 
-    with open_scene(source) as scene:
+    with open_scene(source, z_units=z_units) as scene:
         provider = scene.provider
         imagery_zmax = provider.texture_levels[0]
         if isinstance(provider, RefinedProvider):
@@ -1059,6 +1071,7 @@ def build(
     sea_level: SeaLevelOpt = "0",
     band: BandOpt = None,
     nodata: NodataOpt = None,
+    z_units: ZUnitsOpt = None,
     mesher: Annotated[
         str,
         typer.Option(
@@ -1094,6 +1107,7 @@ def build(
             band=band,
             nodata=nodata,
             mesher=mesher,
+            z_units=z_units,
         )
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None

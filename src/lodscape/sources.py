@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from lodscape._cache import user_cache
 from lodscape.errors import LodscapeError, SourceError
+from lodscape.imagery.layers import warn_stderr
 from lodscape.scene import Scene, SceneOptions
 from lodscape.store.provider import FractalProvider, Provider, RasterProvider
 from lodscape.store.tileset import TilesetProvider, is_tileset
@@ -104,6 +105,7 @@ def open(
     sea_level: float | None = 0.0,
     band: int | None = None,
     nodata: float | None = None,
+    z_units: str | None = None,
     city_options: Any = None,
     **array_kwargs: Any,
 ) -> Scene:
@@ -130,7 +132,8 @@ def open(
       0); a tileset keeps the fill it was built with;
     - ``sea_level``: heights below it are tinted as water (None: no sea);
     - ``band`` picks a multi-band raster's height band; ``nodata`` declares a nodata value the
-      file does not.
+      file does not; ``z_units`` (``m``, ``ft``, ``us-ft`` or metres per unit) says what unit
+      its heights are in, where the file's own unit, vertical CRS or projected CRS would not.
 
     A scene opened from a path or an array closes what it opened when it closes."""
     specs = _imagery_specs(imagery)
@@ -148,13 +151,19 @@ def open(
         # a mask is worth metres, not the DEM's resolution: the tree goes on below the data
         # with heights interpolated (fractal detail of no amplitude), and its masks with it
         detail = Fractal(0.7, 0.0, 0)
-    if spec is not None and spec.kind != "raster" and (band or nodata is not None):
-        raise SourceError(f"{spec.text}: --band and --nodata are for a raster DEM")
+    if (
+        spec is not None
+        and spec.kind != "raster"
+        and (band or nodata is not None or z_units is not None)
+    ):
+        raise SourceError(f"{spec.text}: --band, --nodata and --z-units are for a raster DEM")
     if spec is not None and spec.kind == "tileset" and fill is not None:
         raise SourceError(f"{spec.text}: a tileset keeps the fill it was built with (--fill)")
     if fill is None:
         fill = Fill()
-    ground = _Ground(fill if isinstance(fill, Fill) else parse_fill(fill), sea_level, band, nodata)
+    ground = _Ground(
+        fill if isinstance(fill, Fill) else parse_fill(fill), sea_level, band, nodata, z_units
+    )
     timeout = (options or SceneOptions()).imagery_timeout
     layers = _open_layers(specs, imagery_cache, imagery_maxzoom, timeout)
     try:
@@ -220,6 +229,7 @@ class _Ground:
     sea_level: float | None = 0.0
     band: int | None = None
     nodata: float | None = None
+    z_units: str | None = None
 
 
 def _cache_dir(cache: str | PathLike[str] | None) -> Path:
@@ -290,9 +300,12 @@ def _terrain(
         what = "an empty file" if size == 0 else f"{size:,d} bytes that are not SQLite"
         raise SourceError(f"{spec.text}: not a lodscape tileset ({what})")
     else:
-        src = FilledSource(
-            RasterSource(spec.text, band=ground.band, nodata=ground.nodata), ground.fill
+        raster = RasterSource(
+            spec.text, band=ground.band, nodata=ground.nodata, z_units=ground.z_units
         )
+        if raster.z_note is not None:
+            warn_stderr(raster.z_note)
+        src = FilledSource(raster, ground.fill)
     return _lattice(src, detail, ground.sea_level), True
 
 

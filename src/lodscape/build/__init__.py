@@ -23,10 +23,12 @@ from lodscape.build.executors import BuildExecutor, executor_for
 from lodscape.build.tiles import Job, level_budget, make_tiles
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, bounds_array
+from lodscape.imagery.layers import warn_stderr
 from lodscape.store.tileset import (
     SCHEMA_VERSION,
     TIN_GRID,
     TileRecord,
+    TilesetError,
     TilesetWriter,
     lonlat_bounds,
 )
@@ -34,7 +36,16 @@ from lodscape.terrain.greedy import MESHERS
 from lodscape.terrain.points import POINT_SUFFIXES, grid_points, read_points, write_grid
 from lodscape.terrain.pyramid import LevelSpan, level_range, level_span
 from lodscape.terrain.rtin import Rtin
-from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
+from lodscape.terrain.source import (
+    FilledSource,
+    HeightSource,
+    MosaicSource,
+    RasterSource,
+    open_rasters,
+    parse_fill,
+    parse_z_units,
+    z_notes,
+)
 
 __all__ = ["BuildOptions", "BuildReport", "build", "executor_for"]
 
@@ -77,6 +88,9 @@ class BuildOptions:
     #: irregular networks, halves of halves of the tile) or "greedy" (Delaunay refinement,
     #: points where the error is: fewer triangles for the same measured error).
     mesher: str = "rtin"
+    #: The rasters' height unit: ``m``, ``ft``, ``us-ft`` or metres per unit (None: what the
+    #: files say: the band's unit, a vertical CRS, else a projected CRS's unit).
+    z_units: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "fill", str(parse_fill(self.fill)))
@@ -86,6 +100,8 @@ class BuildOptions:
             raise ValueError(f"Expected error_texels >= 0, got {self.error_texels}")
         if self.resolution is not None and not self.resolution > 0.0:
             raise ValueError(f"Expected a positive resolution, got {self.resolution}")
+        if self.z_units is not None:
+            parse_z_units(self.z_units)  # refused here, before anything is opened
         if self.batch < 1:
             raise ValueError(f"Expected a batch of at least 1, got {self.batch}")
         for spec in self.imagery:
@@ -124,8 +140,14 @@ def build(
     t0 = time.perf_counter()
     rasters = _rasters(inputs, out, options)
     raw = open_rasters(
-        rasters, allow_mixed_crs=options.allow_mixed_crs, band=options.band, nodata=options.nodata
+        rasters,
+        allow_mixed_crs=options.allow_mixed_crs,
+        band=options.band,
+        nodata=options.nodata,
+        z_units=options.z_units,
     )
+    for note in z_notes(raw):
+        warn_stderr(note)
     source = FilledSource(raw, parse_fill(options.fill))
     try:
         _check_resolution(source, options.tile_size)
@@ -154,6 +176,7 @@ def build(
             options.band,
             options.nodata,
             options.mesher,
+            options.z_units,
         )
         plan = _plan(source, span.zmin, max(span.zmax, imagery_zmax))
         manifest = _manifest(source, options, inputs, span, height_range, imagery_zmax)
@@ -163,8 +186,14 @@ def build(
     own = executor is None
     ok = False
     try:
+        # a tileset left by a build that resumed before this was fixed holds imagery where its
+        # refinement levels' terrain should be: those tiles are made again
+        writer.replan_stray_imagery(imagery_zmax)
         writer.plan(plan)
-        pending = writer.pending()
+        # the plan's own levels first: deeper pending tiles are a killed run's refinement,
+        # made level by level below once their parents are known
+        planned_zmax = max(span.zmax, imagery_zmax)
+        pending = [t for t in writer.pending() if t[0] <= planned_zmax]
         done, total = writer.counts()
         if progress is not None:
             progress(done, total)
@@ -189,7 +218,7 @@ def build(
                 if not over:
                     break
                 writer.plan(over)
-                pending = writer.pending()
+                pending = [t for t in writer.pending() if t[0] <= zmax + 1]
                 done, total = writer.counts()
                 made += len(pending)
                 if pending:
@@ -199,6 +228,14 @@ def build(
                 done = _run(executor, finer, pending, writer, options.batch, progress, done, total)
                 zmax += 1
         span = replace(span, zmax=zmax)
+        left = writer.pending()
+        if left:
+            # never say complete over a hole: a tile planned and not made is a bug to report
+            z, x, y = left[0]
+            raise TilesetError(
+                f"{out}: {len(left)} planned tiles were not made (first {z}/{x}/{y}); "
+                "the file is kept to resume: run the same build again"
+            )
         writer.finish(_mbtiles(manifest, out), zmax=zmax)
         ok = True
     finally:
@@ -441,6 +478,19 @@ def _manifest(
         },
         "provenance": provenance,
         "options": opts,
+        # metres per height unit of the rasters not in metres (converted when read)
+        "z_factors": _z_factors(source),
+    }
+
+
+def _z_factors(source: HeightSource) -> dict[str, float]:
+    if isinstance(source, FilledSource):
+        source = source.source
+    parts = source.sources if isinstance(source, MosaicSource) else [source]
+    return {
+        os.path.abspath(s.path): s.z_factor
+        for s in parts
+        if isinstance(s, RasterSource) and s.z_factor != 1.0
     }
 
 

@@ -90,11 +90,14 @@ def _die_with_parent(parent: int) -> None:
 
     def watch() -> None:
         while os.getppid() == parent:
-            time.sleep(0.5)
+            time.sleep(0.2)
         os._exit(1)
 
-    if os.getppid() == parent:
-        threading.Thread(target=watch, name="lodscape-parent-watch", daemon=True).start()
+    # a build killed while this worker was still importing (seconds, under spawn) is gone
+    # already: the worker must end now, not skip its watch
+    if os.getppid() != parent:
+        os._exit(1)
+    threading.Thread(target=watch, name="lodscape-parent-watch", daemon=True).start()
 
 
 class DaskExecutor:
@@ -115,7 +118,8 @@ class DaskExecutor:
                     n_workers=workers,
                     threads_per_worker=1,
                     processes=True,
-                    dashboard_address=None,
+                    # an HTTP server always starts; on a free port, not beside a user's 8787
+                    dashboard_address="127.0.0.1:0",
                 )
                 self.client = Client(self._cluster)
             else:

@@ -58,6 +58,8 @@ class Job:
     nodata: float | None = None
     #: How tiles are meshed (``terrain.greedy.MESHERS``): "rtin" or "greedy".
     mesher: str = "rtin"
+    #: The rasters' height unit (``terrain.source.parse_z_units``; None: as they say).
+    z_units: str | None = None
 
 
 _sources: dict[tuple[Any, ...], HeightSource] = {}
@@ -67,12 +69,16 @@ _sources_lock = threading.Lock()
 
 def _source(job: Job) -> HeightSource:
     """The job's source, opened once per process (and shared by its threads)."""
-    key = (job.inputs, job.allow_mixed_crs, job.band, job.nodata, job.fill)
+    key = (job.inputs, job.allow_mixed_crs, job.band, job.nodata, job.fill, job.z_units)
     with _sources_lock:
         src = _sources.get(key)
         if src is None:
             raw = open_rasters(
-                job.inputs, allow_mixed_crs=job.allow_mixed_crs, band=job.band, nodata=job.nodata
+                job.inputs,
+                allow_mixed_crs=job.allow_mixed_crs,
+                band=job.band,
+                nodata=job.nodata,
+                z_units=job.z_units,
             )
             src = _sources[key] = FilledSource(raw, parse_fill(job.fill))
         return src
@@ -148,6 +154,9 @@ def _texture(job: Job, src: HeightSource, z: int, x: int, y: int) -> bytes:
 def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
     src = _source(job)
     if z > job.zmax:
+        if z > job.imagery_zmax:
+            # a tile of a finer level than the job knows: its terrain is due, not its imagery
+            raise ValueError(f"tile {z}/{x}/{y} is below both the job's terrain and imagery")
         # below the terrain's finest level: the imagery alone
         return TileRecord(z, x, y, imagery=_texture(job, src, z, x, y))
     t = Tile(x, y, z)

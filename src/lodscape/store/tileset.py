@@ -164,6 +164,22 @@ class TilesetWriter:
         rows = self.db.execute("SELECT z, x, y FROM plan WHERE done = 0 ORDER BY z, y, x")
         return [(int(z), int(x), int(y)) for z, x, y in rows]
 
+    def replan_stray_imagery(self, imagery_zmax: int) -> int:
+        """Mark for making again the planned tiles below ``imagery_zmax`` that hold imagery
+        (made as imagery alone where their terrain was due) and drop that imagery; returns how
+        many."""
+        rows = self.db.execute(
+            "SELECT zoom_level, tile_column, tile_row FROM tiles WHERE zoom_level > ?",
+            (imagery_zmax,),
+        ).fetchall()
+        if not rows:
+            return 0
+        tiles = [(z, x, (1 << z) - 1 - r) for z, x, r in rows]
+        with self._transaction():
+            self.db.execute("DELETE FROM tiles WHERE zoom_level > ?", (imagery_zmax,))
+            self.db.executemany("UPDATE plan SET done = 0 WHERE z = ? AND x = ? AND y = ?", tiles)
+        return len(rows)
+
     def counts(self) -> tuple[int, int]:
         """(tiles done, tiles planned)."""
         done, total = self.db.execute("SELECT SUM(done), COUNT(*) FROM plan").fetchone()
@@ -254,8 +270,13 @@ def _identity(manifest: dict[str, Any]) -> Any:
     options = manifest.get("options")
     if isinstance(options, dict):
         # builds written before the mesher was an option were all RTIN's
-        options = {"mesher": "rtin", **options}
-    return (manifest.get("schema"), manifest.get("provenance"), options)
+        options = {"mesher": "rtin", "z_units": None, **options}
+    return (
+        manifest.get("schema"),
+        manifest.get("provenance"),
+        options,
+        manifest.get("z_factors", {}),
+    )
 
 
 # --- reading ---------------------------------------------------------------------------------

@@ -9,8 +9,10 @@ so adjacent tiles get bit-identical shared edges.
 
 Points without data (nodata, NaN, masked, outside the raster) come back with ``valid`` False and a
 height filled from a coarse, hole-filled overview of the whole raster built once at open, so
-callers never see nodata values, NaN or spikes to 0. Heights are assumed to be metres (a band's
-scale and offset are applied); vertical units are not converted.
+callers never see nodata values, NaN or spikes to 0. Heights come out in metres: a band's scale
+and offset are applied, and heights in feet are converted, their unit taken from (first found) the
+caller's ``z_units``, the band's unit metadata, a compound CRS's vertical axis, or a projected
+CRS's horizontal unit where the file says nothing else (``RasterSource.z_note`` says which).
 """
 
 from __future__ import annotations
@@ -49,6 +51,8 @@ __all__ = [
     "RasterSource",
     "open_rasters",
     "parse_fill",
+    "parse_z_units",
+    "z_notes",
 ]
 
 #: Longest side (pixels) of the hole-filled whole-raster overview that fills invalid points.
@@ -67,6 +71,77 @@ _STRIP_PIXELS = 1 << 21
 
 F64 = NDArray[np.float64]
 B = NDArray[np.bool_]
+
+#: Metres per unit of the height units a DEM may be in, by the names files and users give them.
+_Z_UNITS = {
+    "m": 1.0,
+    "metre": 1.0,
+    "metres": 1.0,
+    "meter": 1.0,
+    "meters": 1.0,
+    "ft": 0.3048,
+    "foot": 0.3048,
+    "feet": 0.3048,
+    "international foot": 0.3048,
+    "international feet": 0.3048,
+    "us-ft": 1200.0 / 3937.0,
+    "us_ft": 1200.0 / 3937.0,
+    "usft": 1200.0 / 3937.0,
+    "ftus": 1200.0 / 3937.0,
+    "us survey foot": 1200.0 / 3937.0,
+    "us survey feet": 1200.0 / 3937.0,
+    "us_survey_foot": 1200.0 / 3937.0,
+    "foot_us": 1200.0 / 3937.0,
+}
+
+
+def parse_z_units(text: str) -> float:
+    """Metres per height unit: ``m``, ``ft`` (international), ``us-ft`` (US survey), or a
+    positive number of metres per unit."""
+    key = " ".join(text.strip().lower().replace("-", " ").split()).replace(" ", "-")
+    for name, factor in _Z_UNITS.items():
+        if key == name.replace(" ", "-").replace("_", "-"):
+            return factor
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if math.isfinite(value) and value > 0.0:
+        return value
+    raise SourceError(
+        f"--z-units must be m, ft, us-ft or metres per unit (e.g. 0.3048), got {text!r}"
+    )
+
+
+def _unit_name(factor: float) -> str:
+    if factor == 1.0:
+        return "metres"
+    if abs(factor - 0.3048) < 1e-9:
+        return "feet"
+    if abs(factor - 1200.0 / 3937.0) < 1e-9:
+        return "US survey feet"
+    return f"units of {factor:g} m"
+
+
+def _z_units(ds: Any, band: int, crs: CRS) -> tuple[float, str | None]:
+    """Metres per height unit of a raster's band, and where that was read (None: nothing says,
+    metres assumed)."""
+    unit = (ds.units[band - 1] if ds.units else None) or ""
+    if unit.strip():
+        try:
+            return parse_z_units(unit), f"the band's unit {unit!r}"
+        except SourceError:
+            pass  # a unit we do not know (a description, "elevation"…) says nothing
+    if crs.is_compound:
+        for sub in crs.sub_crs_list:
+            if sub.is_vertical and sub.axis_info:
+                axis = sub.axis_info[0]
+                return float(axis.unit_conversion_factor), f"the vertical CRS {sub.name!r}"
+    if crs.is_projected and crs.axis_info:
+        factor = float(crs.axis_info[0].unit_conversion_factor)
+        if factor != 1.0:
+            return factor, f"the CRS's horizontal unit ({crs.axis_info[0].unit_name})"
+    return 1.0, None
 
 
 class HeightSource(Protocol):
@@ -607,9 +682,14 @@ class RasterSource(_GridSource):
     """One band of any GDAL raster read through rasterio, in any CRS; heights in metres."""
 
     def __init__(
-        self, path: str | os.PathLike[str], band: int | None = None, nodata: float | None = None
+        self,
+        path: str | os.PathLike[str],
+        band: int | None = None,
+        nodata: float | None = None,
+        z_units: str | None = None,
     ) -> None:
         self.path = os.fspath(path)
+        self._z_units = z_units
         name = self.path
         self._lock = threading.Lock()
         self._closed = False
@@ -664,6 +744,22 @@ class RasterSource(_GridSource):
             raise SourceError(f"{name}: unusable CRS ({_one_line(exc)})") from None
         self._scale = float(ds.scales[band - 1] if ds.scales else 1.0)
         self._offset = float(ds.offsets[band - 1] if ds.offsets else 0.0)
+        said: str | None = "--z-units"
+        if self._z_units is not None:
+            factor = parse_z_units(self._z_units)
+        else:
+            factor, said = _z_units(ds, band, crs)
+        #: Metres per unit of the band's heights (after its scale and offset).
+        self.z_factor = factor
+        #: One line on where the height unit came from, where it is not plain metres (None).
+        self.z_note: str | None = None
+        if factor != 1.0 and self._z_units is None:
+            self.z_note = (
+                f"{name}: heights read as {_unit_name(factor)} (from {said}) and converted to "
+                "metres; give --z-units m if they are metres"
+            )
+        self._scale *= factor
+        self._offset *= factor
         overviews = []
         where = self.path
         if not ds.overviews(band) and max(ds.width, ds.height) > SIDECAR_MIN_SIZE:
@@ -1004,13 +1100,14 @@ def open_rasters(
     allow_mixed_crs: bool = False,
     band: int | None = None,
     nodata: float | None = None,
+    z_units: str | None = None,
 ) -> HeightSource:
     """One raster as a RasterSource, several as a MosaicSource; each file checked as it opens
-    (``band`` and ``nodata`` apply to every file)."""
+    (``band``, ``nodata`` and ``z_units`` apply to every file)."""
     opened: list[RasterSource] = []
     try:
         for p in paths:
-            opened.append(RasterSource(p, band=band, nodata=nodata))
+            opened.append(RasterSource(p, band=band, nodata=nodata, z_units=z_units))
         if not opened:
             raise SourceError("no input rasters given")
         crs = {CRS.from_wkt(s.crs_wkt) for s in opened}
@@ -1029,6 +1126,18 @@ def open_rasters(
             s.close()
         raise
     return opened[0] if len(opened) == 1 else MosaicSource(opened)
+
+
+def z_notes(source: HeightSource) -> list[str]:
+    """What the rasters under ``source`` say of their height units where they are not plain
+    metres (``RasterSource.z_note``), once each: for the app to say on stderr."""
+    if isinstance(source, FilledSource):
+        return z_notes(source.source)
+    if isinstance(source, MosaicSource):
+        return [n for s in source.sources for n in z_notes(s)]
+    if isinstance(source, RasterSource) and source.z_note is not None:
+        return [source.z_note]
+    return []
 
 
 def _crs_name(wkt: str) -> str:
