@@ -26,7 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["TileServer", "serve_tileset", "tile_colour"]
+__all__ = [
+    "TERRAIN_BOX",
+    "TerrainServer",
+    "TileServer",
+    "geographic_terrain_tile",
+    "serve_tileset",
+    "terrain_height",
+    "tile_colour",
+]
 
 
 def tile_colour(z: int, x: int, y: int) -> tuple[int, int, int]:
@@ -232,3 +240,129 @@ def serve_tileset(site: Path) -> Iterator[str]:
         thread.join(30)
         loop.close()
         service.close()
+
+
+# --- a quantized-mesh terrain server (EPSG:4326, as Cesium's), with faults ----------------------
+
+#: Where the terrain server's tiles have data: west, south, east, north.
+TERRAIN_BOX = (7.9, 45.95, 8.1, 46.05)
+
+
+def terrain_height(lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+    """The analytic terrain the servers encode: a tilted sine, metres."""
+    return (
+        300.0
+        + 150.0 * np.sin((lon - 8.0) * 40.0) * np.cos((lat - 46.0) * 30.0)
+        + 2000.0 * (lat - 46.0)
+    )
+
+
+def geographic_terrain_tile(z: int, x: int, tms: int) -> bytes | None:
+    """Tile z/x/tms of the geographic tiling (two root tiles): a 17² grid of the analytic
+    heights over the tile, where it meets ``TERRAIN_BOX``."""
+    from lodscape.store.quantized_mesh import encode
+    from lodscape.terrain.mesh import grid_indices
+
+    span = 180.0 / (1 << z)
+    w, s = -180.0 + x * span, -90.0 + tms * span
+    e, n = w + span, s + span
+    bw, bs, be, bn = TERRAIN_BOX
+    if e < bw or w > be or n < bs or s > bn:
+        return None
+    g = 16
+    lon, lat = np.meshgrid(np.linspace(w, e, g + 1), np.linspace(n, s, g + 1))
+    tris = grid_indices(g)[: 2 * g * g].astype(np.int64)
+    return encode(lon.ravel(), lat.ravel(), terrain_height(lon, lat).ravel(), tris, (w, s, e, n))
+
+
+class TerrainServer:
+    """A Cesium-style ``layer.json`` and its quantized-mesh tiles on loopback. ``fault`` is done
+    to every tile of level ``from_z`` and deeper: "hang" (no answer), "trickle" (the body 16
+    bytes a second), "500", "garbage", "bomb" (a PNG bomb), "truncated" (half the promised
+    body); "root-down" answers 500 to the root tiles for ``down_s`` seconds after the first
+    request for one. ``url`` is the layer's."""
+
+    def __init__(
+        self, fault: str | None = None, from_z: int = 4, maxzoom: int = 11, down_s: float = 2.0
+    ) -> None:
+        import json
+
+        self.fault, self.from_z, self.down_s = fault, from_z, down_s
+        self.first_root: float | None = None
+        self.requests = 0
+        layer = {
+            "tilejson": "2.1.0",
+            "format": "quantized-mesh-1.0",
+            "version": "1.0.0",
+            "scheme": "tms",
+            "projection": "EPSG:4326",
+            "tiles": ["tiles/{z}/{x}/{y}.terrain"],
+            "maxzoom": maxzoom,
+            "bounds": list(TERRAIN_BOX),
+        }
+        server = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args: object) -> None:
+                pass
+
+            def do_GET(self) -> None:
+                server.requests += 1
+                path = self.path.split("?")[0]
+                if path.endswith("/layer.json"):
+                    self._send(json.dumps(layer).encode())
+                    return
+                parts = path.split("/")
+                z, x, y = int(parts[-3]), int(parts[-2]), int(parts[-1].split(".")[0])
+                body = geographic_terrain_tile(z, x, y) if z <= maxzoom else None
+                fault = server.fault if z >= server.from_z else None
+                if server.fault == "root-down" and z == 0:
+                    now = time.monotonic()
+                    if server.first_root is None:
+                        server.first_root = now
+                    fault = "500" if now - server.first_root < server.down_s else None
+                if body is None:
+                    self.send_error(404)
+                    return
+                if fault == "hang":
+                    time.sleep(60)
+                    return
+                if fault == "500":
+                    self.send_error(500)
+                    return
+                if fault == "garbage":
+                    body = b"<html>this is not a terrain tile</html>"
+                if fault == "bomb":
+                    body = _bomb()
+                if fault in ("trickle", "truncated"):
+                    self.send_response(200)
+                    self.send_header("Content-Length", str(len(body)))
+                    self.end_headers()
+                    if fault == "truncated":
+                        self.wfile.write(body[: len(body) // 2])
+                        self.close_connection = True
+                        return
+                    for i in range(0, len(body), 16):
+                        try:
+                            self.wfile.write(body[i : i + 16])
+                            self.wfile.flush()
+                        except OSError:
+                            return
+                        time.sleep(1.0)
+                    return
+                self._send(body)
+
+            def _send(self, body: bytes) -> None:
+                self.send_response(200)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+        self.httpd = _QuietServer(("127.0.0.1", 0), Handler)
+        self.httpd.daemon_threads = True
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/terrain/layer.json"
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()

@@ -17,7 +17,10 @@ import pytest
 
 import lodscape
 from _synthetic import fbm_tileset, run_cli
+from _tileserver import TERRAIN_BOX as BOX
+from _tileserver import geographic_terrain_tile as _geographic_tile
 from _tileserver import serve_tileset
+from _tileserver import terrain_height as _height
 from lodscape.dataset import Origin, conventions
 from lodscape.geo.frames import ecef_to_geodetic, geodetic_to_ecef
 from lodscape.geo.tiles import ORIGIN, lonlat_to_merc, merc_to_lonlat
@@ -94,16 +97,6 @@ def test_meshes_interpolate_on_their_own_triangles() -> None:
 # --- Terrarium ------------------------------------------------------------------------------
 
 
-#: The analytic terrain the Terrarium server encodes: a tilted sine, metres.
-def _height(lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
-    return (
-        300.0
-        + 150.0 * np.sin((lon - 8.0) * 40.0) * np.cos((lat - 46.0) * 30.0)
-        + 2000.0 * (lat - 46.0)
-    )
-
-
-BOX = (7.9, 45.95, 8.1, 46.05)  # west, south, east, north: the server's tiles cover it
 MAXZOOM = 13
 
 
@@ -286,24 +279,6 @@ def test_fly_a_served_site_with_no_local_data(
 # --- a geographic (EPSG:4326) quantized-mesh server, as Cesium's ----------------------------
 
 GEO_MAXZOOM = 11
-
-
-def _geographic_tile(z: int, x: int, tms: int) -> bytes | None:
-    """Tile z/x/tms of the geographic tiling (two root tiles): a 17² grid of the analytic
-    heights over the tile, where it meets ``BOX``."""
-    from lodscape.store.quantized_mesh import encode
-    from lodscape.terrain.mesh import grid_indices
-
-    span = 180.0 / (1 << z)
-    w, s = -180.0 + x * span, -90.0 + tms * span
-    e, n = w + span, s + span
-    bw, bs, be, bn = BOX
-    if e < bw or w > be or n < bs or s > bn:
-        return None
-    g = 16
-    lon, lat = np.meshgrid(np.linspace(w, e, g + 1), np.linspace(n, s, g + 1))
-    tris = grid_indices(g)[: 2 * g * g].astype(np.int64)
-    return encode(lon.ravel(), lat.ravel(), _height(lon, lat).ravel(), tris, (w, s, e, n))
 
 
 @pytest.fixture

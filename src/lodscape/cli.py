@@ -56,6 +56,18 @@ def _finite(value: float | None) -> float | None:
     return value
 
 
+def _pitch(value: float | None) -> float | None:
+    if value is not None and not -90.0 <= value <= 90.0:  # NaN included
+        raise typer.BadParameter(f"must be within -90..90 degrees, got {value}")
+    return value
+
+
+def _roll(value: float | None) -> float | None:
+    if value is not None and not -180.0 <= value <= 180.0:
+        raise typer.BadParameter(f"must be within -180..180 degrees, got {value}")
+    return value
+
+
 SizeOpt = Annotated[str, typer.Option("--size", help="Viewport WIDTHxHEIGHT in pixels.")]
 OutOpt = Annotated[Path, typer.Option("-o", "--output", help="Image to write (.png, .jpg, .tif).")]
 SseOpt = Annotated[float, typer.Option("--max-sse", help="Screen-space error bound, pixels.")]
@@ -194,8 +206,9 @@ FillOpt = Annotated[
     typer.Option(
         "--fill",
         help="What stands where the DEM has no data: none (a hole: nothing drawn; the "
-        "default), nearest (the nearest height stretched), value:H (level ground at H m) or "
-        "ellipsoid (height 0). A tileset keeps the fill it was built with.",
+        "default), nearest (the nearest height stretched), value:H (level ground at H m), "
+        "ellipsoid (height 0) or interpolate (voids inside the data filled from their rims, "
+        "height 0 outside it). A tileset keeps the fill it was built with.",
     ),
 ]
 SeaLevelOpt = Annotated[
@@ -588,9 +601,14 @@ def render(
         float, typer.Option(callback=_finite, help="Degrees clockwise from north.")
     ] = 0.0,
     pitch: Annotated[
-        float, typer.Option(callback=_finite, help="Degrees; negative looks down.")
-    ] = -30.0,
-    roll: Annotated[float, typer.Option(callback=_finite, help="Degrees; banks right.")] = 0.0,
+        float | None,
+        typer.Option(
+            callback=_pitch, help="Degrees; negative looks down (default -30; with a position)."
+        ),
+    ] = None,
+    roll: Annotated[
+        float | None, typer.Option(callback=_roll, help="Degrees; banks right (with a position).")
+    ] = None,
     fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 60.0,
     size: SizeOpt = "1280x720",
     depth: Annotated[
@@ -656,6 +674,11 @@ def render(
         _render_dataset(source, poses, dataset, origin, w, h, fov, quiet, terrain)
         return
     _check_outputs(output, depth)
+    if lon is None and lat is None and alt is None and (pitch is not None or roll is not None):
+        raise LodscapeError(
+            "--pitch and --roll need --lon/--lat/--alt: without a position the camera is "
+            "fitted to the view (or read from --camera)"
+        )
     if globe:
         if camera_file is not None and (lon is not None or lat is not None or alt is not None):
             raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
@@ -670,7 +693,7 @@ def render(
         pose = (
             None
             if lon is None or lat is None or alt is None
-            else (lon, lat, alt, heading, pitch, roll)
+            else (lon, lat, alt, heading, _or(pitch, -30.0), _or(roll, 0.0))
         )
         _render_globe(
             source,
@@ -698,9 +721,21 @@ def render(
             if lon is None or lat is None or alt is None:
                 raise LodscapeError("give all of --lon, --lat and --alt, or none of them")
             camera = Camera(
-                lon, lat, alt, heading=heading, pitch=pitch, roll=roll, fov_y=fov, width=w, height=h
+                lon,
+                lat,
+                alt,
+                heading=heading,
+                pitch=_or(pitch, -30.0),
+                roll=_or(roll, 0.0),
+                fov_y=fov,
+                width=w,
+                height=h,
             )
         _render(scene, camera, output, depth, quiet)
+
+
+def _or(value: float | None, default: float) -> float:
+    return default if value is None else value
 
 
 def _render_dataset(
@@ -779,7 +814,7 @@ def fly(
     speed: Annotated[float, typer.Option(callback=_finite, help="Metres per second.")] = 100.0,
     fps: Annotated[float, typer.Option(callback=_finite, help="Frames per second.")] = 30.0,
     pitch: Annotated[
-        float, typer.Option(callback=_finite, help="Degrees; negative looks down.")
+        float, typer.Option(callback=_pitch, help="Degrees; negative looks down.")
     ] = -15.0,
     fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 60.0,
     size: SizeOpt = "1280x720",
@@ -979,12 +1014,19 @@ def info(
             res = provider.resolution_merc
             if res is not None:
                 line(f"{'resolution':>14}: {res:.3f} m (Web Mercator)")
-            share = getattr(getattr(provider, "source", None), "valid_share", None)
+            raster = getattr(provider, "source", None)
+            share = getattr(raster, "valid_share", None)
             if isinstance(share, float) and share < 1.0:
                 line(
                     f"{'nodata':>14}: {100.0 * (1.0 - share):.1f} % of the raster (drawn as "
                     "holes; --fill to stand something in)"
                 )
+                voids = getattr(raster, "void_share", None)
+                if isinstance(voids, float) and voids > 0.0:
+                    line(
+                        f"{'voids':>14}: {100.0 * voids:.2f} % of the raster inside the data "
+                        "(--fill interpolate, a build's default, fills them from their rims)"
+                    )
         else:
             size = os.path.getsize(source)
             line(f"{'tileset':>14}: {size / 2**20:.2f} MiB, schema {manifest['schema']}")
@@ -993,6 +1035,10 @@ def info(
             line(f"{'build':>14}: error {opts['error_texels']} texel(s) per level")
             fill = opts.get("fill", "nearest")  # builds before the option filled with nearest
             line(f"{'fill':>14}: {fill} where the data has none")
+            voids = manifest.get("void_share")
+            if voids:
+                what = "filled from their rims" if fill == "interpolate" else f"given {fill}"
+                line(f"{'voids':>14}: {100.0 * voids:.2f} % of the raster inside the data, {what}")
             for p in manifest["provenance"]:
                 line(f"{'input':>14}: {p['path']} ({p['bytes']:,d} bytes)")
         for lv in tree.levels:
@@ -1063,11 +1109,12 @@ def build(
         str,
         typer.Option(
             "--fill",
-            help="What the tiles hold where the data has none: ellipsoid (height 0: the globe "
-            "a Cesium client expects; the default), none (holes: no triangles), nearest or "
-            "value:H. Kept in the tileset's metadata.",
+            help="What the tiles hold where the data has none: interpolate (the default: voids "
+            "inside the data filled smoothly from their rims, as gdal_fillnodata does; height 0 "
+            "outside it, the globe a Cesium client expects), ellipsoid (height 0 everywhere), "
+            "none (holes: no triangles), nearest or value:H. Kept in the tileset's metadata.",
         ),
-    ] = "ellipsoid",
+    ] = "interpolate",
     sea_level: SeaLevelOpt = "0",
     band: BandOpt = None,
     nodata: NodataOpt = None,
@@ -1311,7 +1358,7 @@ def globe(
         float, typer.Option(callback=_finite, help="Degrees clockwise from north.")
     ] = 0.0,
     pitch: Annotated[
-        float, typer.Option(callback=_finite, help="Degrees; negative looks down.")
+        float, typer.Option(callback=_pitch, help="Degrees; negative looks down.")
     ] = -90.0,
     fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 45.0,
     size: SizeOpt = "1024x768",

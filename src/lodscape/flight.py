@@ -245,6 +245,8 @@ STAT_COLUMNS = (
     # imagery layers: tiles drawn with an ancestor's layer tile or none, failed layer tiles
     "layer_fallbacks",
     "imagery_failed",
+    # the terrain server's failed tiles (retried; a coarser tile or the ellipsoid drawn)
+    "terrain_failed",
     # a tile server's HTTP requests and the HTTP client's own retries, since the flight began
     "http_requests",
     "http_retries",

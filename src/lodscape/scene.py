@@ -186,8 +186,9 @@ class FrameStats:
     #: Milliseconds the CPU spent issuing the terrain's draws (in ``draw_ms``, no GPU wait).
     submit_ms: float = 0.0
     terrain_mode: str = "cpu"
-    #: Imagery layers' failed tiles by kind since the scene opened (``imagery_<kind>``), and
-    #: tiles one-shot frames drew without their layer tile (``imagery_missed``).
+    #: Imagery layers' failed tiles by kind since the scene opened (``imagery_<kind>``), tiles
+    #: one-shot frames drew without their layer tile (``imagery_missed``), and the tile
+    #: servers' HTTP requests and the terrain server's failed tiles (``terrain_failed``).
     imagery: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, float | int]:
@@ -253,6 +254,7 @@ class Scene:
         self._drawn: Camera | None = None
         self.last: FrameStats | None = None
         self._said_late = False
+        self._said_server: set[str] = set()
 
     @property
     def options(self) -> SceneOptions:
@@ -399,6 +401,14 @@ class Scene:
                 "(--imagery-timeout)"
             )
         t2 = time.perf_counter()
+        if report.absent:
+            # a root the server failed is not drawn (the ellipsoid shows there) until it comes
+            kept = [
+                it
+                for it in plan.items
+                if it.key not in report.absent and it.texture not in report.absent
+            ]
+            plan = replace(plan, items=kept)
         items, culled, culled_tris = self.view.facing(
             plan, loader.gpu.meshes, whole_tiles=renderer.terrain_mode == "gpu"
         )
@@ -464,14 +474,37 @@ class Scene:
         return out
 
     def _imagery_stats(self, loader: Loader) -> dict[str, int]:
-        if not self.provider.layers:
-            return {}
-        from lodscape.imagery.layers import server_figures
+        """The imagery layers' and the terrain server's failures and HTTP figures."""
+        out: dict[str, int] = {}
+        if self.provider.layers:
+            from lodscape.imagery.layers import server_figures
 
-        fails = self.imagery_failures()
-        out = {**server_figures(self.provider.layers), "imagery_missed": loader.missed}
-        out.update((f"imagery_{k.replace('-', '_')}", n) for k, n in sorted(fails.items()))
+            fails = self.imagery_failures()
+            out = {**server_figures(self.provider.layers), "imagery_missed": loader.missed}
+            out.update((f"imagery_{k.replace('-', '_')}", n) for k, n in sorted(fails.items()))
+        server = self._terrain_server()
+        if server is not None:
+            for name, n in server.server_figures().items():
+                out[name] = out.get(name, 0) + n
+            # each kind of failure said once, after a frame drawn without those tiles
+            for kind, line in server.notices().items():
+                if kind not in self._said_server:
+                    from lodscape.imagery.layers import warn_stderr
+
+                    self._said_server.add(kind)
+                    warn_stderr(line)
         return out
+
+    def _terrain_server(self) -> Any:
+        """The terrain server under the provider's imagery wrappings (None: no server)."""
+        from lodscape.store.remote import RemoteProvider
+
+        provider: Any = self.provider
+        while not isinstance(provider, RemoteProvider):
+            provider = getattr(provider, "base", None)
+            if provider is None:
+                return None
+        return provider
 
     def _strict_imagery(self) -> None:
         from lodscape.imagery.sources import ImageryError

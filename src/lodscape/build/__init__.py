@@ -75,10 +75,11 @@ class BuildOptions:
     #: GDAL raster), MBTiles files or folders of z/x/y tiles. The tileset's imagery then goes
     #: down to the finest layer's own level, below the terrain's if it is finer.
     imagery: tuple[str, ...] = ()
-    #: What stands where the data has none (kept in the tileset's metadata): ``ellipsoid``
-    #: (height 0, the globe a Cesium client expects around and under the data), ``none``
+    #: What stands where the data has none (kept in the tileset's metadata): ``interpolate``
+    #: (voids inside the data filled smoothly from their rims; height 0 outside it, the globe
+    #: a Cesium client expects around the data), ``ellipsoid`` (height 0 everywhere), ``none``
     #: (holes: no triangles there), ``nearest`` or ``value:H``.
-    fill: str = "ellipsoid"
+    fill: str = "interpolate"
     #: Heights below it are tinted as water (None: no sea).
     sea_level: float | None = 0.0
     #: The rasters' height band (None: their only one) and a nodata value they do not declare.
@@ -480,7 +481,18 @@ def _manifest(
         "options": opts,
         # metres per height unit of the rasters not in metres (converted when read)
         "z_factors": _z_factors(source),
+        # the share of the rasters' pixels in voids inside the data (what interpolate fills)
+        "void_share": _void_share(source),
     }
+
+
+def _void_share(source: HeightSource) -> float:
+    if isinstance(source, FilledSource):
+        source = source.source
+    parts = source.sources if isinstance(source, MosaicSource) else [source]
+    shares = [(s.void_share, s.shape[0] * s.shape[1]) for s in parts if isinstance(s, RasterSource)]
+    total = sum(n for _, n in shares)
+    return round(sum(v * n for v, n in shares) / total, 6) if total else 0.0
 
 
 def _z_factors(source: HeightSource) -> dict[str, float]:

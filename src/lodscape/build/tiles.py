@@ -50,7 +50,7 @@ class Job:
     imagery_zmax: int = -1
     #: What stands where there is no data (``terrain.source.parse_fill``): "none" leaves it
     #: out of the meshes.
-    fill: str = "ellipsoid"
+    fill: str = "interpolate"
     #: Heights below it are tinted as water (None: no sea).
     sea_level: float | None = 0.0
     #: The rasters' height band (None: their only one) and an undeclared nodata value.

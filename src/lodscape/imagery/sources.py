@@ -205,7 +205,12 @@ def _expires(headers: Mapping[str, str], now: float, default: float) -> float:
 
 
 class _Overdue(Exception):
-    """A request still going at its tile's deadline."""
+    """A request still going at its tile's deadline; ``answered``: its answer had begun (a
+    trickling server), else nothing came at all (a hung one)."""
+
+    def __init__(self, answered: bool = False) -> None:
+        super().__init__()
+        self.answered = answered
 
 
 #: The monotonic time by which this thread's request must be over (``at``), where one is set.
@@ -363,11 +368,12 @@ class HttpSource:
             tries += 1
             try:
                 r, data = self._get(url, headers, start)
-            except _Overdue:
-                last, kind = (
-                    f"no whole answer in {self.deadline:g} s (a trickling server)",
-                    "timeout",
-                )
+            except _Overdue as exc:
+                if exc.answered:
+                    last = f"no whole answer in {self.deadline:g} s (a trickling server)"
+                else:
+                    last = f"no answer in {self.deadline:g} s (the server hangs)"
+                kind = "timeout"
                 break  # the tile's time is up: no retry can finish sooner
             except httpx.TimeoutException:
                 last, kind = f"no answer in {self.timeout:g} s", "timeout"
@@ -425,37 +431,51 @@ class HttpSource:
         source's request threads and is waited for only until the deadline (the body is read
         chunk by chunk and dropped there too; a request stuck in trickling headers ends with its
         per-read timeout or the server, on its thread, while the tile has already failed)."""
+        answered: list[bool] = []  # set once the answer begins
         if self.deadline is None:
-            return self._request(url, headers, start, self.timeout)
+            return self._request(url, headers, start, self.timeout, answered)
         left = self.deadline - (time.monotonic() - start)
         if left <= 0.0:
             raise _Overdue()
-        job = self._requests.submit(self._request, url, headers, start, min(self.timeout, left))
+        job = self._requests.submit(
+            self._request, url, headers, start, min(self.timeout, left), answered
+        )
         try:
             return job.result(timeout=left)
         except FutureTimeout:
             job.cancel()
-            raise _Overdue() from None
+            raise _Overdue(bool(answered)) from None
 
     def _request(
-        self, url: str, headers: dict[str, str], start: float, timeout: float
+        self,
+        url: str,
+        headers: dict[str, str],
+        start: float,
+        timeout: float,
+        answered: list[bool],
     ) -> tuple[Any, bytes | None]:
         import httpx
 
         _DEADLINE.at = None if self.deadline is None else start + self.deadline
         try:
-            return self._stream(url, headers, start, timeout)
+            return self._stream(url, headers, start, timeout, answered)
         except httpx.TimeoutException:
             if self.deadline is not None and time.monotonic() - start >= self.deadline:
-                raise _Overdue() from None
+                raise _Overdue(bool(answered)) from None
             raise
         finally:
             _DEADLINE.at = None
 
     def _stream(
-        self, url: str, headers: dict[str, str], start: float, timeout: float
+        self,
+        url: str,
+        headers: dict[str, str],
+        start: float,
+        timeout: float,
+        answered: list[bool],
     ) -> tuple[Any, bytes | None]:
         with self._client.stream("GET", url, headers=headers, timeout=timeout) as r:
+            answered.append(True)
             chunks: list[bytes] = []
             size = 0
             for chunk in r.iter_bytes():
@@ -464,9 +484,9 @@ class HttpSource:
                 if size > MAX_TILE_BYTES:
                     return r, None
                 if self.deadline is not None and time.monotonic() - start > self.deadline:
-                    raise _Overdue()
+                    raise _Overdue(True)
             if self.deadline is not None and time.monotonic() - start > self.deadline:
-                raise _Overdue()
+                raise _Overdue(True)
             return r, b"".join(chunks)
 
     def decode(self, data: bytes, size: int) -> NDArray[np.uint8]:

@@ -18,6 +18,7 @@ import io
 import json
 import math
 import threading
+from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -32,7 +33,7 @@ from lodscape.errors import SourceError
 from lodscape.geo.frames import WGS84_A
 from lodscape.geo.keys import grid_of, is_texture, tile_of
 from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, merc_to_lonlat, tile_size
-from lodscape.imagery.layers import warn_stderr
+from lodscape.imagery.layers import KINDS, warn_stderr
 from lodscape.imagery.sources import HttpSource, ImageryError, TileCache, TileMissing
 from lodscape.store.provider import RasterProvider
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, QuantizedMeshError, decode
@@ -137,6 +138,11 @@ class ServerTiles:
         self._inflight: dict[tuple[int, int, int], Future[Any]] = {}
         #: Tiles the server answered 404 for (drawn as holes; the first said on stderr).
         self.missing = 0
+        #: Failed tiles by kind (``imagery.layers.KINDS``), and each kind's first failure as a
+        #: line to say (``notices``): a flight retries them, drawing a coarser tile (or the
+        #: ellipsoid) meanwhile; a one-shot render fails with the error itself.
+        self.failures: Counter[str] = Counter()
+        self._notices: dict[str, str] = {}
 
     @property
     def cells(self) -> int:
@@ -203,6 +209,9 @@ class ServerTiles:
         row = (1 << z) - 1 - y if self.tms else y
         try:
             data = self.http.fetch(z, x, row)
+            if self.kind == "quantized-mesh":
+                return _decode_mesh(data)
+            return _decode_png(data, self.kind, self.http.url(z, x, row))
         except TileMissing as exc:
             with self._lock:
                 self.missing += 1
@@ -210,14 +219,37 @@ class ServerTiles:
             if first:
                 self._warn(f"terrain: {exc}; where {self.name} has no tile, a hole is drawn")
             return None
-        if self.kind == "quantized-mesh":
-            return _decode_mesh(data)
-        return _decode_png(data, self.kind, self.http.url(z, x, row))
+        except ImageryError as exc:
+            self._failed(exc.kind, str(exc))
+            raise
+        except QuantizedMeshError as exc:
+            self._failed("not-terrain", str(exc))
+            raise ImageryError(f"{self.http.url(z, x, row)}: {exc}", "not-terrain") from None
+
+    def _failed(self, kind: str, message: str) -> None:
+        what = KINDS.get(kind, _NOT_TERRAIN if kind == "not-terrain" else kind)
+        with self._lock:
+            self.failures[kind] += 1
+            self._notices.setdefault(
+                kind,
+                f"terrain server {self.name}: {what}: {message}; a coarser tile (or the "
+                "ellipsoid) is drawn there and the tile asked for again (counted in --stats)",
+            )
+
+    def notices(self) -> dict[str, str]:
+        """Each failure kind's first failure, as a line to say once."""
+        with self._lock:
+            return dict(self._notices)
+
+    @property
+    def failed(self) -> int:
+        return sum(self.failures.values())
 
     def close(self) -> None:
         self.http.close()
 
 
+_NOT_TERRAIN = "answers that are not terrain tiles"
 _QM_ACCEPT = "application/vnd.quantized-mesh,application/octet-stream;q=0.9,*/*;q=0.01"
 
 
@@ -245,7 +277,7 @@ def _decode_png(data: bytes, kind: str, url: str) -> _Raster:
     try:
         with Image.open(io.BytesIO(data)) as im:
             rgba = np.asarray(im.convert("RGBA"), np.float64)
-    except (UnidentifiedImageError, OSError, ValueError) as exc:
+    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
         raise ImageryError(f"{url}: not an image ({exc})", "not-image") from None
     if rgba.shape[0] != rgba.shape[1]:
         raise ImageryError(f"{url}: a height tile must be square, got {rgba.shape[1::-1]}")
@@ -641,6 +673,10 @@ def _exists_fn(tiles: ServerTiles) -> Any:
     return exists
 
 
+#: The deepest level a server's layer.json may claim (level 22: a few centimetres).
+_MAX_SERVER_ZOOM = 22
+
+
 def _from_layer(url: str, cache: TileCache | None, timeout: float) -> ServerTiles:
     import httpx
 
@@ -684,9 +720,20 @@ def _from_layer(url: str, cache: TileCache | None, timeout: float) -> ServerTile
                 for lv in avail_raw
             ]
         maxzoom = int(layer.get("maxzoom", len(available) - 1 if available else 15))
+        if not 0 <= minzoom <= maxzoom <= _MAX_SERVER_ZOOM:
+            raise ValueError(
+                f"minzoom {minzoom} and maxzoom {maxzoom} must be 0 <= minzoom <= maxzoom <= "
+                f"{_MAX_SERVER_ZOOM}"
+            )
         bounds = tuple(float(b) for b in layer.get("bounds", (-180.0, -90.0, 180.0, 90.0)))
         if len(bounds) != 4 or not all(math.isfinite(b) for b in bounds):
             raise ValueError("bounds must be four numbers")
+        w, s, e, n = bounds
+        if not (-180.0 <= w < e <= 180.0 and -90.0 <= s < n <= 90.0):
+            raise ValueError(
+                f"bounds {list(bounds)} are not west < east in -180..180 and south < north in "
+                "-90..90"
+            )
     except (ValueError, KeyError, TypeError) as exc:
         raise SourceError(f"{url}: not a quantized-mesh layer.json ({exc})") from None
     return ServerTiles(
@@ -715,6 +762,19 @@ class RemoteProvider(RasterProvider):
         super().__init__(heights, tree, sea_level=None)  # type: ignore[arg-type]
         self.heights = heights
         self.remote_tree = tree
+
+    def notices(self) -> dict[str, str]:
+        """The terrain server's failures, a line per kind (``ServerTiles.notices``)."""
+        return self.heights.tiles.notices()
+
+    def server_figures(self) -> dict[str, int]:
+        """The terrain server's failed tiles and its HTTP requests and retries so far."""
+        tiles = self.heights.tiles
+        return {
+            "terrain_failed": tiles.failed,
+            "http_requests": tiles.http.requests,
+            "http_retries": tiles.http.retried,
+        }
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         """The height under a point from the tiles already here; None before any has come

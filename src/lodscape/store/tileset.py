@@ -124,10 +124,20 @@ class TilesetWriter:
             self.db.close()
             raise
         try:
+            has_metadata = self.db.execute(
+                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'metadata'"
+            ).fetchone()
+            old = self._manifest() if has_metadata else None
+            if old is not None and _identity(old) != _identity(manifest):
+                self.close()
+                raise TilesetError(
+                    f"{self.path}: was built from other inputs or options; "
+                    "remove it, or build again with the same ones to resume"
+                )
+            # only a file this build may write is switched to WAL (a refused one is left as is)
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=NORMAL")
             self.db.executescript(_SCHEMA)
-            old = self._manifest()
             if old is None:
                 self._set_manifest({**manifest, "complete": False})
         except sqlite3.Error as exc:
@@ -143,12 +153,6 @@ class TilesetWriter:
                     "over a size limit?); nothing was written"
                 ) from None
             raise TilesetError(f"{self.path}: cannot write ({exc})") from None
-        if old is not None and _identity(old) != _identity(manifest):
-            self.close()
-            raise TilesetError(
-                f"{self.path}: was built from other inputs or options; "
-                "remove it, or build again with the same ones to resume"
-            )
         self.resumed = old is not None
 
     # --- plan ----------------------------------------------------------------------------

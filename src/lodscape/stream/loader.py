@@ -80,6 +80,8 @@ class LoadReport:
     #: Milliseconds spent in ``serve`` (the loader's share of the frame's CPU time).
     load_ms: float
     stream: dict[str, float] = field(default_factory=dict)
+    #: Required keys a streaming frame is drawn without (their fetch failed; retried later).
+    absent: frozenset[int] = frozenset()
 
 
 class Loader:
@@ -164,14 +166,22 @@ class Loader:
         self._begun = (0, 0.0)
         taken = 0
         stall = 0.0
+        absent: set[int] = set()
         if plan.required:
             opt = self._optional
             must = [k for k in plan.required if opt is None or not opt(k)]
             extra = [k for k in plan.required if opt is not None and opt(k)]
-            made = self.streamer.take_many(must)
+            if blocking:
+                made: list[Made | None] = list(self.streamer.take_many(must))
+            else:
+                # a flight goes on without a root a server failed: retried, with backoff
+                made = self.streamer.take_available(must)
             for key, m in zip(must, made, strict=True):
+                if m is None:
+                    absent.add(key)
+                    continue
                 self.gpu.upload(key, m)
-            taken = len(must)
+                taken += 1
             if extra:
                 t1 = time.perf_counter()
                 got = self.streamer.take_within(extra, self.imagery_wait)
@@ -192,7 +202,7 @@ class Loader:
             self.streamer.wanted = frozenset(self._wanted)
             self._prefetch(plan.camera, on_gpu)
         load_ms = begin_ms + (time.perf_counter() - t0) * 1e3
-        return LoadReport(taken + uploaded, stall, load_ms)
+        return LoadReport(taken + uploaded, stall, load_ms, absent=frozenset(absent))
 
     def _ready(self, keys: list[int]) -> Iterator[tuple[int, Made]]:
         """(key, resource) for the ``keys`` in the memory stage, taken out as they are used."""

@@ -23,7 +23,7 @@ import os
 import re
 import threading
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, Self
 
@@ -34,7 +34,7 @@ from pyproj import CRS, Transformer
 from rasterio.errors import NotGeoreferencedWarning
 from rasterio.transform import Affine
 from rasterio.windows import Window
-from scipy.ndimage import distance_transform_edt
+from scipy.ndimage import binary_dilation, distance_transform_edt, label
 
 from lodscape._cache import user_cache
 from lodscape.errors import SourceError
@@ -202,6 +202,39 @@ def _one_line(exc: BaseException) -> str:
     lines = [ln.strip() for ln in str(seen[-1] if seen else exc).splitlines() if ln.strip()]
     text = lines[0] if lines else type(exc).__name__
     return text if len(text) <= 200 else text[:197] + "..."
+
+
+def _harmonic_fill(mean: F64, valid: B, holes: B) -> F64:
+    """Heights for the ``holes`` cells solving Laplace's equation with the valid cells around
+    them as the boundary: smooth, and bounded by the rim (no pit, no bump)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import spsolve
+
+    rows, cols = np.nonzero(holes)
+    n = rows.size
+    index = np.full(holes.shape, -1, np.int64)
+    index[rows, cols] = np.arange(n)
+    hh, ww = holes.shape
+    diag = np.zeros(n)
+    rhs = np.zeros(n)
+    ai, aj = [np.arange(n)], [np.arange(n)]
+    vals: list[F64] = []
+    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        r, c = rows + dr, cols + dc
+        on = (r >= 0) & (r < hh) & (c >= 0) & (c < ww)
+        r, c, me = r[on], c[on], np.flatnonzero(on)
+        diag[me] += 1.0
+        known = valid[r, c]
+        rhs[me[known]] += mean[r[known], c[known]]
+        unknown = index[r, c] >= 0
+        ai.append(me[unknown])
+        aj.append(index[r[unknown], c[unknown]])
+        vals.append(np.full(int(unknown.sum()), -1.0))
+    matrix = coo_matrix(
+        (np.concatenate([diag, *vals]), (np.concatenate(ai), np.concatenate(aj))), shape=(n, n)
+    ).tocsc()
+    out: F64 = np.asarray(spsolve(matrix, rhs), np.float64)
+    return out
 
 
 def _halve(a: F64) -> F64:
@@ -466,6 +499,64 @@ class _GridSource:
         # the block-mean geometry even where the file has an overview of this factor
         ch, cw = self._coarse.shape
         self._coarse_level = _Level(m, ch, cw, float(f), float(f), None)
+        self._voids: tuple[NDArray[np.float64], B] | None = None
+
+    def _void_grid(self) -> tuple[NDArray[np.float64], B]:
+        """The coarse grid with its voids inside the data filled from their rims (a harmonic
+        fill: every filled height lies between its rim's lowest and highest, as gdal_fillnodata
+        keeps to), and which cells lie inside the data: not on a void that reaches the raster's
+        edge (a nodata collar, the world outside)."""
+        if self._voids is not None:
+            return self._voids
+        valid = self._count > 0.0
+        mean = self._sum / np.maximum(self._count, 1.0)
+        labels, _ = label(~valid)
+        edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        outside = np.isin(labels, edge[edge > 0])
+        inside = ~outside
+        holes = inside & ~valid
+        filled = mean.copy()
+        if holes.any():
+            filled[holes] = _harmonic_fill(mean, valid, holes)
+        # bilinear sampling needs 2 cells a side, as the coarse overview's
+        pad = ((0, filled.shape[0] < 2), (0, filled.shape[1] < 2))
+        self._voids = (np.pad(filled, pad, "edge"), np.pad(inside, pad, "edge"))
+        return self._voids
+
+    @property
+    def void_share(self) -> float:
+        """The share of the raster's pixels (0..1) without data inside the data's footprint:
+        voids that ``interpolate`` fills from their rims (the rest is the world outside)."""
+        _, inside = self._void_grid()
+        h, w = self.shape
+        f = 1 << self._m
+        rows = np.minimum(f, h - np.arange(self._count.shape[0]) * f)
+        cols = np.minimum(f, w - np.arange(self._count.shape[1]) * f)
+        missing = rows[:, None] * cols[None, :] - self._count
+        # a partly valid cell beside the world outside holds the collar's edge, not a void
+        ch, cw = self._count.shape
+        near_out = ~binary_dilation(~inside[:ch, :cw], np.ones((3, 3), bool), border_value=1)
+        return float(missing[inside[:ch, :cw] & near_out].sum()) / float(h * w)
+
+    def void_fill(self, xm: ArrayLike, ym: ArrayLike) -> tuple[NDArray[np.float32], B]:
+        """Heights of the voids inside the data, filled from their rims, at EPSG:3857 points,
+        and which points lie inside the data (False: outside the raster, or on a void that
+        reaches its edge)."""
+        filled, inside = self._void_grid()
+        xb, yb = np.broadcast_arrays(
+            np.asarray(xm, dtype=np.float64), np.asarray(ym, dtype=np.float64)
+        )
+        col, row, on = self._pixel_coords(xb.ravel(), yb.ravel())
+        h, w = self.shape
+        lv = self._coarse_level
+        col = np.clip(np.nan_to_num(col), 0.0, float(w))
+        row = np.clip(np.nan_to_num(row), 0.0, float(h))
+        u, v = col / lv.sx - 0.5, row / lv.sy - 0.5
+        out, _ = _bilinear(filled, np.ones(filled.shape, bool), u, v)
+        i = np.clip(np.floor(row / lv.sy).astype(np.int64), 0, inside.shape[0] - 1)
+        j = np.clip(np.floor(col / lv.sx).astype(np.int64), 0, inside.shape[1] - 1)
+        ok = on & inside[i, j]
+        return out.astype(np.float32).reshape(xb.shape), ok.reshape(xb.shape)
 
     @property
     def valid_share(self) -> float:
@@ -1008,6 +1099,18 @@ class MosaicSource:
             out = out | s.covers(xm, ym)
         return out
 
+    def void_fill(self, xm: ArrayLike, ym: ArrayLike) -> tuple[NDArray[np.float32], B]:
+        """The finest source's filled void at each point where one lies inside its data."""
+        xb, yb = np.broadcast_arrays(np.asarray(xm, np.float64), np.asarray(ym, np.float64))
+        h = np.zeros(xb.shape, np.float32)
+        inside = np.zeros(xb.shape, bool)
+        for s in self.sources:
+            if isinstance(s, _GridSource | MosaicSource):
+                hk, ik = s.void_fill(xb, yb)
+                take = ik & ~inside
+                h[take], inside = hk[take], inside | ik
+        return h, inside
+
     def close(self) -> None:
         for s in self.sources:
             s.close()
@@ -1016,8 +1119,9 @@ class MosaicSource:
 @dataclass(frozen=True)
 class Fill:
     """What stands where the data has none: ``none`` (a hole: nothing drawn), ``nearest`` (the
-    nearest valid height, stretched), ``value`` (level ground at ``height``) or ``ellipsoid``
-    (height 0)."""
+    nearest valid height, stretched), ``value`` (level ground at ``height``), ``ellipsoid``
+    (height 0) or ``interpolate`` (voids inside the data filled smoothly from their rims, the
+    world outside the data at height 0, as ``ellipsoid``)."""
 
     kind: str = "none"
     height: float = 0.0
@@ -1029,7 +1133,7 @@ class Fill:
 def parse_fill(text: str) -> Fill:
     """``none``, ``nearest``, ``value:H`` (metres) or ``ellipsoid``; one-line SourceError."""
     kind, _, arg = str(text).strip().partition(":")
-    if kind in ("none", "nearest", "ellipsoid") and not arg:
+    if kind in ("none", "nearest", "ellipsoid", "interpolate") and not arg:
         return Fill(kind)
     if kind == "value":
         try:
@@ -1038,7 +1142,9 @@ def parse_fill(text: str) -> Fill:
             h = math.nan
         if math.isfinite(h):
             return Fill("value", h)
-    raise SourceError(f"--fill must be none, nearest, value:H (metres) or ellipsoid, got {text!r}")
+    raise SourceError(
+        f"--fill must be none, nearest, value:H (metres), ellipsoid or interpolate, got {text!r}"
+    )
 
 
 class FilledSource:
@@ -1055,28 +1161,55 @@ class FilledSource:
         self.resolution_merc = source.resolution_merc
 
     def _filled(
-        self, got: tuple[NDArray[np.float32], NDArray[np.bool_]]
+        self,
+        got: tuple[NDArray[np.float32], NDArray[np.bool_]],
+        points: Callable[[], tuple[F64, F64]],
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         h, valid = got
-        if self.fill.kind in ("value", "ellipsoid") and not valid.all():
-            level = self.fill.height if self.fill.kind == "value" else 0.0
-            h = np.where(valid, h, np.float32(level)).astype(np.float32)
-        return h, valid
+        if valid.all() or self.fill.kind in ("none", "nearest"):
+            return h, valid
+        level = self.fill.height if self.fill.kind == "value" else 0.0
+        out = np.where(valid, h, np.float32(level)).astype(np.float32)
+        if self.fill.kind == "interpolate" and isinstance(self.source, _GridSource | MosaicSource):
+            xm, ym = points()
+            bad = ~valid
+            voids, inside = self.source.void_fill(xm[bad], ym[bad])
+            out[bad] = np.where(inside, voids, np.float32(0.0))
+        return out, valid
 
     def sample(
         self, xm: NDArray[np.float64], ym: NDArray[np.float64], spacing: float
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-        return self._filled(self.source.sample(xm, ym, spacing))
+        def points() -> tuple[F64, F64]:
+            xb, yb = np.broadcast_arrays(np.asarray(xm, np.float64), np.asarray(ym, np.float64))
+            return xb, yb
+
+        return self._filled(self.source.sample(xm, ym, spacing), points)
 
     def sample_grid(
         self, xs: NDArray[np.float64], ys: NDArray[np.float64], spacing: float
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-        return self._filled(self.source.sample_grid(xs, ys, spacing))
+        def points() -> tuple[F64, F64]:
+            xx, yy = np.meshgrid(
+                np.asarray(xs, np.float64).ravel(), np.asarray(ys, np.float64).ravel()
+            )
+            return xx, yy
+
+        return self._filled(self.source.sample_grid(xs, ys, spacing), points)
 
     def read(
         self, bounds: Bbox, shape: tuple[int, int]
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-        return self._filled(self.source.read(bounds, shape))
+        def points() -> tuple[F64, F64]:
+            rows, cols = shape
+            left, bottom, right, top = (float(v) for v in bounds)
+            x = left + np.arange(cols) * (right - left) / (cols - 1)
+            y = top - np.arange(rows) * (top - bottom) / (rows - 1)
+            x[-1], y[-1] = right, bottom
+            xx, yy = np.meshgrid(x, y)
+            return xx, yy
+
+        return self._filled(self.source.read(bounds, shape), points)
 
     def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]:
         return self.source.covers(xm, ym)
