@@ -173,7 +173,91 @@ def _points(name: str, text: str) -> Callable[[Path], list[str]]:
     return case
 
 
+_LAYERS: dict[str, bytes] = {}
+_LAYER_SERVER: list[str] = []
+
+
+def _layer_json(name: str, layer: dict[str, object]) -> Callable[[Path], list[str]]:
+    """A render over a Cesium-style terrain server whose ``layer.json`` is ``layer`` (served
+    on loopback by a server started once for the module)."""
+
+    def case(folder: Path) -> list[str]:
+        import json
+        import threading
+        from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+        _LAYERS[f"/{name}/layer.json"] = json.dumps(layer).encode()
+        if not _LAYER_SERVER:
+
+            class Handler(BaseHTTPRequestHandler):
+                def log_message(self, *args: object) -> None:
+                    pass
+
+                def do_GET(self) -> None:
+                    body = _LAYERS.get(self.path.split("?")[0])
+                    if body is None:
+                        self.send_error(404)
+                        return
+                    self.send_response(200)
+                    self.send_header("Content-Length", str(len(body)))
+                    self.end_headers()
+                    self.wfile.write(body)
+
+            httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+            threading.Thread(target=httpd.serve_forever, daemon=True).start()
+            _LAYER_SERVER.append(f"http://127.0.0.1:{httpd.server_address[1]}")
+        url = f"{_LAYER_SERVER[0]}/{name}/layer.json"
+        (folder / "c").mkdir()  # the user's cache folder, there before the command
+        return ["render", url, "--imagery-cache", str(folder / "c"), "-o", str(folder / "o.png")]
+
+    return case
+
+
+def _six_bands(folder: Path, bands: str) -> list[str]:
+    data = np.random.default_rng(4).integers(0, 255, (6, 64, 64), dtype=np.uint8)
+    path = _bands(folder / "scene.tif", data, RES)
+    return [
+        "render", _dem(folder), "--imagery", str(path), "--imagery-bands", bands,
+        "-o", str(folder / "out.png"),
+    ]  # fmt: skip
+
+
+_QM = {"format": "quantized-mesh-1.0", "tiles": ["{z}/{x}/{y}.terrain"], "scheme": "tms"}
+
 CASES = {
+    "a layer.json of maxzoom 99": (_layer_json("deep", {**_QM, "maxzoom": 99}), "maxzoom 99"),
+    "a layer.json with inverted bounds": (
+        _layer_json("inverted", {**_QM, "bounds": [10, 50, 5, 45]}),
+        "inverted/layer.json",
+    ),
+    "a pitch of 91": (
+        lambda f: ["render", _dem(f), "--pitch", "91", "-o", str(f / "o.png")],
+        "--pitch",
+    ),
+    "a roll of 1000": (
+        lambda f: [
+            "render",
+            _dem(f),
+            "--lon",
+            "-78.7",
+            "--lat",
+            "36.6",
+            "--alt",
+            "900",
+            "--roll",
+            "1000",
+            "-o",
+            str(f / "o.png"),
+        ],
+        "--roll",
+    ),
+    "a pitch without a position": (
+        lambda f: ["render", _dem(f), "--pitch", "-45", "-o", str(f / "o.png")],
+        "--pitch",
+    ),
+    "a budget of 0 MiB": (_orbit("--budget-mb", "0"), "--budget-mb"),
+    "imagery bands that do not exist": (lambda f: _six_bands(f, "7,3,2"), "--imagery-bands"),
+    "imagery bands that are not numbers": (lambda f: _six_bands(f, "red"), "--imagery-bands"),
     "a LAS file that is not one": (_points("survey.las", "garbage\n"), "survey.las"),
     "points with an infinite height": (
         _points("survey.csv", "x,y,z\n1,2,inf\n3,4,5\n6,7,8\n"),

@@ -12,7 +12,7 @@ import lodscape
 
 ROOT = Path(lodscape.__file__).parent
 #: Modules any layer may import: they hold no state of a layer's.
-BASE = {"errors", "_lru", "_sqlite", "_cache"}
+BASE = {"errors", "_lru", "_sqlite", "_cache", "_tmp"}
 #: What each layer may import (besides BASE); the application modules may import anything.
 LAYERS: dict[str, set[str]] = {
     "geo": set(),

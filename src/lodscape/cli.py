@@ -21,6 +21,7 @@ import numpy as np
 import typer
 from numpy.typing import NDArray
 
+from lodscape._tmp import temp_beside
 from lodscape.errors import LodscapeError
 from lodscape.geo.tiles import ORIGIN, merc_to_lonlat
 from lodscape.lod.camera import Camera
@@ -293,6 +294,14 @@ def _sea_level(text: str) -> float | None:
     return value
 
 
+ImageryBandsOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--imagery-bands",
+        help="R,G,B: the bands (1-based) of a raster imagery layer to draw as red, green and "
+        "blue (default: its colour interpretation, else its first three, said once).",
+    ),
+]
 CityOpt = Annotated[
     Path | None,
     typer.Option(help="An OpenStreetMap file (.osm.pbf, .osm) whose city to drape on the terrain."),
@@ -311,6 +320,7 @@ class TerrainFlags:
     imagery: list[str] | None = None
     imagery_cache: Path | None = None
     imagery_maxzoom: int | None = None
+    imagery_bands: str | None = None
     imagery_timeout: float = 10.0
     imagery_strict: bool = False
     detail: str = "none"
@@ -368,6 +378,7 @@ class TerrainFlags:
             imagery=self.imagery or None,
             imagery_cache=self.imagery_cache,
             imagery_maxzoom=self.imagery_maxzoom,
+            imagery_bands=self.imagery_bands,
             city=self.city,
             fill=self.fill,
             sea_level=_sea_level(self.sea_level),
@@ -399,6 +410,7 @@ _TERRAIN_FLAGS = [
         ("imagery", ImageryOpt, None),
         ("imagery_cache", CacheOpt, None),
         ("imagery_maxzoom", MaxZoomOpt, None),
+        ("imagery_bands", ImageryBandsOpt, None),
         ("imagery_timeout", ImageryTimeoutOpt, 10.0),
         ("imagery_strict", ImageryStrictOpt, False),
         ("detail", DetailOpt, "none"),
@@ -455,6 +467,8 @@ def _scene_options(
     streaming: dict[str, Any] = {}
     try:
         if budget_mb is not None:
+            if not budget_mb > 0.0:
+                raise LodscapeError(f"--budget-mb must be more than 0 MiB, got {budget_mb:g}")
             streaming = {
                 "gpu_budget_mb": budget_mb,
                 "stream": StreamOptions(cache_mb=budget_mb, memory_mb=budget_mb),
@@ -502,7 +516,7 @@ def _write_atomic(path: Path, write: object) -> None:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise LodscapeError(f"{path}: folder {folder} does not exist")
-    tmp = folder / f".{path.name}.{os.getpid()}.tmp"
+    tmp = temp_beside(path)
     try:
         write(tmp)  # type: ignore[operator]
         os.replace(tmp, path)
@@ -1424,7 +1438,7 @@ def _globe(
     from dataclasses import replace
 
     from lodscape.globe import Globe
-    from lodscape.sources import _open_layers
+    from lodscape.sources import _bands, _open_layers
 
     flags = flags or TerrainFlags()
     spec: SourceSpec | None = None if source is None else parse_source(source)
@@ -1440,7 +1454,12 @@ def _globe(
                 "tileset) for the globe to draw them on"
             )
         layers = _open_layers(
-            flags.imagery or [], flags.imagery_cache, flags.imagery_maxzoom, flags.imagery_timeout
+            flags.imagery or [],
+            flags.imagery_cache,
+            flags.imagery_maxzoom,
+            flags.imagery_timeout,
+            flags.imagery_strict,
+            _bands(flags.imagery_bands),
         )
         stream = None
         if clock is not None:
@@ -1650,6 +1669,9 @@ def _quiet_gdal() -> None:
     that matter into its own one-line errors, naming the input."""
     import logging
 
+    # GDAL's default handler prints what reaches it outside rasterio's own (a VRT's missing
+    # source, read on a worker thread: "ERROR 4: …" twice); CPL_LOG sends those to nothing
+    os.environ.setdefault("CPL_LOG", os.devnull)
     for name in ("rasterio", "fiona", "pyogrio"):
         log = logging.getLogger(name)
         if not log.handlers:

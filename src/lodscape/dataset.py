@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape._tmp import temp_beside
 from lodscape.errors import CameraError, LodscapeError
 from lodscape.geo.frames import enu_basis, geodetic_to_ecef
 from lodscape.lod.camera import Camera
@@ -231,7 +232,7 @@ def write_dataset(
             raise LodscapeError(f"pose {pose.name}: {exc}") from None
     if origin is None:
         origin = default_origin(scene)
-    tmp = parent / f".{target.name}.{os.getpid()}.partial"
+    tmp = temp_beside(parent / target.name, kind="partial")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         for sub in ("images", "depth", "normals", "semantic", "cameras", "colmap"):

@@ -22,6 +22,7 @@ from typing import Any, overload
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape._tmp import temp_beside
 from lodscape.errors import LodscapeError
 from lodscape.geo.frames import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 from lodscape.lod.camera import Camera
@@ -335,8 +336,9 @@ def fly(
     stats: Path | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> FlightRows:
-    """Render every camera on a simulated clock; write the MP4 and the statistics CSV (each
-    whole or not at all). Returns the per-frame statistics.
+    """Render every camera on a simulated clock; write the MP4 (whole or not at all) and the
+    statistics CSV (a row as each frame is drawn, flushed: a flight that is killed keeps the
+    rows of its frames). Returns the per-frame statistics.
 
     ``scene`` is a ``Scene`` or a ``lodscape.globe.Globe`` streaming on a ``SimClock``: one
     frame loop for both (the globe's rows have ``GLOBE_COLUMNS``)."""
@@ -355,7 +357,7 @@ def fly(
     ring = 0 if globe or video is None else RING
     budget = 1000.0 / fps
     rows = FlightRows(columns)
-    with _Video(video, fps) as out:
+    with _Video(video, fps) as out, _StatsFile(stats, columns) as csv_rows:
         try:
             for i, cam in enumerate(frames):
                 if ring:
@@ -375,6 +377,7 @@ def fly(
                     over_budget=int(d.get("frame_cpu_ms", 0.0) > budget),
                 )
                 rows.append(row)
+                csv_rows.write(rows[-1])
                 clock.advance(1.0 / fps)
                 if on_frame is not None:
                     on_frame(i)
@@ -384,9 +387,37 @@ def fly(
             if ring:
                 scene.drain()  # a flight cut short leaves nothing in the ring
         out.commit()
-        if stats is not None:
-            _write_stats(stats, rows, columns)
     return rows
+
+
+class _StatsFile:
+    """A flight's statistics CSV, a row written and flushed as each frame is drawn (``path``
+    None: none); created at the first frame, so a flight that fails before it leaves none."""
+
+    def __init__(self, path: Path | None, columns: tuple[str, ...]) -> None:
+        self.path, self.columns = path, columns
+        self._file: Any = None
+        self._writer: Any = None
+
+    def __enter__(self) -> _StatsFile:
+        return self
+
+    def write(self, row: Mapping[str, float]) -> None:
+        if self.path is None:
+            return
+        if self._writer is None:
+            try:
+                self._file = self.path.open("w", newline="")
+            except OSError as exc:
+                raise LodscapeError(f"{self.path}: cannot write ({exc.strerror or exc})") from None
+            self._writer = csv.DictWriter(self._file, fieldnames=list(self.columns))
+            self._writer.writeheader()
+        self._writer.writerow(row)
+        self._file.flush()
+
+    def __exit__(self, *exc: object) -> None:
+        if self._file is not None:
+            self._file.close()
 
 
 #: Pixel-pack buffers a flight's pictures pass through (0: each read when drawn).
@@ -483,7 +514,7 @@ def _video_writer(path: Path, width: int, height: int, fps: float) -> tuple[Any,
         raise LodscapeError(
             f"an MP4 (H.264, 4:2:0) needs an even width and height, got {width}x{height}"
         )
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    tmp = temp_beside(path, path.suffix)
     # imageio-ffmpeg starts ffmpeg with preexec_fn=os.setpgrp (to keep Ctrl-C from it), which
     # runs Python between fork and exec: with other threads alive (the stream's workers, an
     # imagery server's requests) the child can hang for good on a lock one of them held (its
@@ -502,17 +533,3 @@ def _video_writer(path: Path, width: int, height: int, fps: float) -> tuple[Any,
     )
     writer.send(None)
     return writer, tmp
-
-
-def _write_stats(
-    path: Path, rows: Sequence[dict[str, float]], columns: tuple[str, ...] = STAT_COLUMNS
-) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with tmp.open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(columns))
-            w.writeheader()
-            w.writerows(rows)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)

@@ -100,6 +100,7 @@ def open(
     imagery: str | PathLike[str] | Sequence[str | PathLike[str]] | None = None,
     imagery_cache: str | PathLike[str] | None = None,
     imagery_maxzoom: int | None = None,
+    imagery_bands: str | Sequence[int] | None = None,
     city: Any = None,
     fill: str | Fill | None = None,
     sea_level: float | None = 0.0,
@@ -119,6 +120,8 @@ def open(
     - ``imagery``: one imagery layer or a list of them, bottom to top, drawn over the terrain's
       own colours at their own resolution: XYZ URL templates (cached under ``imagery_cache``,
       levels up to ``imagery_maxzoom``, default 19), .mbtiles files, folders of z/x/y tiles, or
+      georeferenced rasters (their colour bands: ``imagery_bands``, "R,G,B" or three 1-based
+      numbers, else their colour interpretation, else their first three, said once), or
       georeferenced rasters (a GeoTIFF orthophoto in any CRS). Where a layer is finer than a
       raster DEM the tile tree goes on below the DEM with its surface refined, no heights made
       up. Failures are counted (``Scene.imagery_failures``) and said once on stderr;
@@ -164,8 +167,15 @@ def open(
     ground = _Ground(
         fill if isinstance(fill, Fill) else parse_fill(fill), sea_level, band, nodata, z_units
     )
-    timeout = (options or SceneOptions()).imagery_timeout
-    layers = _open_layers(specs, imagery_cache, imagery_maxzoom, timeout)
+    opts = options or SceneOptions()
+    layers = _open_layers(
+        specs,
+        imagery_cache,
+        imagery_maxzoom,
+        opts.imagery_timeout,
+        opts.imagery_strict,
+        _bands(imagery_bands),
+    )
     try:
         provider, owns = _terrain(
             source,
@@ -174,7 +184,7 @@ def open(
             array_kwargs,
             ground,
             cache=_cache_dir(imagery_cache),
-            timeout=timeout,
+            timeout=opts.imagery_timeout,
         )
     except BaseException:
         for layer in layers:
@@ -327,10 +337,28 @@ def _imagery_specs(imagery: Any) -> list[str]:
     return [os.fspath(i) for i in imagery]
 
 
+def _bands(bands: str | Sequence[int] | None) -> tuple[int, ...] | None:
+    if bands is None:
+        return None
+    from lodscape.imagery.raster import parse_bands
+
+    return parse_bands(bands if isinstance(bands, str) else ",".join(map(str, bands)))
+
+
+def _silent(message: str) -> None:
+    """A warning not said (what an error says instead)."""
+
+
 def _open_layers(
-    specs: list[str], cache: str | PathLike[str] | None, max_zoom: int | None, timeout: float
+    specs: list[str],
+    cache: str | PathLike[str] | None,
+    max_zoom: int | None,
+    timeout: float,
+    strict: bool = False,
+    bands: tuple[int, ...] | None = None,
 ) -> list[Any]:
-    """The imagery layers, bottom to top; none half-opened on an error."""
+    """The imagery layers, bottom to top; none half-opened on an error. ``strict``: a failure
+    ends the frame with its own error line, so the layers say nothing before it."""
     if not specs:
         return []
     from lodscape.imagery.layers import MAX_OVERLAYS, open_layer
@@ -348,6 +376,8 @@ def _open_layers(
                     cache_dir=Path(cache),
                     max_zoom=max_zoom,
                     timeout=max(timeout, 0.5),
+                    bands=bands,
+                    **({"warn": _silent} if strict else {}),
                 )
             )
     except BaseException:

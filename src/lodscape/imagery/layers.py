@@ -146,10 +146,13 @@ def open_layer(
     max_zoom: int | None = None,
     timeout: float = 10.0,
     warn: Callable[[str], None] = warn_stderr,
+    bands: tuple[int, ...] | None = None,
 ) -> ImageryLayer:
     """A layer from what a user typed: an XYZ URL template, an .mbtiles file, a folder of z/x/y
     tiles or a georeferenced raster (GeoTIFF…). ``max_zoom`` caps its levels (a template's
-    default: 19); ``timeout`` is the seconds one tile of a server may take."""
+    default: 19); ``timeout`` is the seconds one tile of a server may take; ``bands`` (1-based
+    red, green, blue) picks a raster's colour bands (default: its colour interpretation, else
+    its first three, said once)."""
     fetcher: ImageryFetcher
     if spec.startswith(("http://", "https://")):
         cache = None if cache_dir is None else TileCache(Path(cache_dir) / "imagery-cache.sqlite")
@@ -167,7 +170,9 @@ def open_layer(
     elif os.path.exists(spec):
         from lodscape.imagery.raster import RasterImagery
 
-        raster = RasterImagery(spec)
+        raster = RasterImagery(spec, bands=bands)
+        if raster.band_note is not None:
+            warn(f"imagery layer {index}: {raster.band_note}")
         if raster.needs_overviews:
             warn(
                 f"imagery layer {index} ({spec}): a large raster without overviews; its coarse "

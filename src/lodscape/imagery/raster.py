@@ -35,7 +35,13 @@ TILE = 256
 class RasterImagery:
     """z/x/y tiles cut from a georeferenced raster (``ImageryFetcher``)."""
 
-    def __init__(self, path: str | os.PathLike[str], *, max_zoom: int | None = None) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        max_zoom: int | None = None,
+        bands: tuple[int, ...] | None = None,
+    ) -> None:
         import rasterio
         from rasterio.errors import RasterioIOError
         from rasterio.warp import transform_bounds
@@ -52,7 +58,24 @@ class RasterImagery:
             if src.count < 1:
                 raise ImageryError(f"{self.name}: the raster has no bands")
             self.crs = src.crs
-            self._bands, self._palette = _band_plan(src)
+            #: One line on the bands drawn as red, green and blue where they were guessed.
+            self.band_note: str | None = None
+            if bands is not None:
+                if len(bands) != 3 or not all(1 <= b <= src.count for b in bands):
+                    raise ImageryError(
+                        f"{self.name}: --imagery-bands needs three bands of 1..{src.count} "
+                        f"(red, green, blue), got {','.join(map(str, bands))}"
+                    )
+                self._bands, self._palette = [b - 1 for b in bands], None
+            else:
+                self._bands, self._palette = _band_plan(src)
+                if src.count > 3 and self._palette is None and not _has_rgb(src):
+                    drawn = ",".join(str(b + 1) for b in self._bands)
+                    self.band_note = (
+                        f"{self.name}: {src.count} bands and none says red, green or blue: "
+                        f"bands {drawn} drawn as red, green, blue (--imagery-bands R,G,B picks "
+                        "others, e.g. 4,3,2 for Landsat 8)"
+                    )
             try:
                 w, s, e, n = transform_bounds(src.crs, "EPSG:4326", *src.bounds, densify_pts=21)
                 left, bottom, right, top = transform_bounds(
@@ -271,6 +294,24 @@ def _band_plan(src: Any) -> tuple[list[int], NDArray[np.uint8] | None]:
     if len(colour) >= 3:
         return colour[:3], None
     return colour[:1] or [0], None
+
+
+def _has_rgb(src: Any) -> bool:
+    from rasterio.enums import ColorInterp
+
+    interp = list(src.colorinterp)
+    return all(c in interp for c in (ColorInterp.red, ColorInterp.green, ColorInterp.blue))
+
+
+def parse_bands(text: str) -> tuple[int, int, int]:
+    """``--imagery-bands R,G,B``: three 1-based band numbers."""
+    try:
+        bands = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        bands = ()
+    if len(bands) != 3 or min(bands) < 1:
+        raise ImageryError(f"--imagery-bands must be three band numbers R,G,B, got {text!r}")
+    return bands  # type: ignore[return-value]
 
 
 def _cause(exc: BaseException) -> str:

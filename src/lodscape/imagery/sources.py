@@ -40,6 +40,7 @@ __all__ = [
     "TileCache",
     "TileMissing",
     "decode_image",
+    "open_image",
 ]
 
 USER_AGENT = "lodscape/0.1 (terrain engine; +https://pypi.org/project/lodscape/)"
@@ -91,12 +92,12 @@ class ImageryFetcher(Protocol):
     def close(self) -> None: ...
 
 
-def _open_image(data: bytes, what: str) -> Any:
+def open_image(data: bytes, what: str) -> Any:
     """Pillow's lazy image of ``data`` (only its header read), refused when it is larger than
     ``MAX_TILE_PIXELS``: a decompression bomb never reaches the decoder."""
     import warnings
 
-    from PIL import Image
+    from PIL import Image, UnidentifiedImageError
 
     try:
         with warnings.catch_warnings():
@@ -105,6 +106,9 @@ def _open_image(data: bytes, what: str) -> Any:
             im = Image.open(io.BytesIO(data))
     except Image.DecompressionBombError as exc:
         raise ImageryError(f"{what}: {exc}; not decoded", "too-large") from None
+    except UnidentifiedImageError:
+        # Pillow's own message names its BytesIO, not the tile
+        raise ImageryError(f"{what}: not an image (no format Pillow reads)", "not-image") from None
     w, h = im.size
     if w * h > MAX_TILE_PIXELS:
         im.close()
@@ -119,7 +123,7 @@ def _open_image(data: bytes, what: str) -> Any:
 def _check_image(data: bytes, what: str) -> bytes:
     """The bytes, if Pillow reads them as a whole image of a sane size; else ImageryError."""
     try:
-        with _open_image(data, what) as im:
+        with open_image(data, what) as im:
             im.load()
     except ImageryError:
         raise
@@ -136,7 +140,7 @@ def decode_image(data: bytes, size: int) -> NDArray[np.uint8]:
     ``MAX_TILE_PIXELS`` is refused before decoding (ImageryError "too-large")."""
     from PIL import Image
 
-    with _open_image(data, "imagery tile") as im:
+    with open_image(data, "imagery tile") as im:
         rgba = im.convert("RGBA")
         if rgba.size != (size, size):
             rgba = rgba.resize((size, size), Image.Resampling.LANCZOS)

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from lodscape._tmp import temp_beside
 from lodscape.geo.frames import up_vector
 from lodscape.geo.tiles import Bbox, Tile, bounds, merc_to_lonlat
 from lodscape.store.manifest import connect_readonly
@@ -50,7 +51,7 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
     provider = TilesetProvider(tileset)  # refuses what is not a complete tileset
     manifest = provider.manifest
     provider.close()
-    tmp = parent / f".{target.name}.{os.getpid()}.tmp"
+    tmp = temp_beside(parent / target.name)
     shutil.rmtree(tmp, ignore_errors=True)
     db = connect_readonly(tileset)
     try:

@@ -37,6 +37,7 @@ from pmtiles.tile import (
     zxy_to_tileid,
 )
 
+from lodscape._tmp import temp_beside
 from lodscape.errors import LodscapeError
 from lodscape.geo.tiles import Tile, merc_to_lonlat, xy_bounds
 from lodscape.store.manifest import connect_readonly
@@ -205,7 +206,7 @@ def _stage(
     if not ordered:
         raise TilesetError(f"{out}: no tiles to write")
     parent = out.parent if str(out.parent) else Path(".")
-    tmp = parent / f".{out.name}.{os.getpid()}.tmp"
+    tmp = temp_beside(parent / out.name)
     entries: list[Entry] = []
     where: dict[bytes, int] = {}
     lo = [180.0, 90.0, -180.0, -90.0]

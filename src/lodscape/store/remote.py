@@ -14,7 +14,6 @@ Where a server has no tile (404) the terrain has a hole: nothing is made up.
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import threading
@@ -34,7 +33,13 @@ from lodscape.geo.frames import WGS84_A
 from lodscape.geo.keys import grid_of, is_texture, tile_of
 from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, merc_to_lonlat, tile_size
 from lodscape.imagery.layers import KINDS, warn_stderr
-from lodscape.imagery.sources import HttpSource, ImageryError, TileCache, TileMissing
+from lodscape.imagery.sources import (
+    HttpSource,
+    ImageryError,
+    TileCache,
+    TileMissing,
+    open_image,
+)
 from lodscape.store.provider import RasterProvider
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, QuantizedMeshError, decode
 from lodscape.terrain.mesh import GRIDS, grid_coordinates
@@ -272,13 +277,13 @@ def _decode_mesh(data: bytes) -> _Mesh:
 
 
 def _decode_png(data: bytes, kind: str, url: str) -> _Raster:
-    from PIL import Image, UnidentifiedImageError
-
     try:
-        with Image.open(io.BytesIO(data)) as im:
+        with open_image(data, url) as im:  # a bomb refused from its header
             rgba = np.asarray(im.convert("RGBA"), np.float64)
-    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
-        raise ImageryError(f"{url}: not an image ({exc})", "not-image") from None
+    except (OSError, ValueError) as exc:
+        raise ImageryError(
+            f"{url}: not an image ({type(exc).__name__}: {exc})", "not-image"
+        ) from None
     if rgba.shape[0] != rgba.shape[1]:
         raise ImageryError(f"{url}: a height tile must be square, got {rgba.shape[1::-1]}")
     r, g, b, a = (rgba[..., i] for i in range(4))

@@ -21,6 +21,7 @@ from rasterio.transform import Affine
 from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
+from lodscape._tmp import temp_beside
 from lodscape.errors import SourceError
 
 __all__ = ["MAX_CELLS", "POINT_SUFFIXES", "grid_points", "read_points", "write_grid"]
@@ -162,7 +163,7 @@ def write_grid(
     import rasterio
 
     target = Path(path)
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    tmp = temp_beside(target)
     profile = {
         "driver": "GTiff",
         "height": heights.shape[0],
