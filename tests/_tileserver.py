@@ -204,39 +204,42 @@ class TileServer:
 
 
 @contextmanager
-def serve_tileset(site: Path) -> Iterator[str]:
-    """``lodscape serve``'s app over ``site`` on a free loopback port, on its own thread: its
-    base URL while the block runs."""
+def serve_tileset(site: Path, header_timeout: float = 10.0) -> Iterator[str]:
+    """``lodscape serve`` over ``site`` (its app, connections and file watch) on a free loopback
+    port, on its own thread: its base URL while the block runs."""
     import asyncio
     import socket
 
-    from aiohttp import web
-
-    from lodscape.serve import TileService, make_app
+    from lodscape.serve import TileService, serve
 
     service = TileService(site)
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = int(s.getsockname()[1])
     loop = asyncio.new_event_loop()
-    runner = web.AppRunner(make_app(service))
+    stop = asyncio.Event()
     ready = threading.Event()
 
-    def serve() -> None:
+    def run() -> None:
         asyncio.set_event_loop(loop)
-        loop.run_until_complete(runner.setup())
-        loop.run_until_complete(web.TCPSite(runner, "127.0.0.1", port).start())
-        ready.set()
-        loop.run_forever()
+        loop.run_until_complete(
+            serve(
+                service,
+                "127.0.0.1",
+                port,
+                ready=lambda url: ready.set(),
+                stop=stop,
+                header_timeout=header_timeout,
+            )
+        )
 
-    thread = threading.Thread(target=serve, daemon=True)
+    thread = threading.Thread(target=run, daemon=True)
     thread.start()
     assert ready.wait(30)
     try:
         yield f"http://127.0.0.1:{port}"
     finally:
-        asyncio.run_coroutine_threadsafe(runner.cleanup(), loop).result(30)
-        loop.call_soon_threadsafe(loop.stop)
+        loop.call_soon_threadsafe(stop.set)
         thread.join(30)
         loop.close()
         service.close()

@@ -53,7 +53,8 @@ def test_a_vrt_with_a_missing_source_is_one_line(tmp_path: Path) -> None:
     )
     run = subprocess.run(
         [sys.executable, "-m", "lodscape.cli", "info", str(tmp_path / "m.vrt")],
-        capture_output=True, text=True, timeout=300, env={k: v for k, v in os.environ.items() if k != "CPL_LOG"},
+        capture_output=True, text=True, timeout=300,
+        env={k: v for k, v in os.environ.items() if k != "CPL_LOG"},
     )  # fmt: skip
     assert run.returncode == 2
     lines = [ln for ln in run.stderr.splitlines() if ln.strip()]

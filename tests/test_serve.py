@@ -453,3 +453,91 @@ def test_serve_says_serving_only_once_it_listens(
     assert "serving" not in out
     assert err.count("\n") == 1, err
     assert f"127.0.0.1:{port}" in err, err
+
+
+def _wait_for(probe: Any, seconds: float = 10.0) -> Any:
+    """``probe()`` until it is truthy (the server looks at its file twice a second)."""
+    deadline = time.monotonic() + seconds
+    got = probe()
+    while not got and time.monotonic() < deadline:
+        time.sleep(0.1)
+        got = probe()
+    return got
+
+
+def test_a_file_renamed_into_place_and_a_city_added_are_served(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``lodscape build`` to a new name then ``mv`` over the served file (an atomic rename), and
+    ``city add`` / ``remove`` on it: served from the next requests, no restart."""
+    from _synthetic import fbm_tileset
+
+    first = helsinki_tileset(tmp_path)
+    (tmp_path / "other").mkdir()
+    other = fbm_tileset(tmp_path / "other", seed=3, n=129)
+    served = tmp_path / "served.lods"
+    shutil.copy(first, served)
+    with serve_tileset(served) as url, httpx.Client(base_url=url) as c:
+        assert c.get("/3dtiles/tileset.json").status_code == 404  # no city yet
+        z, x, y = _some_tile(other, "terrain")
+        assert c.get(f"/{z}/{x}/{y}.terrain").status_code == 404
+        bounds = c.get("/layer.json").json()["bounds"]
+        tmp = tmp_path / "next.lods"
+        shutil.copy(other, tmp)
+        tmp.replace(served)  # the old inode stays open in the server until it looks again
+        assert _wait_for(lambda: c.get(f"/{z}/{x}/{y}.terrain").status_code == 200)
+        assert c.get("/layer.json").json()["bounds"] != bounds
+        # the city: added, then removed, seen each time
+        shutil.copy(first, tmp)
+        tmp.replace(served)
+        assert _wait_for(lambda: c.get(f"/{z}/{x}/{y}.terrain").status_code == 404)
+        main(["city", "add", str(served), str(sample_city_path())])
+        assert _wait_for(lambda: c.get("/3dtiles/tileset.json").status_code == 200)
+        assert c.get("/").json()["buildings"] == "3dtiles/tileset.json"
+        main(["city", "remove", str(served), sample_city_path().name])
+        assert _wait_for(lambda: c.get("/3dtiles/tileset.json").status_code == 404)
+
+
+def test_a_file_being_written_over_keeps_the_last_tileset_served(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    site = helsinki_tileset(tmp_path)
+    served = tmp_path / "served.lods"
+    shutil.copy(site, served)
+    z, x, y = _some_tile(site, "terrain")
+    with serve_tileset(served) as url, httpx.Client(base_url=url) as c:
+        broken = tmp_path / "broken.lods"
+        broken.write_bytes(b"not a tileset at all")
+        broken.replace(served)
+        time.sleep(0.7)
+        for _ in range(3):
+            assert c.get(f"/{z}/{x}/{y}.terrain").status_code == 200
+            time.sleep(0.6)
+    err = capsys.readouterr().err
+    assert err.count("still serving the last tileset") == 1, err
+
+
+def test_half_sent_headers_are_cut_off(site: Path) -> None:
+    """A client that opens connections and sends part of a request's headers (or nothing) is
+    closed after the header deadline, and the server answers the others meanwhile."""
+    with serve_tileset(site, header_timeout=1.0) as url:
+        port = int(url.rsplit(":", 1)[1])
+        held = []
+        for i in range(20):
+            s = socket.create_connection(("127.0.0.1", port))
+            if i % 2:
+                s.sendall(b"GET /layer.json HTTP/1.1\r\nHost: x\r\nX-Slow: ")
+            held.append(s)
+        with httpx.Client(base_url=url) as c:
+            assert c.get("/layer.json").status_code == 200
+        time.sleep(2.5)
+        for s in held:
+            s.settimeout(2.0)
+            try:
+                assert s.recv(1024) == b""  # closed by the server
+            except ConnectionResetError:
+                pass  # closed by the server (aborted)
+            finally:
+                s.close()
+        with httpx.Client(base_url=url) as c:
+            assert c.get("/layer.json").status_code == 200

@@ -20,30 +20,41 @@ the tileset can be named, and no tile has two names.
 SQLite reads run on a pool of threads, each with its own read-only connection, never on the
 event loop: a request never waits for another's read, and a writer (``city add`` keeps a
 write-ahead log) never blocks the readers.
+
+The file is watched (its and its log's inode, size and time, looked at no more than twice a
+second): a file renamed into place, or a city added or removed, is served from the next request
+on (the answers kept in memory, the layer and the 3D Tiles made again); a file that is not a
+complete tileset at that moment (a build writing it) leaves the last one served, said once.
+A connection must send its request's headers within ``HEADER_TIMEOUT`` seconds of opening (or of
+its last answer): one that trickles them, or holds them half-sent, is closed.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gzip
 import hashlib
 import json
 import logging
+import os
 import sqlite3
 import sys
 import threading
+import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, TypeVar
 
 from lodscape._lru import ByteLRU
+from lodscape.errors import LodscapeError
 from lodscape.store.export import cesium_layer
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import ungzip
 from lodscape.store.tileset import TilesetProvider
 
-__all__ = ["TileService", "make_app", "run"]
+__all__ = ["HeaderDeadlines", "TileService", "make_app", "run", "serve"]
 
 CORS = {
     "Access-Control-Allow-Origin": "*",
@@ -58,8 +69,27 @@ READERS = 4
 #: Tile bytes kept in memory, answered from the event loop without a thread hop (a tileset's
 #: tiles never change once built; a city add touches only the city's tables).
 HOT_BYTES = 64 << 20
+#: Seconds a connection has to send a request's headers (nginx's client_header_timeout is 60).
+HEADER_TIMEOUT = 10.0
+#: Seconds between looks at the file for a change.
+WATCH_EVERY = 0.5
 
 T = TypeVar("T")
+
+
+def _file_key(path: Path) -> tuple[int, ...] | None:
+    """What changes when the file is replaced or written: its and its log's identity, size and
+    time (None: no file there now)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    key = (st.st_ino, st.st_dev, st.st_size, st.st_mtime_ns)
+    try:
+        wal = os.stat(str(path) + "-wal")
+        return (*key, wal.st_size, wal.st_mtime_ns)
+    except OSError:
+        return key
 
 
 class TileService:
@@ -67,26 +97,81 @@ class TileService:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        provider = TilesetProvider(self.path)  # refuses what is not a complete tileset
-        self.manifest = provider.manifest
-        self._provider = provider
         self._local = threading.local()
         self._lock = threading.Lock()
         self._connections: list[sqlite3.Connection] = []
         self._pool = ThreadPoolExecutor(READERS, thread_name_prefix="lodscape-serve")
-        self._hot: ByteLRU[tuple[str, int, int, int], bytes | None] = ByteLRU()
-        layer, self._flat = cesium_layer(self._db(), self.manifest, self.path.stem)
-        self.layer = json.dumps(layer, indent=1).encode()
-        self._tiles3d: tuple[bytes, list[bytes]] | None = None
-        self.has_city = bool(provider.cities())
+        #: Counts the versions of the file served; a reader's connection is to one of them.
+        self.generation = 0
+        self._key = _file_key(self.path)
+        self._looked = time.monotonic()
+        self._said: tuple[int, ...] | None = None
+        self._load()  # a file that is not a complete tileset fails here
+
+    def _load(self) -> None:
+        """Open the file as it is now (``TilesetError`` if it is not a complete tileset)."""
+        provider = TilesetProvider(self.path)  # refuses what is not a complete tileset
+        # the readers' connections opened now, to this file: a later rename or overwrite of
+        # the path leaves them reading it until the next load
+        conns: list[sqlite3.Connection] = []
+        try:
+            for _ in range(READERS):
+                conns.append(connect_readonly(self.path))
+                conns[-1].execute("SELECT count(*) FROM sqlite_master").fetchone()
+            layer, flat = cesium_layer(conns[0], provider.manifest, self.path.stem)
+            has_city = bool(provider.cities())
+        except BaseException:
+            provider.close()
+            for db in conns:
+                db.close()
+            raise
+        old = getattr(self, "_provider", None)
+        with self._lock:
+            for db in getattr(self, "_free", []):
+                db.close()  # the last version's, never taken by a reader
+            self._free = conns
+            self._provider = provider
+            self.manifest = provider.manifest
+            self._flat = flat
+            self.layer = json.dumps(layer, indent=1).encode()
+            self._tiles3d: tuple[bytes, list[bytes]] | None = None
+            self.has_city = has_city
+            self._hot: ByteLRU[tuple[str, int, int, int], bytes | None] = ByteLRU()
+            self.generation += 1
+        if old is not None:
+            old.close()
+
+    async def watch(self) -> None:
+        """Serve the file as it is now, where it changed since the last look (event loop)."""
+        now = time.monotonic()
+        if now - self._looked < WATCH_EVERY:
+            return
+        self._looked = now
+        key = _file_key(self.path)
+        if key is None or key == self._key:
+            return
+        try:
+            await self.run(self._load)
+        except LodscapeError as exc:
+            if self._said != key:  # said once for each state of the file
+                self._said = key
+                print(f"lodscape: serve: {exc}; still serving the last tileset", file=sys.stderr)
+            return
+        self._key = key
 
     def _db(self) -> sqlite3.Connection:
-        """This thread's read-only connection."""
+        """This thread's read-only connection, to the file as last loaded (one of the
+        connections opened by the load: a thread per connection)."""
         db: sqlite3.Connection | None = getattr(self._local, "db", None)
-        if db is None:
-            db = self._local.db = connect_readonly(self.path)
-            with self._lock:
-                self._connections.append(db)
+        if db is not None and getattr(self._local, "generation", 0) == self.generation:
+            return db
+        with self._lock:
+            if db is not None:
+                self._connections.remove(db)
+                db.close()  # to the file as it was
+            self._local.generation = self.generation
+            db = self._local.db = self._free.pop()
+            self._connections.append(db)
         return db
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
@@ -107,9 +192,10 @@ class TileService:
     def close(self) -> None:
         self._pool.shutdown(wait=True)
         with self._lock:
-            for db in self._connections:
+            for db in [*self._connections, *self._free]:
                 db.close()
             self._connections.clear()
+            self._free = []
         self._provider.close()
 
     def terrain(self, z: int, x: int, tms: int) -> bytes | None:
@@ -203,11 +289,84 @@ def etag_matches(header: str, etag: str) -> bool:
 _NUMBER = r"(?:0|[1-9][0-9]{0,9})"
 
 
-def make_app(service: TileService) -> Any:
-    """The aiohttp application serving ``service``."""
+class HeaderDeadlines:
+    """Connections that owe a request's headers, and by when: from their opening, and again
+    from each answer (a keep-alive connection's next request). ``sweep`` closes the late."""
+
+    def __init__(self, timeout: float = HEADER_TIMEOUT) -> None:
+        self.timeout = timeout
+        self._due: dict[Any, float] = {}
+        #: Connections closed for want of headers in time.
+        self.closed = 0
+
+    def waiting(self, transport: Any) -> None:
+        self._due[transport] = time.monotonic() + self.timeout
+
+    def started(self, transport: Any) -> None:
+        self._due.pop(transport, None)
+
+    def sweep(self) -> None:
+        now = time.monotonic()
+        for transport, due in list(self._due.items()):
+            if transport.is_closing():
+                del self._due[transport]
+            elif now >= due:
+                del self._due[transport]
+                self.closed += 1
+                transport.abort()
+
+    def protocol(self, factory: Callable[[], Any]) -> Callable[[], asyncio.Protocol]:
+        """``factory``'s protocols (aiohttp's request handlers), each watched from its
+        connection's opening."""
+        return lambda: _Watched(factory(), self)
+
+
+class _Watched(asyncio.Protocol):
+    """A protocol passing every event to ``inner``, its connection put under a header deadline
+    as it opens (aiohttp's handlers have slots: they cannot be given a hook of their own)."""
+
+    def __init__(self, inner: Any, deadlines: HeaderDeadlines) -> None:
+        self.inner, self.deadlines = inner, deadlines
+
+    def connection_made(self, transport: Any) -> None:
+        self.inner.connection_made(transport)
+        self.deadlines.waiting(transport)
+
+    def data_received(self, data: bytes) -> None:
+        self.inner.data_received(data)
+
+    def eof_received(self) -> bool | None:
+        out: bool | None = self.inner.eof_received()
+        return out
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.inner.connection_lost(exc)
+
+    def pause_writing(self) -> None:
+        self.inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        self.inner.resume_writing()
+
+
+def make_app(service: TileService, deadlines: HeaderDeadlines | None = None) -> Any:
+    """The aiohttp application serving ``service`` (``deadlines``: the connections' header
+    deadlines, kept as their requests start and end)."""
     from aiohttp import web
 
     Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+    @web.middleware
+    async def watched(request: web.Request, handler: Handler) -> web.StreamResponse:
+        transport = request.transport
+        if deadlines is not None and transport is not None:
+            deadlines.started(transport)
+        try:
+            await service.watch()
+            return await handler(request)
+        finally:
+            if deadlines is not None and transport is not None:
+                deadlines.waiting(transport)
 
     @web.middleware
     async def cors(request: web.Request, handler: Handler) -> web.StreamResponse:
@@ -310,7 +469,7 @@ def make_app(service: TileService) -> Any:
             raise web.HTTPNotFound()
         return reply(request, made[1][i], "model/gltf-binary", compress=True)
 
-    app = web.Application(middlewares=[cors])
+    app = web.Application(middlewares=[watched, cors])
     num = "{%s:" + _NUMBER + "}"
     app.router.add_get("/", index)
     app.router.add_get("/layer.json", layer)
@@ -355,31 +514,56 @@ def run(
 ) -> None:
     """Serve the tileset until interrupted; ``ready(url)`` once the port is bound (not before:
     a bad file or a busy port fails first, and nothing says "serving")."""
-    from aiohttp import web
-
-    from lodscape.errors import LodscapeError
 
     service = TileService(path)  # a file that is not a complete tileset fails here
     _quiet_server_logs()
-
-    async def main() -> None:
-        runner = web.AppRunner(make_app(service), access_log=None)
-        await runner.setup()
-        try:
-            await web.TCPSite(runner, host, port, backlog=1024).start()
-        except OSError as exc:
-            raise LodscapeError(
-                f"cannot listen on {host}:{port} ({exc.strerror or exc}); "
-                "is another server there? choose another --port"
-            ) from None
-        if ready is not None:
-            ready(f"http://{host}:{port}/")
-        try:
-            await asyncio.Event().wait()
-        finally:
-            await runner.cleanup()
-
     try:
-        asyncio.run(main())
+        asyncio.run(serve(service, host, port, ready=ready))
     finally:
         service.close()
+
+
+async def serve(
+    service: TileService,
+    host: str,
+    port: int,
+    *,
+    ready: Callable[[str], None] | None = None,
+    stop: asyncio.Event | None = None,
+    header_timeout: float = HEADER_TIMEOUT,
+) -> None:
+    """Serve ``service`` on ``host:port`` until ``stop`` is set (never, without one)."""
+    from aiohttp import web
+
+    deadlines = HeaderDeadlines(header_timeout)
+    runner = web.AppRunner(make_app(service, deadlines), access_log=None)
+    await runner.setup()
+    loop = asyncio.get_running_loop()
+    try:
+        server = await loop.create_server(
+            deadlines.protocol(runner.server),  # type: ignore[arg-type]
+            host,
+            port,
+            backlog=1024,
+            reuse_address=True,
+        )
+    except OSError as exc:
+        await runner.cleanup()
+        raise LodscapeError(
+            f"cannot listen on {host}:{port} ({exc.strerror or exc}); "
+            "is another server there? choose another --port"
+        ) from None
+    if ready is not None:
+        ready(f"http://{host}:{port}/")
+    try:
+        while stop is None or not stop.is_set():
+            deadlines.sweep()
+            if stop is None:
+                await asyncio.sleep(min(1.0, header_timeout / 4))
+            else:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), min(1.0, header_timeout / 4))
+    finally:
+        server.close()
+        await runner.cleanup()
+        await server.wait_closed()
