@@ -224,7 +224,19 @@ def _six_bands(folder: Path, bands: str) -> list[str]:
 
 _QM = {"format": "quantized-mesh-1.0", "tiles": ["{z}/{x}/{y}.terrain"], "scheme": "tms"}
 
+
+def _stats_over_route(folder: Path) -> list[str]:
+    (folder / "route.csv").write_text("lon,lat,alt\n-78.78,36.66,900\n-78.77,36.66,900\n")
+    route = str(folder / "route.csv")
+    return ["fly", _dem(folder), "--path", route, "--stats", route, "-o", str(folder / "o.mp4")]
+
+
 CASES = {
+    "statistics over the route": (_stats_over_route, "--stats would overwrite --path"),
+    "a picture over its DEM": (
+        lambda f: ["render", _dem(f), "-o", str(f / "dem.tif")],
+        "-o would overwrite SOURCE",
+    ),
     "a layer.json of maxzoom 99": (_layer_json("deep", {**_QM, "maxzoom": 99}), "maxzoom 99"),
     "a layer.json with inverted bounds": (
         _layer_json("inverted", {**_QM, "bounds": [10, 50, 5, 45]}),

@@ -41,6 +41,26 @@ app = typer.Typer(
 )
 
 
+def _version(value: bool) -> None:
+    if value:
+        from lodscape import __version__
+
+        typer.echo(f"lodscape {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_version, is_eager=True, help="Print the version and exit."
+        ),
+    ] = False,
+) -> None:
+    """Render huge 3D landscapes with per-tile level of detail."""
+
+
 def _size(value: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in value.lower().split("x"))
@@ -688,6 +708,16 @@ def render(
         _render_dataset(source, poses, dataset, origin, w, h, fov, quiet, terrain)
         return
     _check_outputs(output, depth)
+    _outputs_apart(
+        {"-o": output, "--depth": depth},
+        {
+            "SOURCE": source,
+            "--camera": camera_file,
+            "--city": terrain.city,
+            "--imagery": terrain.imagery,
+            "--landcover": terrain.landcover,
+        },
+    )
     if lon is None and lat is None and alt is None and (pitch is not None or roll is not None):
         raise LodscapeError(
             "--pitch and --roll need --lon/--lat/--alt: without a position the camera is "
@@ -746,6 +776,28 @@ def render(
                 height=h,
             )
         _render(scene, camera, output, depth, quiet)
+
+
+def _outputs_apart(outputs: dict[str, Any], inputs: dict[str, Any]) -> None:
+    """Refuse an output that is one of the inputs (a route overwritten by its flight's
+    statistics), or two outputs that are one file."""
+
+    def same(a: Any, b: Any) -> bool:
+        try:
+            return Path(a).expanduser().resolve() == Path(b).expanduser().resolve()
+        except (OSError, RuntimeError):
+            return False
+
+    named = [(flag, p) for flag, p in outputs.items() if p is not None]
+    for flag, out in named:
+        for what, given in inputs.items():
+            for p in given if isinstance(given, list | tuple) else [given]:
+                if p is not None and same(out, p):
+                    raise LodscapeError(f"{out}: {flag} would overwrite {what}; name another file")
+    for i, (flag, out) in enumerate(named):
+        for other, out2 in named[i + 1 :]:
+            if same(out, out2):
+                raise LodscapeError(f"{out}: given to both {flag} and {other}; name two files")
 
 
 def _or(value: float | None, default: float) -> float:
@@ -878,6 +930,10 @@ def fly(
     for target in (output, stats):
         if target is not None and not (target.parent if str(target.parent) else Path(".")).is_dir():
             raise LodscapeError(f"{target}: folder {target.parent} does not exist")
+    _outputs_apart(
+        {"-o": output, "--stats": stats},
+        {"SOURCE": source, "--path": path, "--city": terrain.city, "--imagery": terrain.imagery},
+    )
     given = [p for p in (path, orbit, line) if p is not None]
     if len(given) != 1:
         raise LodscapeError("give one of --path, --orbit or --line")
