@@ -231,7 +231,14 @@ def _stats_over_route(folder: Path) -> list[str]:
     return ["fly", _dem(folder), "--path", route, "--stats", route, "-o", str(folder / "o.mp4")]
 
 
+def _city_far_away(folder: Path) -> list[str]:
+    from lodscape.data import sample_city_path
+
+    return ["render", _dem(folder), "--city", str(sample_city_path()), "-o", str(folder / "o.png")]
+
+
 CASES = {
+    "a city far from the DEM": (_city_far_away, "lies outside the terrain"),
     "statistics over the route": (_stats_over_route, "--stats would overwrite --path"),
     "a picture over its DEM": (
         lambda f: ["render", _dem(f), "-o", str(f / "dem.tif")],

@@ -322,6 +322,11 @@ ImageryBandsOpt = Annotated[
         "blue (default: its colour interpretation, else its first three, said once).",
     ),
 ]
+#: MiB each of GPU, memory and cache a streaming command (fly, view) keeps by default.
+BUDGET_MB = 256.0
+BudgetOpt = Annotated[
+    float, typer.Option(callback=_finite, help="MiB each of GPU, memory and cache.")
+]
 CityOpt = Annotated[
     Path | None,
     typer.Option(help="An OpenStreetMap file (.osm.pbf, .osm) whose city to drape on the terrain."),
@@ -419,36 +424,60 @@ class TerrainFlags:
         return CityOptions(packing=self.city_tree, buffers=self.city_buffers)
 
 
-_TERRAIN_FLAGS = [
-    inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=ann)
-    for name, ann, default in (
+def _in_panel(ann: Any, panel: str) -> Any:
+    """``ann`` (an ``Annotated`` option) shown under ``panel`` in ``--help``."""
+    import copy
+    from typing import get_args
+
+    kind, info = get_args(ann)
+    info = copy.copy(info)
+    info.rich_help_panel = panel
+    return Annotated[kind, info]
+
+
+#: The shared terrain flags, by help panel: (name, option, default).
+_FLAG_PANELS: dict[str, tuple[tuple[str, Any, Any], ...]] = {
+    "Terrain (DEM)": (
+        ("fill", FillOpt, None),
+        ("sea_level", SeaLevelOpt, "0"),
+        ("band", BandOpt, None),
+        ("nodata", NodataOpt, None),
+        ("z_units", ZUnitsOpt, None),
+        ("detail", DetailOpt, "none"),
+        ("hurst", HurstOpt, None),
+        ("sigma", SigmaOpt, None),
+        ("seed", SeedOpt, None),
+    ),
+    "Level of detail and drawing": (
         ("max_sse", SseOpt, 2.0),
         ("terrain_mode", TerrainModeOpt, "cpu"),
-        ("ground", GroundOpt, "tint"),
-        ("landcover", LandcoverOpt, None),
         ("anisotropy", AnisotropyOpt, 16.0),
+        ("morph", MorphOpt, True),
+        ("ellipsoid", EllipsoidOpt, True),
+        ("compress_textures", CompressOpt, False),
+    ),
+    "Imagery and ground": (
         ("imagery", ImageryOpt, None),
         ("imagery_cache", CacheOpt, None),
         ("imagery_maxzoom", MaxZoomOpt, None),
         ("imagery_bands", ImageryBandsOpt, None),
         ("imagery_timeout", ImageryTimeoutOpt, 10.0),
         ("imagery_strict", ImageryStrictOpt, False),
-        ("detail", DetailOpt, "none"),
-        ("hurst", HurstOpt, None),
-        ("sigma", SigmaOpt, None),
-        ("seed", SeedOpt, None),
+        ("ground", GroundOpt, "tint"),
+        ("landcover", LandcoverOpt, None),
+    ),
+    "City": (
         ("city", CityOpt, None),
-        ("fill", FillOpt, None),
-        ("sea_level", SeaLevelOpt, "0"),
-        ("band", BandOpt, None),
-        ("nodata", NodataOpt, None),
-        ("z_units", ZUnitsOpt, None),
-        ("ellipsoid", EllipsoidOpt, True),
-        ("morph", MorphOpt, True),
-        ("compress_textures", CompressOpt, False),
         ("city_tree", CityTreeOpt, "hilbert"),
         ("city_buffers", CityBuffersOpt, False),
+    ),
+}
+_TERRAIN_FLAGS = [
+    inspect.Parameter(
+        name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=_in_panel(ann, panel)
     )
+    for panel, flags in _FLAG_PANELS.items()
+    for name, ann, default in flags
 ]
 
 
@@ -629,7 +658,10 @@ def render(
     lat: Annotated[float | None, typer.Option(callback=_finite, help="Camera latitude, °.")] = None,
     alt: Annotated[
         float | None,
-        typer.Option(callback=_finite, help="Camera altitude, metres above sea level."),
+        typer.Option(
+            callback=_finite,
+            help="Camera altitude, metres above sea level (the WGS84 ellipsoid: no geoid).",
+        ),
     ] = None,
     heading: Annotated[
         float, typer.Option(callback=_finite, help="Degrees clockwise from north.")
@@ -890,9 +922,7 @@ def fly(
     stats: Annotated[
         Path | None, typer.Option(help="Per-frame statistics to write (.csv).")
     ] = None,
-    budget_mb: Annotated[
-        float, typer.Option(callback=_finite, help="MiB each of GPU, memory and cache.")
-    ] = 256.0,
+    budget_mb: BudgetOpt = BUDGET_MB,
     globe: Annotated[
         bool,
         typer.Option(
@@ -1127,16 +1157,25 @@ def info(
             err = lv.error[-1][lv.exists]
             over = int((err > budget * (1.0 + 1e-9)).sum())
             worst = int(np.argmax(err / np.maximum(budget, 1e-12)))
+            if lv.z < tree.zmax:
+                # a coarse tile over its level's budget is what the build refines: its children
+                # are drawn where it would show more than the budget
+                refined = f"{over} refined by finer tiles" if over else "none needs finer tiles"
+                line(f"{text}; {refined} (budget {float(budget.min()):.2f} m)")
+                continue
+            if not over:
+                line(f"{text}; every tile within its budget ({float(budget.min()):.2f} m)")
+                continue
+            res = float(manifest.get("resolution_merc", 0.0))
+            grid = 2.0 * ORIGIN / (1 << lv.z) / TIN_GRID
             line(
                 text + f"; {over} over their budget (worst {err[worst]:.2f} m against "
                 f"{budget[worst]:.2f} m)"
             )
-            res = float(manifest.get("resolution_merc", 0.0))
-            grid = 2.0 * ORIGIN / (1 << lv.z) / TIN_GRID
-            if lv.z == tree.zmax and over and grid <= res / 2.0:
+            if grid <= res / 2.0:
                 line(
-                    f"{'':>14}  the finest grid is twice as fine as the data: what is left is "
-                    "the data's own relief between its samples"
+                    f"{'':>14}  as expected: the finest grid is twice as fine as the data, and "
+                    "what is left is the data's own relief between its samples"
                 )
 
 
@@ -1320,9 +1359,7 @@ def view(
     ] = Path("."),
     size: SizeOpt = "1280x720",
     fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 60.0,
-    budget_mb: Annotated[
-        float, typer.Option(callback=_finite, help="MiB each of GPU, memory and cache.")
-    ] = 512.0,
+    budget_mb: BudgetOpt = BUDGET_MB,
     exit_after: Annotated[
         float | None,
         typer.Option(callback=_finite, help="Close the window after this many seconds."),
@@ -1422,7 +1459,11 @@ def globe(
     lon: Annotated[float, typer.Option(callback=_finite, help="Camera longitude, °.")] = 0.0,
     lat: Annotated[float, typer.Option(callback=_finite, help="Camera latitude, °.")] = 20.0,
     alt: Annotated[
-        float, typer.Option(callback=_finite, help="Camera altitude, metres above the ellipsoid.")
+        float,
+        typer.Option(
+            callback=_finite,
+            help="Camera altitude, metres above sea level (the WGS84 ellipsoid: no geoid).",
+        ),
     ] = 2.0e7,
     heading: Annotated[
         float, typer.Option(callback=_finite, help="Degrees clockwise from north.")

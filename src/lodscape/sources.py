@@ -191,6 +191,8 @@ def open(
             layer.close()
         raise
     try:
+        if town is not None:
+            _city_on(town, provider)
         if landcover is not None:
             from lodscape.store.provider import LandcoverProvider
 
@@ -214,6 +216,23 @@ def open(
         scene.close()
         raise
     return scene
+
+
+def _city_on(town: Any, provider: Any) -> None:
+    """Refuse a city that lies wholly outside the terrain's footprint (it would stand on the
+    ellipsoid far from the data, as ``city add`` refuses it)."""
+    box = getattr(provider, "bounds_merc", None)
+    if box is None:
+        return
+    from lodscape.geo.tiles import merc_to_lonlat
+
+    (w, e), (s, n) = merc_to_lonlat([box.left, box.right], [box.bottom, box.top])
+    cw, cs, ce, cn = town.bounds
+    if ce < w or cw > e or cn < s or cs > n:
+        raise SourceError(
+            f"{town.name}: lies outside the terrain ({cw:.5f}, {cs:.5f}, {ce:.5f}, {cn:.5f} "
+            f"against {w:.5f}, {s:.5f}, {e:.5f}, {n:.5f}); is it the right place?"
+        )
 
 
 def _read_city(city: Any) -> Any:
