@@ -339,3 +339,48 @@ def test_the_underside_seen_from_a_hole_is_a_dark_curtain(holed: str, mode: str)
         rgb, depth = scene.render(above.moved(lat=above.lat - 0.03))
         dark = np.all(np.abs(rgb.astype(int) - np.array([41, 41, 46])) <= 2, axis=2)
         assert dark[np.isfinite(depth)].mean() < 0.01
+
+
+def test_a_sea_stored_as_exactly_zero_is_water(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """SRTM-style coasts: the sea is 0 m exactly. Where such a flat reaches the data's edge it is
+    sea (said once); a level area at 0 m inside the land, and land just above 0, are land."""
+    from rasterio.warp import transform as to_ll
+
+    from lodscape.geo.tiles import lonlat_to_merc, tile
+    from lodscape.imagery.tint import WATER, TintImagery
+
+    h = fbm_heights(129, seed=3).astype(np.float32) + 50.0  # land, 50..950 m
+    h[90:, :] = 0.0  # the sea: the south part, to the edge
+    h[20:30, 20:30] = 0.0  # a level patch inland: land
+    path = _dem(tmp_path / "coast.tif", h)
+    with RasterSource(path) as src:
+        assert src.sea_share(0.0) == pytest.approx(39 * 129 / 129**2, rel=0.01)
+        imagery = TintImagery(src, (0.0, 1000.0), sea_level=0.0)
+        shallows = WATER[0, 1:4]
+        for (row, col), wet in (((110, 64), True), ((25, 25), False), ((60, 64), False)):
+            (lon,), (lat,) = to_ll(
+                "EPSG:32617", "EPSG:4326", [EAST + (col + 0.5) * RES], [NORTH - (row + 0.5) * RES]
+            )
+            t = tile(lon, lat, 15)
+            rgb = imagery.rgb(t.z, t.x, t.y)
+            b = lonlat_to_merc([lon], [lat])
+            left, bottom, right, top = (float(v) for v in imagery.sample_bounds(t.z, t.x, t.y))
+            n = imagery.tile_size
+            i = int((top - float(b[1][0])) / (top - bottom) * n)
+            j = int((float(b[0][0]) - left) / (right - left) * n)
+            px = rgb[min(i, n - 1), min(j, n - 1)].astype(float)
+            # water: blue over red, the shallows' hue; land: the ramp's greens and browns
+            assert (px[2] > px[0] + 30) == wet, (row, col, px)
+            if wet:
+                assert np.allclose(px / px.max(), shallows / shallows.max(), atol=0.08)
+    code, _, err = run_cli(["render", path, "--size", "64x48", "-o", str(tmp_path / "o.png")],
+                           capsys)  # fmt: skip
+    assert code == 0, err
+    assert err.count("drawn as sea") == 1, err
+    code, _, err = run_cli(
+        ["render", path, "--sea-level", "none", "--size", "64x48", "-o", str(tmp_path / "o.png")],
+        capsys,
+    )
+    assert "drawn as sea" not in err

@@ -42,6 +42,7 @@ from lodscape.terrain.source import (
     HeightSource,
     RasterSource,
     parse_fill,
+    sea_note,
 )
 
 __all__ = [
@@ -334,6 +335,9 @@ def _terrain(
         )
         if raster.z_note is not None:
             warn_stderr(raster.z_note)
+        said = sea_note(raster, ground.sea_level)
+        if said is not None:
+            warn_stderr(said)
         src = FilledSource(raster, ground.fill)
     return _lattice(src, detail, ground.sea_level), True
 

@@ -44,6 +44,7 @@ from lodscape.terrain.source import (
     open_rasters,
     parse_fill,
     parse_z_units,
+    sea_note,
     z_notes,
 )
 
@@ -149,6 +150,9 @@ def build(
     )
     for note in z_notes(raw):
         warn_stderr(note)
+    said = sea_note(raw, options.sea_level)
+    if said is not None:
+        warn_stderr(said)
     source = FilledSource(raw, parse_fill(options.fill))
     try:
         _check_resolution(source, options.tile_size)

@@ -104,11 +104,13 @@ def tint(
     altitude: float = 45.0,
     z_factor: float = 1.0,
     sea_level: float | None = 0.0,
+    wet: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.uint8]:
     """(T, T, 3) RGB of a bordered (T+2, T+2) height grid: hypsometric colour × hillshade.
 
     Heights below ``sea_level`` (when the range reaches below it) are water, shaded by depth
-    over the range's deepest, and the land ramp runs from sea level up; None: no sea."""
+    over the range's deepest, and the land ramp runs from sea level up; None: no sea. ``wet``
+    (T+2, T+2) marks more water: the sea a DEM stores at exactly the sea level."""
     h = np.asarray(heights)
     ok = np.asarray(valid, dtype=bool)
     if h.ndim != 2 or h.shape[0] != h.shape[1] or h.shape[0] < 3:
@@ -136,11 +138,14 @@ def tint(
     span = hi - land if hi > land else 1.0
     base = ramp((inner - land) / span)
     if sea:
-        wet = inner < land
-        depth = (land - inner[wet]) / (land - lo)
-        base[wet] = np.stack(
+        below = inner < land
+        depth = (land - inner[below]) / (land - lo)
+        base[below] = np.stack(
             [np.interp(depth, WATER[:, 0], WATER[:, k]) for k in (1, 2, 3)], axis=-1
         )
+    if wet is not None and sea_level is not None:
+        level = np.asarray(wet, bool)[1:-1, 1:-1]
+        base[level] = WATER[0, 1:4]
     base[~ok[1:-1, 1:-1]] = NODATA_GREY
     rgb = base * light[..., None]
     return np.rint(np.clip(rgb, 0.0, 255.0)).astype(np.uint8)
@@ -221,7 +226,15 @@ class TintImagery:
 
     def _rgb(self, z: int, x: int, y: int) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
         n = self.tile_size + 2
-        heights, valid = self.heights.read(self.sample_bounds(z, x, y), (n, n))
+        b = self.sample_bounds(z, x, y)
+        heights, valid = self.heights.read(b, (n, n))
+        wet = None
+        sea_at = getattr(self.heights, "sea_at", None)  # a raster's sea stored as its level
+        level = self.sea_level
+        if sea_at is not None and level is not None and bool((heights == level).any()):
+            xs = np.linspace(b.left, b.right, n)
+            ys = np.linspace(b.top, b.bottom, n)
+            wet = (heights == level) & valid & sea_at(xs[None, :], ys[:, None], level)
         return tint(
             heights,
             valid,
@@ -231,4 +244,5 @@ class TintImagery:
             altitude=self.altitude,
             z_factor=self.z_factor,
             sea_level=self.sea_level,
+            wet=wet,
         ), valid

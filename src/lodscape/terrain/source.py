@@ -52,6 +52,7 @@ __all__ = [
     "open_rasters",
     "parse_fill",
     "parse_z_units",
+    "sea_note",
     "z_notes",
 ]
 
@@ -522,6 +523,47 @@ class _GridSource:
         pad = ((0, filled.shape[0] < 2), (0, filled.shape[1] < 2))
         self._voids = (np.pad(filled, pad, "edge"), np.pad(inside, pad, "edge"))
         return self._voids
+
+    def _sea_grid(self, level: float) -> B:
+        """Coarse cells of the sea a DEM stores as exactly ``level`` (SRTM's 0 m): cells of
+        that height alone, joined to the raster's edge or to the world outside the data by
+        others of it (a level lake inland is left land)."""
+        cache: dict[float, B] = self.__dict__.setdefault("_seas", {})
+        got = cache.get(level)
+        if got is not None:
+            return got
+        valid = self._count > 0.0
+        mean = self._sum / np.maximum(self._count, 1.0)
+        flat = valid & (mean == level)
+        _, inside = self._void_grid()
+        ch, cw = self._count.shape
+        outside = ~inside[:ch, :cw]
+        labels, _ = label(flat | outside)
+        edge = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+        touching = np.unique(np.concatenate([edge, labels[outside]]))
+        sea = flat & np.isin(labels, touching[touching > 0])
+        pad = ((0, sea.shape[0] < 2), (0, sea.shape[1] < 2))
+        cache[level] = got = np.pad(sea, pad, "edge")
+        return got
+
+    def sea_share(self, level: float) -> float:
+        """The share of the raster's pixels (0..1) in the sea it stores as exactly ``level``."""
+        sea = self._sea_grid(level)
+        ch, cw = self._count.shape
+        return float(self._count[sea[:ch, :cw]].sum()) / float(self.shape[0] * self.shape[1])
+
+    def sea_at(self, xm: ArrayLike, ym: ArrayLike, level: float) -> B:
+        """Which EPSG:3857 points lie in the sea the raster stores as exactly ``level``."""
+        sea = self._sea_grid(level)
+        xb, yb = np.broadcast_arrays(
+            np.asarray(xm, dtype=np.float64), np.asarray(ym, dtype=np.float64)
+        )
+        col, row, on = self._pixel_coords(xb.ravel(), yb.ravel())
+        lv = self._coarse_level
+        i = np.clip(np.floor(np.nan_to_num(row) / lv.sy).astype(np.int64), 0, sea.shape[0] - 1)
+        j = np.clip(np.floor(np.nan_to_num(col) / lv.sx).astype(np.int64), 0, sea.shape[1] - 1)
+        out: B = (on & sea[i, j]).reshape(xb.shape)
+        return out
 
     @property
     def void_share(self) -> float:
@@ -1099,6 +1141,15 @@ class MosaicSource:
             out = out | s.covers(xm, ym)
         return out
 
+    def sea_at(self, xm: ArrayLike, ym: ArrayLike, level: float) -> B:
+        """Points in the sea any source stores as exactly ``level``."""
+        xb, yb = np.broadcast_arrays(np.asarray(xm, np.float64), np.asarray(ym, np.float64))
+        out = np.zeros(xb.shape, bool)
+        for s in self.sources:
+            if isinstance(s, _GridSource | MosaicSource):
+                out |= s.sea_at(xb, yb, level)
+        return out
+
     def void_fill(self, xm: ArrayLike, ym: ArrayLike) -> tuple[NDArray[np.float32], B]:
         """The finest source's filled void at each point where one lies inside its data."""
         xb, yb = np.broadcast_arrays(np.asarray(xm, np.float64), np.asarray(ym, np.float64))
@@ -1259,6 +1310,25 @@ def open_rasters(
             s.close()
         raise
     return opened[0] if len(opened) == 1 else MosaicSource(opened)
+
+
+def sea_note(source: HeightSource, level: float | None) -> str | None:
+    """One line on the sea a DEM stores as exactly ``level`` (drawn as water), or None."""
+    if level is None:
+        return None
+    inner: Any = source.source if isinstance(source, FilledSource) else source
+    parts = inner.sources if isinstance(inner, MosaicSource) else [inner]
+    shares = [
+        (s.sea_share(level), s.shape[0] * s.shape[1]) for s in parts if isinstance(s, _GridSource)
+    ]
+    total = sum(n for _, n in shares)
+    share = sum(v * n for v, n in shares) / total if total else 0.0
+    if share <= 0.0:
+        return None
+    return (
+        f"{source.name}: {100.0 * share:.1f} % of it lies at exactly {level:g} m and reaches "
+        "the data's edge: drawn as sea (--sea-level none draws it as land)"
+    )
 
 
 def z_notes(source: HeightSource) -> list[str]:
