@@ -7,14 +7,16 @@ pixel; without it, the frames where tiles split do."""
 
 from __future__ import annotations
 
-from dataclasses import replace
+import math
 
 import numpy as np
 import pytest
 
 import lodscape
 from _synthetic import fbm_heights, reprojected_jump, write_dem
-from lodscape import SceneOptions
+from lodscape import Camera, SceneOptions
+from lodscape.geo.frames import WGS84_A
+from lodscape.geo.tiles import merc_to_lonlat
 from lodscape.terrain.mesh import build_mesh
 
 pytestmark = pytest.mark.gl
@@ -64,9 +66,16 @@ def _approach(dem: str, morph: bool, terrain_mode: str = "cpu") -> list[float]:
     jumps: list[float] = []
     with lodscape.open(dem, opts) as scene:
         scene.view.morph = morph  # as a streaming scene's view does (one-shot scenes do not)
-        cam0 = scene.overview_camera(256, 160)
-        # straight at the DEM's middle from the overview, 1 % nearer each frame
-        cam0 = replace(cam0, pitch=-35.0)
+        # from south of the DEM (0.75 of its width back, 0.55 up), straight at its middle,
+        # 1 % nearer each frame
+        b = scene.provider.bounds_merc
+        (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+        lon0, lat0 = (w + e) / 2.0, (s + n) / 2.0
+        extent = (b.right - b.left) * math.cos(math.radians(lat0))
+        cam0 = Camera(
+            lon0, lat0 - math.degrees(0.75 * extent / WGS84_A),
+            scene.tree.height_range[1] + 0.55 * extent, pitch=-35.0, width=256, height=160,
+        )  # fmt: skip
         target = cam0.position + cam0.forward * 6000.0
         prev = None
         for i in range(36):

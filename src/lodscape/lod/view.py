@@ -106,6 +106,46 @@ class FramePlan:
     select_ms: float
 
 
+#: Degrees of sky an overview keeps above the horizon, and of margin around the data.
+SKY_DEG = 4.0
+MARGIN_DEG = 2.0
+
+
+def horizon_view(
+    extent: float, lo: float, hi: float, aspect: float, fov_y: float
+) -> tuple[float, float, float] | None:
+    """(distance back from the data's centre, altitude, pitch) of a camera looking north over
+    square data ``extent`` metres across (heights ``lo``..``hi``) that sees all of it and the
+    horizon with ``SKY_DEG`` of sky above, on a viewport of ``aspect``; None where no such
+    camera is (a field of view too narrow to hold both)."""
+    half_v = fov_y / 2.0
+    half_h = math.degrees(math.atan(math.tan(math.radians(half_v)) * aspect))
+    for k in range(60):
+        back = extent * (0.55 + 0.05 * k)
+        near, far = back - extent / 2.0, back + extent / 2.0
+        # as high as keeps the data's near edge just above the picture's bottom (the data fills
+        # the picture under the horizon); the horizon's dip follows the height, so twice
+        alt = hi + 0.45 * back
+        for _ in range(2):
+            dip = math.degrees(math.acos(WGS84_A / (WGS84_A + max(alt, 0.0))))
+            pitch = SKY_DEG - dip - half_v
+            bottom = pitch - half_v  # the lowest ray, below the horizontal
+            alt = lo + near * math.tan(math.radians(min(-bottom - MARGIN_DEG, 80.0)))
+        if alt <= hi or bottom < -89.0:
+            continue
+        # the corners, in the camera's frame: their bearing over their depth along the view
+        depth = near * math.cos(math.radians(pitch)) + (hi - alt) * math.sin(math.radians(pitch))
+        if depth <= 0.0:
+            continue
+        if math.degrees(math.atan2(extent / 2.0, depth)) > half_h - MARGIN_DEG:
+            continue
+        # the far edge must lie below the horizon's sky band (it does, seen from above it)
+        if math.degrees(math.atan2(alt - hi, far)) < dip:
+            continue
+        return back, alt, pitch
+    return None
+
+
 class TerrainView:
     """Selection and culling of one terrain's tile tree, frame after frame (it remembers the
     last selection, for hysteresis)."""
@@ -170,25 +210,33 @@ class TerrainView:
         return camera.with_clip(near, far)
 
     def overview(self, b: Bbox, width: int, height: int, fov_y: float) -> Camera:
-        """A camera south of the data (``b``, EPSG:3857) looking north at its centre, seeing
-        all of it."""
+        """A camera south of the data (``b``, EPSG:3857) looking north over it, seeing all of it
+        and, above it, the horizon and a band of sky (``horizon_view``)."""
         (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
         lon, lat = (w + e) / 2.0, (s + n) / 2.0
         lo, hi = self.tree.height_range
         extent = max(b.right - b.left, b.top - b.bottom) * math.cos(math.radians(lat))
-        back = 0.75 * extent
+        view = horizon_view(extent, lo, hi, width / height, fov_y)
+        back = view[0] if view is not None else 0.75 * extent
         cam_lat = lat - math.degrees(back / WGS84_A)
-        if cam_lat < -89.0:
+        south = cam_lat < -89.0
+        if south:
             # data near the south pole (or a continent's width): look at it from the north
             cam_lat = lat + math.degrees(back / WGS84_A)
-        alt = hi + 0.55 * extent
         if cam_lat > 89.0 or back > 0.25 * math.pi * WGS84_A:
             # a cap or the whole globe: straight down from above its centre, far enough out
             lat = min(max(lat, -89.0), 89.0)
             alt = min(hi + extent / math.tan(math.radians(fov_y) / 2.0), 3.0e7)
             return Camera(lon, lat, alt, pitch=-90.0, fov_y=fov_y, width=width, height=height)
-        return Camera.looking_at(
-            lon, cam_lat, alt, (lon, lat, (lo + hi) / 2.0), fov_y=fov_y, width=width, height=height
+        if view is None:
+            return Camera.looking_at(
+                lon, cam_lat, hi + 0.55 * extent, (lon, lat, (lo + hi) / 2.0),
+                fov_y=fov_y, width=width, height=height,
+            )  # fmt: skip
+        _, alt, pitch = view
+        heading = 180.0 if south else 0.0
+        return Camera(
+            lon, cam_lat, alt, heading=heading, pitch=pitch, fov_y=fov_y, width=width, height=height
         )
 
     # --- frames --------------------------------------------------------------------------------
