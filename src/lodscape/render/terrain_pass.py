@@ -275,6 +275,10 @@ uniform float u_c;         // |u_eye|^2 - 1, from float64 on the CPU
 uniform vec3 u_inv_axes;   // 1/a, 1/a, 1/b
 uniform vec3 u_sun;        // towards the sun, world
 uniform vec3 u_colour;
+#ifdef EARTH
+uniform sampler2D u_earth; // equirectangular: row 0 at latitude 90, column 0 at longitude -180
+uniform vec4 u_data;       // the data's box (west, south, east, north, radians): no data there
+#endif
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
 void main() {
@@ -292,6 +296,17 @@ void main() {
     float light = 0.35 + 0.65 * max(dot(n, u_sun), 0.0);
 #ifdef LABELS
     f_color = vec4(n * u_to_world, NO_DATA_LABEL);  // the view-space normal, the no-data label
+#elif defined(EARTH)
+    // the ellipsoid's normal is the geodetic vertical: its latitude and longitude
+    float lat = asin(clamp(n.z, -1.0, 1.0));
+    float lon = atan(n.y, n.x);
+    vec2 uv = vec2(lon / 6.28318531 + 0.5, 0.5 - lat / 3.14159265);
+    // no mip across the antimeridian's seam: the level of the texels a pixel spans here
+    vec3 earth = textureGrad(u_earth, uv, dFdx(uv) - floor(dFdx(uv) + 0.5),
+                             dFdy(uv) - floor(dFdy(uv) + 0.5)).rgb;
+    // inside the data's box what shows through is its holes and collars: no data, grey
+    bool inside = lon >= u_data.x && lon <= u_data.z && lat >= u_data.y && lat <= u_data.w;
+    f_color = vec4((inside ? u_colour : earth) * light, 1.0);
 #else
     f_color = vec4(u_colour * light, 1.0);
 #endif
@@ -450,6 +465,9 @@ class Renderer:
         #: Draw the ellipsoid (height 0) behind the terrain: the world outside the data.
         self.ellipsoid = ellipsoid
         self._ellipsoid: tuple[moderngl.Program, moderngl.VertexArray] | None = None
+        #: The Earth's image on the ellipsoid (``set_earth``; None: the no-data grey).
+        self._earth: moderngl.Texture | None = None
+        self._data_box = np.zeros(4, np.float32)
         self._materials: moderngl.TextureArray | None = None
         if ground == "landcover":
             from lodscape.imagery.landcover import ground_layers
@@ -993,9 +1011,41 @@ class Renderer:
             u = p.get(name, None)
             if isinstance(u, moderngl.Uniform):
                 u.write(np.ascontiguousarray(value).tobytes())
+        earth = p.get("u_earth", None)
+        if isinstance(earth, moderngl.Uniform) and self._earth is not None:
+            unit = 15  # a unit no tile texture takes
+            self._earth.use(location=unit)
+            earth.value = unit
+            box = p.get("u_data", None)
+            if isinstance(box, moderngl.Uniform):
+                box.write(self._data_box.tobytes())
         vao.render(moderngl.TRIANGLES, vertices=3)
         fbo.depth_mask = True
         ctx.depth_func = "<"
+
+    def set_earth(
+        self,
+        image: NDArray[np.uint8] | None,
+        data: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
+    ) -> None:
+        """Draw ``image`` (equirectangular RGB, row 0 at latitude 90, column 0 at longitude
+        -180: the Blue Marble) on the ellipsoid outside the ``data`` box (west, south, east,
+        north, degrees), the no-data grey inside it (its holes); None: the grey everywhere."""
+        self._data_box = np.radians(np.asarray(data, np.float64)).astype(np.float32)
+        if self._earth is not None:
+            self._free(self._earth)
+            self._earth = None
+        if image is not None:
+            rgb = np.ascontiguousarray(image[..., :3], np.uint8)
+            tex = self._track(self.ctx.texture((rgb.shape[1], rgb.shape[0]), 3, rgb.tobytes()))
+            tex.build_mipmaps()
+            tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+            tex.repeat_x, tex.repeat_y = True, False
+            self._earth = tex
+        if self._ellipsoid is not None:  # the program's variant follows
+            self._free(self._ellipsoid[1])
+            self._free(self._ellipsoid[0])
+            self._ellipsoid = None
 
     def _ellipsoid_program(
         self, labelled: bool = False
@@ -1006,6 +1056,8 @@ class Renderer:
             fragment = (
                 _with_define(_ELLIPSOID_FRAGMENT, "LABELS") if labelled else _ELLIPSOID_FRAGMENT
             )
+            if not labelled and self._earth is not None:
+                fragment = _with_define(fragment, "EARTH")
             program = self._track(
                 self.ctx.program(vertex_shader=_ELLIPSOID_VERTEX, fragment_shader=fragment)
             )
@@ -1125,6 +1177,9 @@ class Renderer:
                 self._free(pair[1])
                 self._free(pair[0])
         self._ellipsoid = self._ellipsoid_labels = None
+        if self._earth is not None:
+            self._free(self._earth)
+            self._earth = None
         for vao in self._whole_vaos.values():
             self._free(vao)
         self._whole_vaos.clear()
