@@ -93,8 +93,9 @@ def write_dem(
     north: float,
     res: float,
     nodata: float | None = None,
+    unit: str | None = None,
 ) -> str:
-    """A real GeoTIFF on disk through rasterio."""
+    """A real GeoTIFF on disk through rasterio (``unit``: its band's unit metadata)."""
     import rasterio
     from rasterio.transform import Affine
 
@@ -112,6 +113,8 @@ def write_dem(
         profile["nodata"] = nodata
     with rasterio.open(path, "w", **profile) as dst:
         dst.write(heights, 1)
+        if unit is not None:
+            dst.units = (unit,)
     return path
 
 

@@ -8,11 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rasterio
-from rasterio.transform import Affine
 
 import lodscape
-from _synthetic import fbm_heights, run_cli
+from _synthetic import fbm_heights, run_cli, write_dem
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import merc_to_lonlat
 from lodscape.terrain.source import RasterSource, parse_z_units
@@ -26,31 +24,6 @@ def _metres(n: int = 129) -> np.ndarray:
     return 200.0 + 200.0 * (h - h.min()) / (h.max() - h.min())
 
 
-def _write(
-    path: Path,
-    heights: np.ndarray,
-    crs: str,
-    west: float,
-    north: float,
-    res: float,
-    unit: str | None = None,
-) -> str:
-    profile = {
-        "driver": "GTiff",
-        "height": heights.shape[0],
-        "width": heights.shape[1],
-        "count": 1,
-        "dtype": "float32",
-        "crs": crs,
-        "transform": Affine(res, 0, west, 0, -res, north),
-    }
-    with rasterio.open(path, "w", **profile) as dst:
-        dst.write(heights.astype(np.float32), 1)
-        if unit is not None:
-            dst.units = (unit,)
-    return str(path)
-
-
 # (CRS, west, north, pixel) in the CRS's own units; the heights are written in `factor` units
 CASES = {
     "projected-us-ft": ("EPSG:2277", 2_300_000.0, 10_100_000.0, 100.0, US_FT, None),
@@ -62,9 +35,11 @@ CASES = {
 @pytest.fixture(params=sorted(CASES))
 def feet_dem(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[str, float]:
     crs, west, north, res, factor, unit = CASES[request.param]
-    path = _write(
-        tmp_path / f"{request.param}.tif", _metres() / factor, crs, west, north, res, unit
-    )
+    heights = (_metres() / factor).astype(np.float32)
+    path = write_dem(
+        str(tmp_path / f"{request.param}.tif"), heights, crs=crs, west=west, north=north,
+        res=res, unit=unit,
+    )  # fmt: skip
     return path, factor
 
 

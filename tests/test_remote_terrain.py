@@ -5,7 +5,6 @@ flight with no local file, and one-line errors for servers that fail."""
 from __future__ import annotations
 
 import io
-import json
 import math
 import threading
 from collections.abc import Iterator
@@ -18,8 +17,7 @@ import pytest
 import lodscape
 from _synthetic import fbm_tileset, run_cli
 from _tileserver import TERRAIN_BOX as BOX
-from _tileserver import geographic_terrain_tile as _geographic_tile
-from _tileserver import serve_tileset
+from _tileserver import TerrainServer, serve_tileset
 from _tileserver import terrain_height as _height
 from lodscape.dataset import Origin, conventions
 from lodscape.geo.frames import ecef_to_geodetic, geodetic_to_ecef
@@ -283,41 +281,9 @@ GEO_MAXZOOM = 11
 
 @pytest.fixture
 def geographic() -> Iterator[str]:
-    layer = {
-        "tilejson": "2.1.0",
-        "format": "quantized-mesh-1.0",
-        "version": "1.0.0",
-        "scheme": "tms",
-        "projection": "EPSG:4326",
-        "tiles": ["tiles/{z}/{x}/{y}.terrain?v={version}"],
-        "maxzoom": GEO_MAXZOOM,
-        "bounds": list(BOX),
-    }
-
-    class Handler(BaseHTTPRequestHandler):
-        def log_message(self, *args: object) -> None:
-            pass
-
-        def do_GET(self) -> None:
-            path = self.path.split("?")[0]
-            if path.endswith("/layer.json"):
-                body: bytes | None = json.dumps(layer).encode()
-            else:
-                z, x, y = (int(p) for p in [*path.split("/")[-3:-1], path.split("/")[-1][:-8]])
-                body = _geographic_tile(z, x, y) if z <= GEO_MAXZOOM else None
-            if body is None:
-                self.send_error(404)
-                return
-            self.send_response(200)
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-    threading.Thread(target=httpd.serve_forever, daemon=True).start()
-    yield f"http://127.0.0.1:{httpd.server_address[1]}/terrain/layer.json"
-    httpd.shutdown()
-    httpd.server_close()
+    server = TerrainServer(maxzoom=GEO_MAXZOOM)
+    yield server.url
+    server.close()
 
 
 def test_a_geographic_quantized_mesh_layer(geographic: str, tmp_path: Path) -> None:

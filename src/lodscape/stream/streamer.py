@@ -361,37 +361,22 @@ class Streamer:
     def take_many(self, keys: Sequence[int]) -> list[Made]:
         """Resources now, fetched and decoded on the workers at once (a frame that must wait
         waits for the slowest, not the sum): each from memory, the cache, or the source."""
-        out: list[Made | None] = [self.memory.pop(k) for k in keys]
-        self.stats.memory_hits += sum(m is not None for m in out)
-        todo = [i for i, m in enumerate(out) if m is None]
-        cached = [self.cache.get(keys[i]) for i in todo]
-        work = [
-            self._pool_for(keys[i]).submit(self._take, keys[i], c)
-            for i, c in zip(todo, cached, strict=True)
-        ]
-        for i, c, job in zip(todo, cached, work, strict=True):
-            data, made = job.result()
-            if c is None and data is not None:
-                self.stats.fetched += 1
-                self.stats.fetched_bytes += len(data)
-                self._put_cache(keys[i], data)
-            elif c is not None:
-                self.stats.cache_hits += 1
-            self.stats.decoded += 1
-            out[i] = made
-        return [m for m in out if m is not None]
+        return [m for m in self._take_now(keys, lenient=False) if m is not None]
 
     def take_available(self, keys: Sequence[int]) -> list[Made | None]:
         """``take_many`` for a frame that can be drawn without some of them (a streaming
         frame's roots, the ellipsoid drawn where one is missing): a key whose last attempt
         failed is skipped until its retry is due, and a failure is recorded (retried later,
         with backoff) instead of raised; None for those."""
+        return self._take_now(keys, lenient=True)
+
+    def _take_now(self, keys: Sequence[int], *, lenient: bool) -> list[Made | None]:
         now = self.clock.now()
         out: list[Made | None] = [self.memory.pop(k) for k in keys]
         self.stats.memory_hits += sum(m is not None for m in out)
         todo = []
         for i, m in enumerate(out):
-            failure = self._failures.get(keys[i])
+            failure = self._failures.get(keys[i]) if lenient else None
             if m is None and (failure is None or now >= failure.retry_at):
                 todo.append(i)
         cached = [self.cache.get(keys[i]) for i in todo]
@@ -402,6 +387,8 @@ class Streamer:
         for i, c, job in zip(todo, cached, work, strict=True):
             exc = job.exception()
             if exc is not None:
+                if not lenient:
+                    raise exc
                 self._fail(keys[i], exc, now)
                 continue
             data, made = job.result()
