@@ -70,11 +70,11 @@ bool underside(vec3 view) {
 #else
 in float v_above;        // how far the fragment is above the eye, along the tile's up
 bool underside(vec3 view) {
-    // a surface fragment is the underside where the rasteriser says it faces away, unless it
-    // lies clearly below the eye (looking down by more than 2 degrees): from there only a
-    // plumb face could show its back, and what does is a sliver triangle seen edge-on, whose
-    // facing rounding may flip (isolated dark pixels on the ground)
-    return v_skirt > 0.0 ? v_above > 0.0 : !gl_FrontFacing && v_above > -0.035 * length(view);
+    // a surface fragment is the underside where the rasteriser says it faces away and it lies
+    // above the eye: below the eye only a plumb face could show its back, and what does is a
+    // sliver triangle seen edge-on, whose facing rounding may flip (isolated dark pixels on
+    // the ground and along the horizon)
+    return v_skirt > 0.0 ? v_above > 0.0 : !gl_FrontFacing && v_above > 0.0;
 }
 #endif
 """
