@@ -10,6 +10,7 @@ never a tile drawn in the last frame.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -214,18 +215,14 @@ class FrameStats:
         }
 
 
-_EARTH: list[NDArray[np.uint8] | None] = []
-
-
+@functools.cache
 def _blue_marble() -> NDArray[np.uint8] | None:
     """NASA's Blue Marble for the world outside the data, read once a process (None: not
     installed; the ellipsoid stays grey)."""
-    if not _EARTH:
-        from lodscape.imagery.globe import earth_image
+    from lodscape.imagery.globe import earth_image
 
-        image, notice = earth_image()
-        _EARTH.append(None if notice is not None else image)
-    return _EARTH[0]
+    image, notice = earth_image()
+    return None if notice is not None else image
 
 
 class Scene:

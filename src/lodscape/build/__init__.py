@@ -39,11 +39,11 @@ from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import (
     FilledSource,
     HeightSource,
-    MosaicSource,
-    RasterSource,
     open_rasters,
     parse_fill,
     parse_z_units,
+    pixel_share,
+    rasters_of,
     sea_note,
     z_notes,
 )
@@ -484,29 +484,11 @@ def _manifest(
         "provenance": provenance,
         "options": opts,
         # metres per height unit of the rasters not in metres (converted when read)
-        "z_factors": _z_factors(source),
+        "z_factors": {
+            os.path.abspath(r.path): r.z_factor for r in rasters_of(source) if r.z_factor != 1.0
+        },
         # the share of the rasters' pixels in voids inside the data (what interpolate fills)
-        "void_share": _void_share(source),
-    }
-
-
-def _void_share(source: HeightSource) -> float:
-    if isinstance(source, FilledSource):
-        source = source.source
-    parts = source.sources if isinstance(source, MosaicSource) else [source]
-    shares = [(s.void_share, s.shape[0] * s.shape[1]) for s in parts if isinstance(s, RasterSource)]
-    total = sum(n for _, n in shares)
-    return round(sum(v * n for v, n in shares) / total, 6) if total else 0.0
-
-
-def _z_factors(source: HeightSource) -> dict[str, float]:
-    if isinstance(source, FilledSource):
-        source = source.source
-    parts = source.sources if isinstance(source, MosaicSource) else [source]
-    return {
-        os.path.abspath(s.path): s.z_factor
-        for s in parts
-        if isinstance(s, RasterSource) and s.z_factor != 1.0
+        "void_share": round(pixel_share(source, lambda r: r.void_share), 6),
     }
 
 

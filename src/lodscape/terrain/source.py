@@ -52,6 +52,8 @@ __all__ = [
     "open_rasters",
     "parse_fill",
     "parse_z_units",
+    "pixel_share",
+    "rasters_of",
     "sea_note",
     "z_notes",
 ]
@@ -501,6 +503,7 @@ class _GridSource:
         ch, cw = self._coarse.shape
         self._coarse_level = _Level(m, ch, cw, float(f), float(f), None)
         self._voids: tuple[NDArray[np.float64], B] | None = None
+        self._seas: dict[float, B] = {}
 
     def _void_grid(self) -> tuple[NDArray[np.float64], B]:
         """The coarse grid with its voids inside the data filled from their rims (a harmonic
@@ -528,8 +531,7 @@ class _GridSource:
         """Coarse cells of the sea a DEM stores as exactly ``level`` (SRTM's 0 m): cells of
         that height alone, joined to the raster's edge or to the world outside the data by
         others of it (a level lake inland is left land)."""
-        cache: dict[float, B] = self.__dict__.setdefault("_seas", {})
-        got = cache.get(level)
+        got = self._seas.get(level)
         if got is not None:
             return got
         valid = self._count > 0.0
@@ -543,7 +545,7 @@ class _GridSource:
         touching = np.unique(np.concatenate([edge, labels[outside]]))
         sea = flat & np.isin(labels, touching[touching > 0])
         pad = ((0, sea.shape[0] < 2), (0, sea.shape[1] < 2))
-        cache[level] = got = np.pad(sea, pad, "edge")
+        self._seas[level] = got = np.pad(sea, pad, "edge")
         return got
 
     def sea_share(self, level: float) -> float:
@@ -555,15 +557,27 @@ class _GridSource:
     def sea_at(self, xm: ArrayLike, ym: ArrayLike, level: float) -> B:
         """Which EPSG:3857 points lie in the sea the raster stores as exactly ``level``."""
         sea = self._sea_grid(level)
+        shape, _, _, on, i, j = self._coarse_cells(xm, ym, sea.shape)
+        out: B = (on & sea[i, j]).reshape(shape)
+        return out
+
+    def _coarse_cells(
+        self, xm: ArrayLike, ym: ArrayLike, cells: tuple[int, ...]
+    ) -> tuple[tuple[int, ...], F64, F64, B, NDArray[np.int64], NDArray[np.int64]]:
+        """EPSG:3857 points (broadcast, flattened) on the coarse grid: their shape, pixel column
+        and row clamped to the raster, whether they fall on it, and the coarse cell (row,
+        column) of ``cells`` each lies in."""
         xb, yb = np.broadcast_arrays(
             np.asarray(xm, dtype=np.float64), np.asarray(ym, dtype=np.float64)
         )
         col, row, on = self._pixel_coords(xb.ravel(), yb.ravel())
+        h, w = self.shape
         lv = self._coarse_level
-        i = np.clip(np.floor(np.nan_to_num(row) / lv.sy).astype(np.int64), 0, sea.shape[0] - 1)
-        j = np.clip(np.floor(np.nan_to_num(col) / lv.sx).astype(np.int64), 0, sea.shape[1] - 1)
-        out: B = (on & sea[i, j]).reshape(xb.shape)
-        return out
+        col = np.clip(np.nan_to_num(col), 0.0, float(w))
+        row = np.clip(np.nan_to_num(row), 0.0, float(h))
+        i = np.clip(np.floor(row / lv.sy).astype(np.int64), 0, cells[0] - 1)
+        j = np.clip(np.floor(col / lv.sx).astype(np.int64), 0, cells[1] - 1)
+        return xb.shape, col, row, on, i, j
 
     @property
     def void_share(self) -> float:
@@ -585,20 +599,13 @@ class _GridSource:
         and which points lie inside the data (False: outside the raster, or on a void that
         reaches its edge)."""
         filled, inside = self._void_grid()
-        xb, yb = np.broadcast_arrays(
-            np.asarray(xm, dtype=np.float64), np.asarray(ym, dtype=np.float64)
-        )
-        col, row, on = self._pixel_coords(xb.ravel(), yb.ravel())
-        h, w = self.shape
+        shape, col, row, on, i, j = self._coarse_cells(xm, ym, inside.shape)
         lv = self._coarse_level
-        col = np.clip(np.nan_to_num(col), 0.0, float(w))
-        row = np.clip(np.nan_to_num(row), 0.0, float(h))
-        u, v = col / lv.sx - 0.5, row / lv.sy - 0.5
-        out, _ = _bilinear(filled, np.ones(filled.shape, bool), u, v)
-        i = np.clip(np.floor(row / lv.sy).astype(np.int64), 0, inside.shape[0] - 1)
-        j = np.clip(np.floor(col / lv.sx).astype(np.int64), 0, inside.shape[1] - 1)
+        out, _ = _bilinear(
+            filled, np.ones(filled.shape, bool), col / lv.sx - 0.5, row / lv.sy - 0.5
+        )
         ok = on & inside[i, j]
-        return out.astype(np.float32).reshape(xb.shape), ok.reshape(xb.shape)
+        return out.astype(np.float32).reshape(shape), ok.reshape(shape)
 
     @property
     def valid_share(self) -> float:
@@ -1312,17 +1319,27 @@ def open_rasters(
     return opened[0] if len(opened) == 1 else MosaicSource(opened)
 
 
+def rasters_of(source: HeightSource) -> list[RasterSource]:
+    """The rasters under ``source`` (through its fill and its mosaic), finest first."""
+    if isinstance(source, FilledSource):
+        return rasters_of(source.source)
+    if isinstance(source, MosaicSource):
+        return [r for s in source.sources for r in rasters_of(s)]
+    return [source] if isinstance(source, RasterSource) else []
+
+
+def pixel_share(source: HeightSource, share: Callable[[RasterSource], float]) -> float:
+    """``share`` (a share of a raster's pixels) over all the rasters under ``source``."""
+    parts = [(share(r), r.shape[0] * r.shape[1]) for r in rasters_of(source)]
+    total = sum(n for _, n in parts)
+    return sum(v * n for v, n in parts) / total if total else 0.0
+
+
 def sea_note(source: HeightSource, level: float | None) -> str | None:
     """One line on the sea a DEM stores as exactly ``level`` (drawn as water), or None."""
     if level is None:
         return None
-    inner: Any = source.source if isinstance(source, FilledSource) else source
-    parts = inner.sources if isinstance(inner, MosaicSource) else [inner]
-    shares = [
-        (s.sea_share(level), s.shape[0] * s.shape[1]) for s in parts if isinstance(s, _GridSource)
-    ]
-    total = sum(n for _, n in shares)
-    share = sum(v * n for v, n in shares) / total if total else 0.0
+    share = pixel_share(source, lambda r: r.sea_share(level))
     if share <= 0.0:
         return None
     return (
@@ -1334,13 +1351,7 @@ def sea_note(source: HeightSource, level: float | None) -> str | None:
 def z_notes(source: HeightSource) -> list[str]:
     """What the rasters under ``source`` say of their height units where they are not plain
     metres (``RasterSource.z_note``), once each: for the app to say on stderr."""
-    if isinstance(source, FilledSource):
-        return z_notes(source.source)
-    if isinstance(source, MosaicSource):
-        return [n for s in source.sources for n in z_notes(s)]
-    if isinstance(source, RasterSource) and source.z_note is not None:
-        return [source.z_note]
-    return []
+    return [r.z_note for r in rasters_of(source) if r.z_note is not None]
 
 
 def _crs_name(wkt: str) -> str:
