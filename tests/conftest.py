@@ -42,3 +42,16 @@ def _gl_errors_checked(request: pytest.FixtureRequest) -> Iterator[None]:
     yield
     ctx.__enter__()
     assert ctx.error == "GL_NO_ERROR"
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _own_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The session's sidecars (overviews, tile statistics) in a folder of its own, not the
+    user's cache."""
+    old = os.environ.get("LODSCAPE_CACHE")
+    os.environ["LODSCAPE_CACHE"] = str(tmp_path_factory.mktemp("lodscape-cache"))
+    yield
+    if old is None:
+        os.environ.pop("LODSCAPE_CACHE", None)
+    else:
+        os.environ["LODSCAPE_CACHE"] = old

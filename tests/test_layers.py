@@ -33,6 +33,7 @@ APP = {
     "view",
     "serve",
     "cli",
+    "__main__",
     "data",
     "dataset",
     "widget",

@@ -1143,7 +1143,8 @@ def info(
                 line(f"{'input':>14}: {p['path']} ({p['bytes']:,d} bytes)")
         for lv in tree.levels:
             if not hasattr(lv, "exists"):
-                line(f"{'z' + str(lv.z):>14}: computed on demand (procedural)")
+                # a procedural planet's, or a DEM's made as views reach it: nothing read here
+                line(f"{'z' + str(lv.z):>14}: statistics computed on demand")
                 continue
             text = (
                 f"{'z' + str(lv.z):>14}: {int(lv.exists.sum())} tiles, max error "

@@ -392,6 +392,10 @@ class Scene:
         if not blocking:
             loader.begin()
         epoch = getattr(self.tree, "epoch", None)
+        if hasattr(self.tree, "wait"):
+            # a tree made on demand: a whole picture waits for the statistics it needs, a
+            # streamed frame does not
+            self.tree.wait = blocking
         plan = self.view.update(cam, loader.resident(), blocking=blocking)
         late = loader.late
         report = loader.serve(plan, blocking=blocking)

@@ -423,7 +423,15 @@ def _with_layers(provider: Provider, layers: list[Any], owns: bool) -> Provider:
         deepen(finest)  # a server's tree: its finest surface interpolated below its data
     if finest > provider.tree.zmax:
         if type(provider) is RasterProvider and owns:
-            tree = DetailTree.over(provider.tree, Fractal(0.7, 0.0, 0))
+            base = provider.tree
+            if getattr(base, "twist", None) is None:
+                # a tree made on demand has no twist per finest tile, which the refinement
+                # below the data bounds its error by: the raster is walked whole here
+                base = build_tree(provider.source)
+                closing = getattr(provider.tree, "close", None)
+                if closing is not None:
+                    closing()
+            tree = DetailTree.over(base, Fractal(0.7, 0.0, 0))
             provider = FractalProvider(
                 DetailHeights(provider.source, tree), tree, sea_level=provider.imagery.sea_level
             )

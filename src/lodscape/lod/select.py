@@ -438,6 +438,12 @@ def select(
                 if z < ztex:
                     hold = _children_hold(options, camera, tree, z, x[was], y[was])
                 refine[was] = rough | hold
+        ready = getattr(tree, "ready", None)
+        if ready is not None and can and refine.any():
+            # a tree made on demand splits where its children's statistics are known (the rest
+            # are asked for and drawn whole meanwhile, as a tile whose children have not loaded)
+            idx = np.flatnonzero(refine)
+            refine[idx] = ready(z, x[idx], y[idx])
         refined_ids.append(ids[refine])
         draw = ~refine
         # the next level's tiles keep at least their parent's resolution (a child's grid of

@@ -18,8 +18,9 @@ from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, merc_to_lonlat, til
 from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError
 from lodscape.terrain.fractal import MAX_LEVEL
+from lodscape.terrain.lazy import open_tree
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
-from lodscape.terrain.pyramid import RefinedTree, TileTree, build_tree
+from lodscape.terrain.pyramid import RefinedTree, TileTree
 from lodscape.terrain.source import Fill, HeightSource
 
 __all__ = [
@@ -131,7 +132,9 @@ class RasterProvider:
     ) -> None:
         self.source = source
         self.name = source.name
-        self.tree = tree if tree is not None else build_tree(source)
+        # a large raster's tree is made as the selection reaches it: opening costs what the
+        # view needs, not what the file holds
+        self.tree: Any = tree if tree is not None else open_tree(source)
         self.bounds_merc = source.bounds_merc
         # where there is no data the terrain is cut (fill none), or the fill stands in: over
         # the raster (nearest), or everywhere the tiles reach (a level or the ellipsoid)
@@ -195,6 +198,9 @@ class RasterProvider:
         return self.imagery.texture(t.z, t.x, t.y)
 
     def close(self) -> None:
+        closing = getattr(self.tree, "close", None)
+        if closing is not None:
+            closing()
         self.source.close()
 
 

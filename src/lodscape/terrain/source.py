@@ -464,24 +464,39 @@ class _GridSource:
     # --- levels -------------------------------------------------------------------------
 
     def _build_coarse(self) -> None:
-        """Aligned block means of the whole raster at ≤ COARSE_SIZE px, and a hole-filled copy."""
+        """Aligned block means of the whole raster at ≤ COARSE_SIZE px, and a hole-filled copy:
+        from the finest overview no finer than that where there is one (the file's own or the
+        sidecar's: opening never reads the full resolution), else from every pixel."""
         h, w = self.shape
         m = 0
         while max(-(-h // (1 << m)), -(-w // (1 << m))) > COARSE_SIZE:
             m += 1
         f = 1 << m
-        strip = f * max(1, _STRIP_PIXELS // (w * f))  # a multiple of the block, so strips align
+        k = max((k for k in self._native if k <= m), default=0)
+        lv = self._native.get(k)
+        rh, rw = (h, w) if lv is None else (lv.height, lv.width)
+        g = 1 << (m - k)  # level pixels per coarse cell
+        # each overview pixel stands for 4^k of the raster's (those at the far edges for fewer)
+        weight = float(1 << (2 * k))
+        strip = g * max(1, _STRIP_PIXELS // (rw * g))  # a multiple of the block, so strips align
         sums, counts = [], []
         lo, hi = math.inf, -math.inf
-        for r0 in range(0, h, strip):
-            vals, ok = self._read_raw(None, r0, min(r0 + strip, h), 0, w)
+        for r0 in range(0, rh, strip):
+            vals, ok = self._read_raw(
+                None if lv is None else lv.overview, r0, min(r0 + strip, rh), 0, rw
+            )
             if ok.any():
                 lo, hi = min(lo, float(vals[ok].min())), max(hi, float(vals[ok].max()))
-            s, n = vals, ok.astype(np.float64)
-            for _ in range(m):
+            s, n = vals * weight, ok.astype(np.float64) * weight
+            for _ in range(m - k):
                 s, n = _halve(s), _halve(n)
             sums.append(s)
             counts.append(n)
+        if lv is not None:
+            # an overview's means hide single absurd pixels: the file's own statistics, if any
+            stats = self._stated_range()
+            if stats is not None:
+                lo, hi = min(lo, stats[0]), max(hi, stats[1])
         self._m = m
         self._sum = np.concatenate(sums, axis=0)
         self._count = np.concatenate(counts, axis=0)
@@ -504,6 +519,11 @@ class _GridSource:
         self._coarse_level = _Level(m, ch, cw, float(f), float(f), None)
         self._voids: tuple[NDArray[np.float64], B] | None = None
         self._seas: dict[float, B] = {}
+
+    def _stated_range(self) -> tuple[float, float] | None:
+        """The band's minimum and maximum as its metadata states them (GDAL's statistics), in
+        metres; None where it states none."""
+        return None
 
     def _void_grid(self) -> tuple[NDArray[np.float64], B]:
         """The coarse grid with its voids inside the data filled from their rims (a harmonic
@@ -588,7 +608,8 @@ class _GridSource:
         f = 1 << self._m
         rows = np.minimum(f, h - np.arange(self._count.shape[0]) * f)
         cols = np.minimum(f, w - np.arange(self._count.shape[1]) * f)
-        missing = rows[:, None] * cols[None, :] - self._count
+        # (counts from an overview may overstate the raster's last row and column of cells)
+        missing = np.maximum(rows[:, None] * cols[None, :] - self._count, 0.0)
         # a partly valid cell beside the world outside holds the collar's edge, not a void
         ch, cw = self._count.shape
         near_out = ~binary_dilation(~inside[:ch, :cw], np.ones((3, 3), bool), border_value=1)
@@ -611,7 +632,7 @@ class _GridSource:
     def valid_share(self) -> float:
         """The share of the raster's pixels that hold data (0..1)."""
         h, w = self.shape
-        return float(self._count.sum()) / float(h * w)
+        return min(1.0, float(self._count.sum()) / float(h * w))
 
     def _check_heights(self, lo: float, hi: float) -> None:
         """Refuse heights no terrain has: an undeclared nodata value, or not metres."""
@@ -921,6 +942,20 @@ class RasterSource(_GridSource):
         self.sidecar = None if where == self.path else where
         self._overview_band = band if where == self.path else 1
         self._setup(name, crs, ds.transform, (ds.height, ds.width), overviews)
+
+    def _stated_range(self) -> tuple[float, float] | None:
+        try:
+            tags = self._ds.tags(self._band)
+            lo, hi = float(tags["STATISTICS_MINIMUM"]), float(tags["STATISTICS_MAXIMUM"])
+        except (KeyError, ValueError, TypeError):
+            return None
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return None
+        a, b = lo * self._scale + self._offset, hi * self._scale + self._offset
+        nd = self._nodata if self._nodata is not None else self._ds.nodatavals[self._band - 1]
+        if nd is not None and float(nd) in (lo, hi):
+            return None  # statistics that counted the nodata value
+        return min(a, b), max(a, b)
 
     def _read_raw(self, overview: int | None, r0: int, r1: int, c0: int, c1: int) -> tuple[F64, B]:
         """Heights (metres, 0 where invalid) and validity of pixels [r0:r1, c0:c1] of a level."""
@@ -1317,6 +1352,32 @@ def open_rasters(
             s.close()
         raise
     return opened[0] if len(opened) == 1 else MosaicSource(opened)
+
+
+def identity(source: HeightSource) -> str | None:
+    """What a height source's tile statistics depend on, as text: each raster's absolute path,
+    size and modification time and those of every file GDAL reads for it (a VRT's sources),
+    its band, nodata, height unit and scale, and the fill; None where a raster is not a local
+    file (a URL: its statistics are made again each time)."""
+    parts: list[str] = [f"fill={getattr(source, 'fill', 'none')}"]
+    rasters = rasters_of(source)
+    if not rasters:
+        return None
+    for r in rasters:
+        if r.path.startswith("/vsi") or "://" in r.path:
+            return None
+        try:
+            files = [r.path, *(f for f in r._ds.files if f != r.path)]
+        except Exception:  # a driver that cannot list its files: the raster's own alone
+            files = [r.path]
+        for f in files[:4096]:
+            try:
+                st = os.stat(f)
+            except OSError:
+                return None
+            parts.append(f"{os.path.abspath(f)}|{st.st_size}|{st.st_mtime_ns}")
+        parts.append(f"band={r._band}|nodata={r._nodata}|scale={r._scale!r}|offset={r._offset!r}")
+    return "\n".join(parts)
 
 
 def rasters_of(source: HeightSource) -> list[RasterSource]:

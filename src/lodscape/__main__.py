@@ -1,0 +1,5 @@
+"""``python -m lodscape``: the command line."""
+
+from lodscape.cli import main
+
+main()

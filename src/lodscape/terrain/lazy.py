@@ -1,0 +1,595 @@
+"""A tile tree made as the selection reaches it: the cost of opening a DEM follows the view.
+
+``build_tree`` walks the whole raster at its own resolution before the first picture. This
+tree makes a tile's statistics (existence, height range, geometric error of each grid) the
+first time a selection asks for them, in *chunks*: a tile of level r = zmin + 3i with its
+descendants down to r + 2, from the source sampled over that tile alone at levels r .. r + 4
+(16·2^k + 1 points a side at level r + k, 257² at most, 1,025² for the few roots; each level
+read from the overview whose pixels fit it, as the meshes are). Within a chunk the statistics
+are ``build_tree``'s, by the same bottom-up steps: a tile's 16-segment error is its deviation
+from its children's grids plus their largest error.
+
+What a chunk cannot see is the detail below its finest sampled level L = r + 4, where that is
+coarser than the truth (the level whose grid samples the data's own resolution). That *tail*
+is bounded by a measurement made once when the tree is opened: for every level k from the
+first chunk's L to the truth, the largest deviation D_k between level k's grid and level
+k + 1's over tiles of level k spread evenly over the data (``TAIL_SAMPLES`` of them, each a
+17² and a 33² sample); a tile's error below L is then taken as TAIL_MARGIN · Σ_{k ≥ L} D_k,
+the telescoping sum ``build_tree`` adds up exactly where it reads every pixel. It is a
+measured bound, not a proof: detail finer than L that is sharper anywhere than everywhere the
+samples fell (one cliff in a plain) is underestimated by it. Heights ranges are widened by it
+too. On DEMs whose chunks all reach the truth (small ones) the tree equals ``build_tree``'s.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sqlite3
+import threading
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape._cache import user_cache
+from lodscape.errors import SourceError
+from lodscape.terrain.mesh import GRIDS
+from lodscape.terrain.pyramid import (
+    _BASE,
+    SampleSource,
+    TileStats,
+    _blocks,
+    _level_grid,
+    _upsample,
+    build_tree,
+    level_range,
+    level_span,
+    sag,
+)
+
+__all__ = [
+    "CHUNK_LEVELS",
+    "EAGER_SAMPLES",
+    "TAIL_MARGIN",
+    "TAIL_SAMPLES",
+    "LazyTree",
+    "open_tree",
+]
+
+F32 = NDArray[np.float32]
+I64 = NDArray[np.int64]
+
+#: Levels of tiles one chunk holds (its root's and the two below it).
+CHUNK_LEVELS = 3
+#: Tiles of a level sampled to measure the detail below the chunks' finest levels.
+TAIL_SAMPLES = 64
+#: Factor on the measured tail (the largest of a sample is not the largest of all).
+TAIL_MARGIN = 1.5
+#: Levels the roots' chunks sample beyond the others' (1,025² samples a root at most).
+ROOT_EXTRA = 0
+#: Samples of the truth level up to which a source's tree is walked whole when it is opened
+#: (``build_tree``: exact, and for a raster of up to about 2,049² pixels quicker than chunks,
+#: which sample the levels they share more than once).
+EAGER_SAMPLES = 1 << 22
+#: Chunks kept in memory (each some 10 kB).
+CHUNK_CACHE = 1 << 14
+
+
+@dataclass(frozen=True, eq=False)
+class _Chunk:
+    """Per level k = 0..2 below the chunk's root: (2^k, 2^k) arrays, [y, x]."""
+
+    exists: tuple[NDArray[np.bool_], ...]
+    min_h: tuple[F32, ...]
+    max_h: tuple[F32, ...]
+    #: (len(grids), 2^k, 2^k) per level.
+    error: tuple[F32, ...]
+
+
+def _pool_max(a: NDArray[np.floating], f: int) -> F32:
+    n = a.shape[0] // f
+    out: F32 = a.reshape(n, f, n, f).max(axis=(1, 3)).astype(np.float32)
+    return out
+
+
+def _pool_min(a: NDArray[np.floating], f: int) -> F32:
+    n = a.shape[0] // f
+    out: F32 = a.reshape(n, f, n, f).min(axis=(1, 3)).astype(np.float32)
+    return out
+
+
+class _Sidecar:
+    """Chunks and tails kept between runs: one SQLite file per raster in lodscape's cache
+    folder (``trees``; never beside the user's file), holding the source's whole identity
+    (``source.identity``): a file that changed since finds its old statistics dropped."""
+
+    def __init__(self, identity: str, name: str, shape: tuple[int, ...]) -> None:
+        import hashlib
+
+        self.identity = identity
+        self.shape = shape
+        folder = user_cache() / "trees"
+        self.path = folder / f"{hashlib.sha1(name.encode()).hexdigest()[:20]}.sqlite"
+        self._conn: sqlite3.Connection | None = None
+        self._todo: list[tuple[int, int, int, bytes]] = []
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            conn = sqlite3.connect(self.path, timeout=5.0, check_same_thread=False)
+            conn.execute("PRAGMA journal_mode=WAL")
+            with conn:
+                conn.execute("CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value TEXT)")
+                conn.execute(
+                    "CREATE TABLE IF NOT EXISTS chunks (r INTEGER, x INTEGER, y INTEGER, "
+                    "data BLOB, PRIMARY KEY (r, x, y)) WITHOUT ROWID"
+                )
+                row = conn.execute("SELECT value FROM meta WHERE name = 'identity'").fetchone()
+                if row is None or row[0] != identity:
+                    # another file (or this one changed): what was kept is not its statistics
+                    conn.execute("DELETE FROM chunks")
+                    conn.execute("DELETE FROM meta")
+                    conn.execute("INSERT INTO meta VALUES ('identity', ?)", (identity,))
+            self._conn = conn
+        except (OSError, sqlite3.Error):
+            self._conn = None  # a read-only or full cache: statistics are made each time
+
+    def tails(self) -> dict[int, float] | None:
+        if self._conn is None:
+            return None
+        try:
+            row = self._conn.execute("SELECT value FROM meta WHERE name = 'tails'").fetchone()
+        except sqlite3.Error:
+            return None
+        return None if row is None else {int(k): float(v) for k, v in json.loads(row[0]).items()}
+
+    def keep_tails(self, tails: dict[int, float]) -> None:
+        if self._conn is None:
+            return
+        try:
+            with self._conn:
+                self._conn.execute(
+                    "INSERT OR REPLACE INTO meta VALUES ('tails', ?)", (json.dumps(tails),)
+                )
+        except sqlite3.Error:
+            self._conn = None
+
+    def get(self, r: int, x: int, y: int, levels: int, grids: int) -> _Chunk | None:
+        if self._conn is None:
+            return None
+        try:
+            row = self._conn.execute(
+                "SELECT data FROM chunks WHERE r = ? AND x = ? AND y = ?", (r, x, y)
+            ).fetchone()
+        except sqlite3.Error:
+            return None
+        return None if row is None else _decode(row[0], levels, grids)
+
+    def put(self, r: int, x: int, y: int, chunk: _Chunk) -> None:
+        if self._conn is None:
+            return
+        self._todo.append((r, x, y, _encode(chunk)))
+        if len(self._todo) >= 64:
+            self.flush()
+
+    def flush(self) -> None:
+        todo, self._todo = self._todo, []
+        if self._conn is None or not todo:
+            return
+        try:
+            with self._conn:
+                self._conn.executemany("INSERT OR REPLACE INTO chunks VALUES (?, ?, ?, ?)", todo)
+        except sqlite3.Error:
+            self._conn = None
+
+    def close(self) -> None:
+        self.flush()
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+
+def _encode(c: _Chunk) -> bytes:
+    parts = []
+    for k in range(len(c.exists)):
+        parts += [c.exists[k].astype(np.uint8).tobytes(), c.min_h[k].tobytes()]
+        parts += [c.max_h[k].tobytes(), c.error[k].astype(np.float32).tobytes()]
+    return b"".join(parts)
+
+
+def _decode(data: bytes, levels: int, grids: int) -> _Chunk | None:
+    ex, lo, hi, er = [], [], [], []
+    at = 0
+    try:
+        for k in range(levels):
+            n = 1 << k
+            ex.append(np.frombuffer(data, np.uint8, n * n, at).reshape(n, n).astype(bool))
+            at += n * n
+            lo.append(np.frombuffer(data, np.float32, n * n, at).reshape(n, n))
+            at += 4 * n * n
+            hi.append(np.frombuffer(data, np.float32, n * n, at).reshape(n, n))
+            at += 4 * n * n
+            er.append(np.frombuffer(data, np.float32, grids * n * n, at).reshape(grids, n, n))
+            at += 4 * grids * n * n
+    except ValueError:
+        return None  # cut short: made again
+    if at != len(data):
+        return None
+    return _Chunk(tuple(ex), tuple(lo), tuple(hi), tuple(er))
+
+
+def open_tree(source: SampleSource, *, tile_size: int = 256, grids: tuple[int, ...] = GRIDS) -> Any:
+    """The tile tree of a source: walked whole where its truth level holds at most
+    EAGER_SAMPLES samples, else made as the selection reaches it."""
+    span = level_span(source.bounds_merc, source.resolution_merc, tile_size=tile_size, grids=grids)
+    truth = span.texture_zmax + round(math.log2(tile_size / _BASE))
+    _, _, nx, ny = level_range(source.bounds_merc, truth)
+    if (nx * _BASE + 1) * (ny * _BASE + 1) <= EAGER_SAMPLES:
+        return build_tree(source, tile_size=tile_size, grids=grids)
+    return LazyTree(source, tile_size=tile_size, grids=grids)
+
+
+class LazyTree:
+    """The tile tree of a height source, its statistics made on demand (see the module)."""
+
+    twist = None
+    roughness = None
+    coarsened = 0
+
+    def __init__(
+        self,
+        source: SampleSource,
+        *,
+        tile_size: int = 256,
+        grids: tuple[int, ...] = GRIDS,
+        workers: int | None = None,
+        keep: bool = True,
+    ) -> None:
+        """``keep``: find and keep statistics in the sidecar (``_Sidecar``) where the source is
+        local files."""
+        span = level_span(
+            source.bounds_merc, source.resolution_merc, tile_size=tile_size, grids=grids
+        )
+        self.source = source
+        self.grids = grids
+        self.tile_size = tile_size
+        self.zmin = span.zmin
+        self.texture_zmax: int | None = span.texture_zmax
+        self.coarsened = span.coarsened
+        self._depth = len(grids) - 1
+        self.truth = span.texture_zmax + round(math.log2(tile_size / _BASE))
+        self._zmax = self.truth - self._depth
+        self._stands_in = getattr(getattr(source, "fill", None), "kind", "none") != "none"
+        self._ranges = {
+            z: level_range(source.bounds_merc, z) for z in range(self.zmin, self.truth + 1)
+        }
+        self._lock = threading.Lock()
+        self._chunks: OrderedDict[tuple[int, int, int], _Chunk] = OrderedDict()
+        self._pending: set[tuple[int, int, int]] = set()
+        #: Make children's statistics before a split (``ready``); False: ask for them and
+        #: split once they have come (a scene's streamed frames).
+        self.wait = True
+        self._pool = ThreadPoolExecutor(
+            max_workers=workers or min(8, os.cpu_count() or 1), thread_name_prefix="lodscape-tree"
+        )
+        #: Chunks made here, and found in the sidecar (for counters and tests).
+        self.made = 0
+        self.found = 0
+        self._sidecar = self._open_sidecar() if keep else None
+        tails = None if self._sidecar is None else self._sidecar.tails()
+        if tails is None:
+            tails = self._measure_tails()
+            if self._sidecar is not None:
+                self._sidecar.keep_tails(tails)
+        self._tails = tails
+        self.height_range = self._height_range()
+
+    # --- the tree protocol ------------------------------------------------------------------
+
+    @property
+    def zmax(self) -> int:
+        return self._zmax
+
+    @property
+    def levels(self) -> tuple[_LazyLevel, ...]:
+        return tuple(self.level(z) for z in range(self.zmin, self._zmax + 1))
+
+    def level(self, z: int) -> _LazyLevel:
+        return _LazyLevel(z, self)
+
+    def roots(self) -> tuple[I64, I64]:
+        x0, y0, nx, ny = self._ranges[self.zmin]
+        st = self.level(self.zmin).stats(
+            *[a.ravel() for a in np.meshgrid(np.arange(nx) + x0, np.arange(ny) + y0)]
+        )
+        yy, xx = np.divmod(np.flatnonzero(st.exists), nx)
+        return (xx + x0).astype(np.int64), (yy + y0).astype(np.int64)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        with self._lock:
+            if self._sidecar is not None:
+                self._sidecar.close()
+                self._sidecar = None
+
+    def _open_sidecar(self) -> _Sidecar | None:
+        from lodscape.terrain.source import identity
+
+        ident = identity(self.source)  # type: ignore[arg-type]
+        if ident is None:
+            return None
+        params = (
+            f"tree v1|tile {self.tile_size}|grids {self.grids}|chunk {CHUNK_LEVELS}+"
+            f"{ROOT_EXTRA}|tail {TAIL_SAMPLES}×{TAIL_MARGIN}"
+        )
+        # one sidecar per raster (its name leaves out size and time: a changed file finds and
+        # drops its old statistics rather than leaving them beside new ones)
+        name = "\n".join(line.split("|")[0] for line in ident.splitlines())
+        return _Sidecar(params + "\n" + ident, params + "\n" + name, ())
+
+    # --- statistics -------------------------------------------------------------------------
+
+    def tail(self, level: int) -> float:
+        """Metres a grid of ``level`` is taken to miss of the data below it (the measured tail)."""
+        return float(self._tails.get(level, 0.0))
+
+    def stats(self, z: int, x: I64, y: I64) -> TileStats:
+        x = np.asarray(x, np.int64)
+        y = np.asarray(y, np.int64)
+        r = self.zmin + CHUNK_LEVELS * ((z - self.zmin) // CHUNK_LEVELS)
+        k = z - r
+        x0, y0, nx, ny = self._ranges[z]
+        inside = (x >= x0) & (x < x0 + nx) & (y >= y0) & (y < y0 + ny)
+        n = x.size
+        exists = np.zeros(n, bool)
+        min_h = np.zeros(n, np.float32)
+        max_h = np.zeros(n, np.float32)
+        error = np.zeros((len(self.grids), n), np.float32)
+        idx = np.flatnonzero(inside)
+        if idx.size:
+            cx, cy = x[idx] >> k, y[idx] >> k
+            keys, inv = np.unique(np.stack([cx, cy], axis=1), axis=0, return_inverse=True)
+            inv = inv.ravel()
+            chunks = self._get(r, [(int(a), int(b)) for a, b in keys])
+            lx, ly = x[idx] - (cx << k), y[idx] - (cy << k)
+            ex = np.stack([c.exists[k] for c in chunks])
+            lo = np.stack([c.min_h[k] for c in chunks])
+            hi = np.stack([c.max_h[k] for c in chunks])
+            er = np.stack([c.error[k] for c in chunks])
+            exists[idx] = ex[inv, ly, lx]
+            min_h[idx] = lo[inv, ly, lx]
+            max_h[idx] = hi[inv, ly, lx]
+            error[:, idx] = er[inv, :, ly, lx].T
+        return TileStats(exists, min_h, max_h, error)
+
+    def ready(self, z: int, x: I64, y: I64) -> NDArray[np.bool_]:
+        """Which tiles (z, x, y) a selection may split now: their children's statistics are
+        known. With ``wait`` (a picture made whole: ``render``) they are made first, in
+        parallel; without (a frame of a flight), those not known are asked for on the workers
+        and the tile is drawn whole meanwhile, as a tile whose children have not loaded."""
+        x = np.asarray(x, np.int64)
+        y = np.asarray(y, np.int64)
+        c = z + 1
+        out = np.ones(x.size, bool)
+        if (c - self.zmin) % CHUNK_LEVELS or c > self._zmax or not x.size:
+            return out  # the children lie in their parents' chunk
+        cx = (2 * x[:, None] + np.array([0, 1, 0, 1])).ravel()
+        cy = (2 * y[:, None] + np.array([0, 0, 1, 1])).ravel()
+        keys = [(int(a), int(b)) for a, b in np.unique(np.stack([cx, cy], axis=1), axis=0)]
+        if self.wait:
+            self._get(c, keys)
+            return out
+        with self._lock:
+            missing = {k for k in keys if (c, *k) not in self._chunks}
+        if missing:
+            missing -= self._recall(c, sorted(missing))  # kept from an earlier run
+        with self._lock:
+            for k in missing:
+                if (c, *k) not in self._pending:
+                    self._pending.add((c, *k))
+                    self._pool.submit(self._learn, c, k)
+        if missing:
+            known = np.array([(int(a), int(b)) not in missing for a, b in zip(cx, cy, strict=True)])
+            out = np.asarray(known.reshape(-1, 4).all(axis=1), bool)
+        return out
+
+    def _recall(self, r: int, keys: list[tuple[int, int]]) -> set[tuple[int, int]]:
+        """Chunks of ``keys`` found in the sidecar, now in memory."""
+        found: set[tuple[int, int]] = set()
+        levels = min(CHUNK_LEVELS, self._zmax - r + 1)
+        with self._lock:
+            if self._sidecar is None:
+                return found
+            for key in keys:
+                c = self._sidecar.get(r, *key, levels, len(self.grids))
+                if c is not None:
+                    self._chunks[(r, *key)] = c
+                    found.add(key)
+            self.found += len(found)
+        return found
+
+    def _learn(self, r: int, key: tuple[int, int]) -> None:
+        try:
+            chunk = self._chunk(r, *key)
+        except Exception:  # a read that failed: asked for again by a later frame
+            with self._lock:
+                self._pending.discard((r, *key))
+            return
+        with self._lock:
+            self._pending.discard((r, *key))
+            self._store(r, key, chunk)
+            if self._sidecar is not None and not self._pending:
+                self._sidecar.flush()
+
+    def _store(self, r: int, key: tuple[int, int], chunk: _Chunk) -> None:
+        """Keep a chunk (the lock held)."""
+        self._chunks[(r, *key)] = chunk
+        self.made += 1
+        if self._sidecar is not None:
+            self._sidecar.put(r, *key, chunk)
+        while len(self._chunks) > CHUNK_CACHE:
+            self._chunks.popitem(last=False)
+
+    def _get(self, r: int, keys: list[tuple[int, int]]) -> list[_Chunk]:
+        out: dict[tuple[int, int], _Chunk] = {}
+        with self._lock:
+            for key in keys:
+                c = self._chunks.get((r, *key))
+                if c is not None:
+                    self._chunks.move_to_end((r, *key))
+                    out[key] = c
+        todo = [key for key in keys if key not in out]
+        if todo:
+            self._recall(r, todo)
+            with self._lock:
+                for key in todo:
+                    c = self._chunks.get((r, *key))
+                    if c is not None:
+                        out[key] = c
+            todo = [key for key in keys if key not in out]
+        if len(todo) == 1:
+            out[todo[0]] = self._chunk(r, *todo[0])
+        elif todo:
+            for key, c in zip(
+                todo, self._pool.map(lambda k: self._chunk(r, *k), todo), strict=True
+            ):
+                out[key] = c
+        if todo:
+            with self._lock:
+                for key in todo:
+                    self._store(r, key, out[key])
+                if self._sidecar is not None:
+                    self._sidecar.flush()  # one transaction a batch
+        return [out[key] for key in keys]
+
+    def _chunk(self, r: int, cx: int, cy: int) -> _Chunk:
+        """Statistics of tile (r, cx, cy) and its descendants to r + 2, from its samples."""
+        finest = min(self._finest(r), self.truth)
+        grids = [
+            _level_grid(self.source, r + k, (cx << k, cy << k, 1 << k, 1 << k))
+            for k in range(finest - r + 1)
+        ]
+        tail = self.tail(finest)
+        # the finest sampled level: its tiles' range and existence from their own samples
+        h, valid = grids[-1]
+        blocks = _blocks(h)
+        lo: F32 = blocks.min(axis=(2, 3)).astype(np.float32) - np.float32(tail)
+        hi: F32 = blocks.max(axis=(2, 3)).astype(np.float32) + np.float32(tail)
+        ex = np.asarray(_blocks(valid).any(axis=(2, 3)), bool)
+        e16: F32 = np.where(ex, np.float32(tail), np.float32(0.0)).astype(np.float32)
+        per_level: list[tuple[NDArray[np.bool_], F32, F32, F32]] = [(ex, lo, hi, e16)]
+        for k in range(len(grids) - 2, -1, -1):
+            hk, vk = grids[k]
+            hc = grids[k + 1][0]
+            cex, clo, chi, ce16 = per_level[0]
+            dev = _blocks(np.abs(_upsample(hk) - hc)).max(axis=(2, 3))
+            total = np.where(cex, dev + ce16, 0.0)
+            e16 = _pool_max(total, 2)
+            b = _blocks(hk)
+            lo = np.minimum(b.min(axis=(2, 3)).astype(np.float32), _pool_min(clo, 2))
+            hi = np.maximum(b.max(axis=(2, 3)).astype(np.float32), _pool_max(chi, 2))
+            ex = np.asarray(_blocks(vk).any(axis=(2, 3)), bool) | (
+                _pool_max(cex.astype(np.float32), 2) > 0
+            )
+            per_level.insert(0, (ex, lo, hi, e16))
+        exists, mins, maxs, errors = [], [], [], []
+        for k in range(min(CHUNK_LEVELS, self._zmax - r + 1)):
+            ex, lo, hi, _ = per_level[k]
+            z = r + k
+            x0, y0, nx, ny = self._ranges[z]
+            n = 1 << k
+            xs = (cx << k) + np.arange(n)
+            ys = (cy << k) + np.arange(n)
+            within = ((ys >= y0) & (ys < y0 + ny))[:, None] & ((xs >= x0) & (xs < x0 + nx))[None, :]
+            ex = within & (ex | self._stands_in)
+            errs = []
+            for j in range(self._depth + 1):
+                ej = per_level[k + j][3]
+                errs.append(
+                    _pool_max(ej, 1 << j) + sag(z, self.grids[j], ys)[:, None].astype(np.float32)
+                )
+            exists.append(ex)
+            mins.append(lo)
+            maxs.append(hi)
+            errors.append(np.stack(errs).astype(np.float32))
+        return _Chunk(tuple(exists), tuple(mins), tuple(maxs), tuple(errors))
+
+    def _finest(self, r: int) -> int:
+        """The finest level a chunk of root level ``r`` samples: four below its root (its
+        tiles' finest grids), two more for the roots' chunks (a few, made first: small DEMs
+        are then exact down to their resolution, as the eager walk)."""
+        return r + CHUNK_LEVELS + self._depth - 1 + (ROOT_EXTRA if r == self.zmin else 0)
+
+    # --- opening ----------------------------------------------------------------------------
+
+    def _measure_tails(self) -> dict[int, float]:
+        """Per level L below which chunks do not see: TAIL_MARGIN · Σ_{k ≥ L} D_k (module)."""
+        first = min(self._finest(self.zmin), self._finest(self.zmin + CHUNK_LEVELS))
+        levels = list(range(first, self.truth))
+        if not levels:
+            return {}
+        jobs = [(k, t) for k in levels for t in self._spread(k)]
+        devs = self._pool.map(lambda job: self._increment(*job), jobs)
+        worst: dict[int, float] = dict.fromkeys(levels, 0.0)
+        for (k, _), d in zip(jobs, devs, strict=True):
+            worst[k] = max(worst[k], d)
+        tails: dict[int, float] = {}
+        total = 0.0
+        for k in reversed(levels):
+            total += worst[k]
+            tails[k] = TAIL_MARGIN * total
+        return tails
+
+    def _spread(self, k: int) -> list[tuple[int, int]]:
+        """Up to TAIL_SAMPLES tiles of level k: 4×4 neighbours around each of a few places spread
+        evenly over its range (neighbours share the file's blocks: a remote file is fetched in
+        a few places, not all over)."""
+        x0, y0, nx, ny = self._ranges[k]
+        side = max(1, math.isqrt(TAIL_SAMPLES // 16))
+        out: set[tuple[int, int]] = set()
+        for a in range(side):
+            for b in range(side):
+                cx = x0 + int((a + 0.5) * nx / side) - 2
+                cy = y0 + int((b + 0.5) * ny / side) - 2
+                for dx in range(4):
+                    for dy in range(4):
+                        x, y = cx + dx, cy + dy
+                        if x0 <= x < x0 + nx and y0 <= y < y0 + ny:
+                            out.add((x, y))
+        return sorted(out)
+
+    def _increment(self, k: int, t: tuple[int, int]) -> float:
+        """The largest deviation of tile t of level k's grid from level k + 1's over it."""
+        x, y = t
+        hk, vk = _level_grid(self.source, k, (x, y, 1, 1))
+        if not vk.any():
+            return 0.0
+        hc, vc = _level_grid(self.source, k + 1, (2 * x, 2 * y, 2, 2))
+        # where the data is whole: a step onto nodata is the edge's, not the terrain's detail
+        ok = vc & (_upsample(vk.astype(np.float32)) == 1.0)
+        dev = np.abs(_upsample(hk) - hc)[ok]
+        return float(dev.max()) if dev.size else 0.0
+
+    def _height_range(self) -> tuple[float, float]:
+        known = getattr(self.source, "data_range", None)
+        if known is None:
+            inner = getattr(self.source, "source", None)
+            known = getattr(inner, "data_range", None)
+        if known is not None:
+            return float(known[0]), float(known[1])
+        st = self.level(self.zmin).stats(*self.roots())
+        if not st.exists.any():
+            raise SourceError(f"{self.source.name}: no valid heights inside the data's footprint")
+        return float(st.min_h[st.exists].min()), float(st.max_h[st.exists].max())
+
+
+@dataclass(frozen=True, eq=False)
+class _LazyLevel:
+    z: int
+    tree: LazyTree
+
+    def stats(self, x: I64, y: I64) -> TileStats:
+        return self.tree.stats(self.z, x, y)
