@@ -1141,11 +1141,11 @@ def info(
                 line(f"{'voids':>14}: {100.0 * voids:.2f} % of the raster inside the data, {what}")
             for p in manifest["provenance"]:
                 line(f"{'input':>14}: {p['path']} ({p['bytes']:,d} bytes)")
-        for lv in tree.levels:
-            if not hasattr(lv, "exists"):
-                # a procedural planet's, or a DEM's made as views reach it: nothing read here
-                line(f"{'z' + str(lv.z):>14}: statistics computed on demand")
-                continue
+        stored = [lv for lv in tree.levels if hasattr(lv, "exists")]
+        if len(stored) < len(tree.levels):
+            # a procedural planet's, or a large DEM's made as views reach it: nothing read here
+            line(f"{'tiles':>14}: statistics made as views reach them")
+        for lv in stored:
             text = (
                 f"{'z' + str(lv.z):>14}: {int(lv.exists.sum())} tiles, max error "
                 f"{float(lv.error[-1][lv.exists].max()):.2f} m"

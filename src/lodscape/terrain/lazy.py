@@ -250,8 +250,13 @@ class LazyTree:
     ) -> None:
         """``keep``: find and keep statistics in the sidecar (``_Sidecar``) where the source is
         local files."""
+        # nothing is held whole: the data's full resolution, however large
         span = level_span(
-            source.bounds_merc, source.resolution_merc, tile_size=tile_size, grids=grids
+            source.bounds_merc,
+            source.resolution_merc,
+            tile_size=tile_size,
+            grids=grids,
+            max_samples=None,
         )
         self.source = source
         self.grids = grids
