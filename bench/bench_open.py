@@ -246,6 +246,8 @@ def main() -> None:
                     f"{statistics.median(x['peak_mb'] for x in runs):5.0f} MB, read "
                     f"{statistics.median(x['read_mb'] for x in runs):8.1f} MB"
                 )
+                if runs[0].get("open_s") is not None:
+                    line += f", open {statistics.median(x['open_s'] for x in runs):.2f} s"
                 if runs[0].get("chunks") is not None:
                     line += f", {int(runs[0]['chunks'])} chunks"
                 print(line, flush=True)
