@@ -80,13 +80,12 @@ STM = (
     + r"""
 import numpy as np, rasterio
 sys.path.insert(0, sys.argv[3])
-from bench_peers import _STM_FRAGMENT, _STM_VERTEX, _frame, _panda, _readback, _texture
+from bench_peers import _frame, _panda, _readback, stm_terrain
 from lodscape.imagery.tint import tint
 with rasterio.open(sys.argv[1]) as ds:
     z = ds.read(1).astype(np.float32)
     dx, dy = abs(ds.transform.a), abs(ds.transform.e)
 lo, hi = float(z.min()), float(z.max())
-from panda3d.core import SamplerState, Shader, ShaderTerrainMesh, Texture
 rows, cols = z.shape
 size = max(64, 2 ** int(np.ceil(np.log2(max(rows, cols) - 1))))
 # lodscape's tint as bench_peers gives it: a square bordered grid, cropped back
@@ -95,24 +94,7 @@ sq = np.pad(np.pad(z, 1, mode="edge"), ((0, n - rows), (0, n - cols)), mode="edg
 colour = tint(sq, np.ones(sq.shape, bool), float(np.sqrt(dx * dy)), (lo, hi))[:rows, :cols]
 base = _panda()
 col, dep = _readback(base)
-pad = ((0, max(0, size - rows)), (0, max(0, size - cols)))
-hf = np.pad((z - lo) / (hi - lo), pad, mode="edge")[:size, :size]
-htex = Texture("heightfield")
-htex.setup2dTexture(size, size, Texture.T_unsigned_short, Texture.F_r16)
-htex.setRamImage(np.ascontiguousarray(np.rint(hf[::-1] * 65535).astype(np.uint16)).tobytes())
-htex.setMinfilter(SamplerState.FT_linear)
-htex.setMagfilter(SamplerState.FT_linear)
-stm = ShaderTerrainMesh()
-stm.setHeightfield(htex)
-stm.setTargetTriangleWidth(10.0)
-stm.setChunkSize(16)
-assert stm.generate()
-node = base.render.attachNewNode(stm)
-node.setScale(size * dx, size * dy, hi - lo)
-node.setPos(-0.5 * dx, -0.5 * dy, lo)
-node.setShader(Shader.make(Shader.SL_GLSL, _STM_VERTEX, _STM_FRAGMENT))
-node.setShaderInput("camera", base.camera)
-node.setTexture(_texture(np.asarray(colour)[..., :3], size))
+stm_terrain(base, z, np.asarray(colour)[..., :3], size, dx, dy)
 ext = max(rows * dy, cols * dx)
 base.camera.setPos(cols * dx / 2, -0.25 * ext, hi + 0.75 * ext)
 base.camera.lookAt(cols * dx / 2, rows * dy / 2, lo)

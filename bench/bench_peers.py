@@ -739,17 +739,15 @@ void main() { color = vec4(texture(p3d_Texture0, terrain_uv).rgb, 1.0); }
 """
 
 
-def run_stm(data: Path, repeat: int) -> dict[str, Any]:
+def stm_terrain(
+    base: Any, z: np.ndarray, rgb: np.ndarray, size: int, dx: float, dy: float
+) -> tuple[Any, Any]:
+    """A ShaderTerrainMesh of heights ``z`` (rows north first) with texture ``rgb`` on a size²
+    heightfield, placed in metres and shaded by its shader: (terrain, node)."""
     from panda3d.core import SamplerState, Shader, ShaderTerrainMesh, Texture
 
-    meta, z, z64, rgb = _load(data)
-    lo, hi, dx, dy = meta["lo"], meta["hi"], meta["dx"], meta["dy"]
     rows, cols = z.shape
-    size = max(64, 2 ** math.ceil(math.log2(max(rows, cols) - 1)))
-    base = _panda()
-    colour, depth = _readback(base)
-    out: dict[str, Any] = {"cameras": {}}
-    t0 = time.perf_counter()
+    lo, hi = float(z.min()), float(z.max())
     # a power of two: a 2^k + 1 grid loses its last row and column
     pad = ((0, max(0, size - rows)), (0, max(0, size - cols)))
     hf = np.pad((z - lo) / (hi - lo), pad, mode="edge")[:size, :size]
@@ -773,6 +771,21 @@ def run_stm(data: Path, repeat: int) -> dict[str, Any]:
     node.setShader(Shader.make(Shader.SL_GLSL, _STM_VERTEX, _STM_FRAGMENT))
     node.setShaderInput("camera", base.camera)
     node.setTexture(_texture(rgb, size))
+    return stm, node
+
+
+def run_stm(data: Path, repeat: int) -> dict[str, Any]:
+    from panda3d.core import Shader
+
+    meta, z, z64, rgb = _load(data)
+    dx, dy = meta["dx"], meta["dy"]
+    rows, cols = z.shape
+    size = max(64, 2 ** math.ceil(math.log2(max(rows, cols) - 1)))
+    base = _panda()
+    colour, depth = _readback(base)
+    out: dict[str, Any] = {"cameras": {}}
+    t0 = time.perf_counter()
+    stm, node = stm_terrain(base, z, rgb, size, dx, dy)
     _place(base, next(iter(meta["cameras"].values())), size, dx, dy)
     _frame(base, colour, depth)
     out["first_frame_s"] = time.perf_counter() - t0
