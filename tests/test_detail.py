@@ -393,3 +393,19 @@ def test_patch_culling_never_removes_a_pixel(tmp_path: object) -> None:
         assert none == 0
         assert patches > 0
         assert culled_tris < all_tris
+
+
+def test_the_shipped_calibrations_are_what_is_measured() -> None:
+    """``lodscape/data/calibration.json`` (``python -m lodscape.terrain.detail``) holds every
+    default's calibration, equal to a measurement made now: a change to the lattice that did not
+    bump its version, or remake the file, fails here."""
+    from lodscape.terrain import detail as d
+    from lodscape.terrain.mesh import GRIDS
+
+    shipped = d._shipped_calibrations()
+    for h in d.SHIPPED_HURSTS:
+        for g in GRIDS:
+            name = f"fbm-v{d._CALIBRATION_VERSION}-h{h:.6f}-s{g}-m{d.MARGIN:g}"
+            assert name in shipped, name
+    name = f"fbm-v{d._CALIBRATION_VERSION}-h{d.MOUNTAIN_HURST:.6f}-s16-m{d.MARGIN:g}"
+    np.testing.assert_allclose(d._measure(d.MOUNTAIN_HURST, 16), shipped[name], rtol=1e-9)

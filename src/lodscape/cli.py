@@ -1049,6 +1049,13 @@ def _numbers(text: str, count: int, usage: str) -> list[float]:
     return values
 
 
+#: ``demo --procedural``'s camera: metres south of the rugged place, above the ground there,
+#: and its pitch.
+VISTA_BACK = 40_000.0
+VISTA_UP = 3_000.0
+VISTA_PITCH = -10.0
+
+
 @app.command()
 def demo(
     output: OutOpt = Path("lodscape-demo.png"),
@@ -1067,10 +1074,18 @@ def demo(
 
     w, h = _size(size)
     if procedural:
+        from lodscape.terrain.detail import ProceduralTree, vista
+
         with open_scene(f"procedural:seed={seed}") as scene:
-            lon, lat = 7.0, 46.0
+            tree = scene.provider.tree
+            assert isinstance(tree, ProceduralTree)
+            # its most rugged land, seen from VISTA_BACK south of it, VISTA_UP above the ground
+            lon, peak_lat = vista(tree)
+            lat = peak_lat - VISTA_BACK / 111_320.0
             ground = scene.ground_height(lon, lat) or 0.0
-            camera = Camera(lon, lat, ground + 600.0, heading=20.0, pitch=-12.0, width=w, height=h)
+            camera = Camera(
+                lon, lat, ground + VISTA_UP, heading=0.0, pitch=VISTA_PITCH, width=w, height=h
+            )
             _render(scene, camera, output, None, False)
         return
     with open_scene(sample_dem_path()) as scene:

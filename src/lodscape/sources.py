@@ -33,6 +33,7 @@ from lodscape.terrain.detail import (
     ProceduralHeights,
     ProceduralTree,
     parse_procedural,
+    procedural_relief,
 )
 from lodscape.terrain.pyramid import build_tree
 from lodscape.terrain.source import (
@@ -481,10 +482,12 @@ def fractal_provider(
 def procedural_provider(
     spec: str, override: Fractal | None = None, *, sea_level: float | None = 0.0
 ) -> FractalProvider:
-    """The procedural planet of ``procedural:seed=N[,hurst=H][,sigma=S]``; ``override``'s
-    fields, where given, win over the spec's."""
+    """The procedural planet of ``procedural:seed=N[,hurst=H][,sigma=S][,relief=R]``;
+    ``override``'s fields, where given, win over the spec's (its hurst and sigma are the
+    continents')."""
     try:
         f = parse_procedural(spec)
+        relief = procedural_relief(spec)
     except ValueError as exc:
         raise SourceError(str(exc)) from None
     if override is not None:
@@ -494,5 +497,5 @@ def procedural_provider(
             override.seed,
         )
     sigma = float(f.sigma if f.sigma is not None else 0.0)
-    tree = ProceduralTree(f, sigma)
+    tree = ProceduralTree(f, sigma, relief)
     return FractalProvider(ProceduralHeights(tree), tree, sea_level=sea_level)

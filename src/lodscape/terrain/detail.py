@@ -39,8 +39,8 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from lodscape.errors import SourceError
-from lodscape.geo.tiles import ORIGIN, Bbox
-from lodscape.terrain.fractal import MAX_LEVEL, fbm_window
+from lodscape.geo.tiles import ORIGIN, Bbox, merc_to_lonlat
+from lodscape.terrain.fractal import HASH_BOUND, MAX_LEVEL, effective_hurst, fbm_window
 from lodscape.terrain.mesh import GRIDS
 from lodscape.terrain.pyramid import DeeperTree, TileStats, sag
 
@@ -55,6 +55,8 @@ __all__ = [
     "error_factor",
     "interpolate",
     "parse_procedural",
+    "procedural_relief",
+    "vista",
 ]
 
 F64 = NDArray[np.float64]
@@ -132,14 +134,64 @@ def _refine(h: F64, k: int, diag: NDArray[np.bool_] | None) -> F64:
 
 #: Levels below the tile's lattice measured directly; deeper levels are a geometric tail.
 _DEEP = {16: 4, 32: 4, 64: 3}
-_SEEDS = (101, 202, 303)
+_SEEDS = (101, 202, 303, 404, 505, 606, 707, 808, 909)
 _OFFSETS = (1, 4)
+
+
+#: Bump when the lattice's values change (the hash, the scheme): calibrations kept on disk by
+#: an older version are then measured again.
+_CALIBRATION_VERSION = 3
 
 
 @cache
 def _calibrate(hurst: float, segments: int) -> tuple[float, ...]:
     """Factors f[n]: the largest deviation of a ``segments``-cell tile triangulated on its own
-    lattice (either diagonal) from the surface n levels finer, over σ_L; n = 0..MAX_LEVEL."""
+    lattice (either diagonal) from the surface n levels finer, over σ_L; n = 0..MAX_LEVEL.
+    Measured once (a second or so) and kept in lodscape's cache folder for the next run."""
+    import json
+    import os
+
+    from lodscape._cache import user_cache
+
+    name = f"fbm-v{_CALIBRATION_VERSION}-h{hurst:.6f}-s{segments}-m{MARGIN:g}"
+    shipped = _shipped_calibrations().get(name)
+    if shipped is not None:
+        return shipped
+    path = user_cache() / "calibration" / f"{name}.json"
+    try:
+        kept = json.loads(path.read_text())
+        if isinstance(kept, list) and len(kept) == MAX_LEVEL + 1:
+            return tuple(float(v) for v in kept)
+    except (OSError, ValueError):
+        pass
+    out = _measure(hurst, segments)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}")
+        tmp.write_text(json.dumps(list(out)))
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a read-only cache: measured again next time
+    return out
+
+
+@cache
+def _shipped_calibrations() -> dict[str, tuple[float, ...]]:
+    """The calibrations of the defaults' Hurst exponents, measured by
+    ``python -m lodscape.terrain.detail`` into the package's data (``calibration.json``) so a
+    first run does not wait for them; ``tests/test_detail.py`` measures one again."""
+    import json
+    from importlib.resources import files
+
+    try:
+        raw = json.loads(files("lodscape.data").joinpath("calibration.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return {k: tuple(float(v) for v in vals) for k, vals in raw.items()}
+
+
+def _measure(hurst: float, segments: int) -> tuple[float, ...]:
+    """``_calibrate``'s measurement."""
     deep = _DEEP.get(segments, 3)
     start = 2
     dev = np.zeros(deep + 1)
@@ -220,6 +272,18 @@ def _amplitude(hurst: float) -> float:
     return float(MARGIN * worst + tail)
 
 
+@cache
+def _ceiling(hurst: float) -> float:
+    """The largest |detail| there can be, in units of σ: every level adds to a point at most one
+    square-step and one diamond-step displacement (``fractal._window``), each at most
+    ``HASH_BOUND`` of its σ, so the sum of their series bounds it. A proof, where ``_amplitude``
+    is a measurement: the extremes of the many points a large tile holds can pass the latter."""
+    h = effective_hurst(hurst)
+    q = 2.0 ** (-h)
+    # Σ_{rel≥1} 2^(-(2·rel-1)·h/2) + 2^(-rel·h)
+    return float(HASH_BOUND * (2.0 ** (h / 2.0) + 1.0) * q / (1.0 - q))
+
+
 def detail_bound(fractal: Fractal, sigma: float, start: int, lattice: I64, segments: int) -> F64:
     """Metres of error of detail a ``segments``-cell tile at lattice level ``lattice`` may miss."""
     if sigma == 0.0:
@@ -231,7 +295,8 @@ def detail_bound(fractal: Fractal, sigma: float, start: int, lattice: I64, segme
         * 2.0 ** (-np.maximum(rel, 0) * fractal.hurst)
         * error_factor(fractal.hurst, segments, MAX_LEVEL - lattice)
     )
-    out: F64 = np.where(rel >= 0, below, sigma * _amplitude(round(fractal.hurst, 6)))
+    # a tile coarser than the detail's first level holds none of it: all of it is its error
+    out: F64 = np.where(rel >= 0, below, sigma * _ceiling(round(fractal.hurst, 6)))
     return out
 
 
@@ -482,20 +547,54 @@ class ProceduralLevel:
             mn[m] = lo[y[m] - byi * _BLOCK, x[m] - bxi * _BLOCK]
             mx[m] = hi[y[m] - byi * _BLOCK, x[m] - bxi * _BLOCK]
         errs = [
-            detail_bound(t.fractal, t.sigma, t.start, np.full(x.shape, self.z + _log2(g)), g)
-            + sag(self.z, g, y)
-            for g in t.grids
+            t.bound(np.full(x.shape, self.z + _log2(g)), g) + sag(self.z, g, y) for g in t.grids
         ]
         return TileStats(ok, mn, mx, np.stack(errs))
 
 
+@dataclass(frozen=True)
+class Band:
+    """One fBm of the procedural planet: zero down to lattice level ``start``, displacements from
+    there on with σ ``sigma`` metres shrinking by 2^-hurst a level."""
+
+    hurst: float
+    sigma: float
+    start: int
+    seed: int
+
+    def window(self, level: int, i0: int, j0: int, ni: int, nj: int) -> F64:
+        return fbm_window(
+            self.seed, self.hurst, self.sigma, level, i0, j0, ni, nj, start=self.start
+        )
+
+    def bound(self, lattice: I64, segments: int) -> F64:
+        """Metres this band may hold below a ``segments``-cell tile of lattice level ``lattice``."""
+        return detail_bound(
+            Fractal(self.hurst, self.sigma, self.seed), self.sigma, self.start, lattice, segments
+        )
+
+
 class ProceduralTree:
     """The tile tree of the procedural planet: level 0 (one tile, the whole Web Mercator square)
-    down to the level whose finest grid is the lattice's deepest; bounds computed on demand."""
+    down to the level whose finest grid is the lattice's deepest; bounds computed on demand.
 
-    def __init__(self, fractal: Fractal, sigma: float) -> None:
+    The planet is the sum of two fBm bands: the continents (``fractal``: σ at lattice level
+    PROCEDURAL_START, cells of 2,500 km) and the mountains (σ ``relief`` from lattice level
+    MOUNTAIN_START, cells of 160 km, smoother: H = MOUNTAIN_HURST). A mesh interpolates the sum
+    of the bands' lattices, so a tile's error is at most the sum of the bands' bounds."""
+
+    def __init__(self, fractal: Fractal, sigma: float, relief: float = 0.0) -> None:
         self.fractal = fractal
         self.sigma = sigma
+        self.relief = relief
+        self.bands: tuple[Band, ...] = tuple(
+            b
+            for b in (
+                Band(fractal.hurst, sigma, PROCEDURAL_START, fractal.seed),
+                Band(MOUNTAIN_HURST, relief, MOUNTAIN_START, fractal.seed + MOUNTAIN_SEED),
+            )
+            if b.sigma > 0.0
+        )
         self.grids: tuple[int, ...] = GRIDS
         self.tile_size = 256
         self.zmin = 0
@@ -507,8 +606,23 @@ class ProceduralTree:
         self._blocks: dict[tuple[int, int, int], tuple[F64, F64]] = {}
         self._levels = [ProceduralLevel(z, self) for z in range(self.zmax + 1)]
         # the tint's range: the planet's heights on a fine enough lattice (2^10 cells a side)
-        w = fbm_window(fractal.seed, fractal.hurst, sigma, 10, 0, 0, 1025, 1025, start=self.start)
+        w = self.lattice(10, 0, 0, 1025)
         self.height_range = (float(w.min()), float(w.max()))
+
+    def bound(self, lattice: I64, segments: int) -> F64:
+        """Metres of the planet a ``segments``-cell tile of lattice level ``lattice`` may miss."""
+        out: F64 = sum(
+            (b.bound(lattice, segments) for b in self.bands), np.zeros(np.shape(lattice))
+        )
+        return out
+
+    def field_at(self, level: int, xm: F64, ym: F64) -> F64:
+        """The planet's lattice of ``level`` at any Web Mercator points (bilinear)."""
+        out: F64 = sum(
+            (_field_at(b.seed, b.hurst, b.sigma, level, b.start, xm, ym) for b in self.bands),
+            np.zeros(np.shape(xm)),
+        )
+        return out
 
     @property
     def levels(self) -> tuple[ProceduralLevel, ...]:
@@ -525,8 +639,8 @@ class ProceduralTree:
 
     def lattice(self, level: int, i0: int, j0: int, n: int) -> F64:
         """The planet's n×n lattice points of ``level`` from (i0, j0)."""
-        f = self.fractal
-        return fbm_window(f.seed, f.hurst, self.sigma, level, i0, j0, n, n, start=self.start)
+        out: F64 = sum((b.window(level, i0, j0, n, n) for b in self.bands), np.zeros((n, n)))
+        return out
 
     def block(self, z: int, bx: int, by: int) -> tuple[F64, F64]:
         """(min, max) heights of the block's tiles, (rows, cols), bounds included."""
@@ -540,13 +654,32 @@ class ProceduralTree:
         lv = z + _log2(g)
         w = self.lattice(lv, bx * _BLOCK * g, by * _BLOCK * g, n * g + 1)
         tiles = sliding_window_view(w, (g + 1, g + 1))[::g, ::g]
-        e = float(detail_bound(self.fractal, self.sigma, self.start, np.array(lv), g)[()])
+        e = float(self.bound(np.array(lv), g)[()])
         out = (tiles.min(axis=(2, 3)) - e, tiles.max(axis=(2, 3)) + e)
         with self._lock:
             if len(self._blocks) > 4096:
                 self._blocks.clear()
             self._blocks[key] = out
         return out
+
+
+def vista(tree: ProceduralTree) -> tuple[float, float]:
+    """(lon, lat) of the procedural planet's most rugged land away from the poles: the point of
+    its 2^9 lattice (cells of 78 km) whose 3×3 neighbourhood, all above sea level, spans the
+    most height, within 55° of the equator (where a view of mountains shows the most)."""
+    n = 1 << 9
+    w = tree.lattice(9, 0, 0, n + 1)
+    win = sliding_window_view(w, (3, 3))
+    lo, hi = win.min(axis=(2, 3)), win.max(axis=(2, 3))
+    rows = np.arange(1, n)
+    _, lat = merc_to_lonlat(np.zeros(rows.size), ORIGIN - rows * (2.0 * ORIGIN / n))
+    score = np.where((lo > 0.0) & (np.abs(lat)[:, None] < 55.0), hi - lo, -1.0)
+    j, i = np.unravel_index(int(np.argmax(score)), score.shape)
+    cell = 2.0 * ORIGIN / n
+    (lon,), (lat0,) = merc_to_lonlat(
+        np.array([-ORIGIN + (i + 1) * cell]), np.array([ORIGIN - (j + 1) * cell])
+    )
+    return float(lon), float(lat0)
 
 
 class ProceduralHeights:
@@ -568,9 +701,7 @@ class ProceduralHeights:
         self, xm: NDArray[np.float64], ym: NDArray[np.float64], spacing: float
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         xb, yb = np.broadcast_arrays(np.asarray(xm, np.float64), np.asarray(ym, np.float64))
-        t = self.tree
-        f = t.fractal
-        h = _field_at(f.seed, f.hurst, t.sigma, _level_for(spacing), t.start, xb, yb)
+        h = self.tree.field_at(_level_for(spacing), xb, yb)
         return h.astype(np.float32), np.ones(xb.shape, bool)
 
     def read(
@@ -590,26 +721,36 @@ class ProceduralHeights:
         pass
 
 
-#: The procedural planet: fBm below lattice level 4 (cells of 2,500 km; continents are not fBm),
-#: its first displacement σ = 2,500 m, H = 0.6: relief of some 20 m at 1 km, 90 m at 10 km,
-#: 360 m at 100 km.
+#: The procedural planet's continents: fBm below lattice level 4 (cells of 2,500 km; continents
+#: are not fBm), its first displacement σ = 2,500 m, H = 0.6.
 PROCEDURAL_START = 4
 PROCEDURAL_HURST = 0.6
 PROCEDURAL_SIGMA = 2500.0
+#: Its mountains: a second fBm below lattice level 8 (cells of 160 km), σ = 2,000 m, smoother
+#: (H = 0.8); its own seed, offset from the planet's.
+MOUNTAIN_START = 11
+MOUNTAIN_HURST = 0.85
+MOUNTAIN_SIGMA = 1000.0
+MOUNTAIN_SEED = 1_000_003
 
 
-def parse_procedural(spec: str) -> Fractal:
-    """``procedural:seed=N[,hurst=H][,sigma=S]`` → its Fractal (one-line errors)."""
+def _procedural_values(spec: str) -> dict[str, float]:
     if not spec.startswith("procedural:") and spec != "procedural":
         raise ValueError(f"{spec}: not a procedural source (procedural:seed=N)")
     body = spec.partition(":")[2]
-    values: dict[str, float] = {"seed": 0.0, "hurst": PROCEDURAL_HURST, "sigma": PROCEDURAL_SIGMA}
+    values: dict[str, float] = {
+        "seed": 0.0,
+        "hurst": PROCEDURAL_HURST,
+        "sigma": PROCEDURAL_SIGMA,
+        "relief": MOUNTAIN_SIGMA,
+    }
     for part in filter(None, body.split(",")):
         key, eq, val = part.partition("=")
         key = key.strip()
         if not eq or key not in values:
             raise ValueError(
-                f"{spec}: expected seed=N, hurst=H or sigma=S separated by commas, got {part!r}"
+                f"{spec}: expected seed=N, hurst=H, sigma=S or relief=R separated by commas, "
+                f"got {part!r}"
             )
         try:
             values[key] = float(val)
@@ -621,7 +762,42 @@ def parse_procedural(spec: str) -> Fractal:
         or values["seed"] < 0
     ):
         raise ValueError(f"{spec}: expected a non-negative integer seed, got {values['seed']:g}")
+    if not (math.isfinite(values["relief"]) and values["relief"] >= 0.0):
+        raise ValueError(
+            f"{spec}: expected a non-negative relief in metres, got {values['relief']:g}"
+        )
+    return values
+
+
+def parse_procedural(spec: str) -> Fractal:
+    """``procedural:seed=N[,hurst=H][,sigma=S][,relief=R]`` → its continents' Fractal (one-line
+    errors); ``procedural_relief`` reads R."""
+    values = _procedural_values(spec)
     try:
         return Fractal(values["hurst"], values["sigma"], int(values["seed"]))
     except ValueError as exc:
         raise ValueError(f"{spec}: {exc}") from None
+
+
+def procedural_relief(spec: str) -> float:
+    """The σ in metres of the procedural planet's mountains (``relief=R``; 0: none)."""
+    return _procedural_values(spec)["relief"]
+
+
+#: The Hurst exponents whose calibrations ship with the package: the procedural planet's two
+#: bands and the DEM detail's default.
+SHIPPED_HURSTS = (PROCEDURAL_HURST, MOUNTAIN_HURST, 0.7)
+
+
+if __name__ == "__main__":
+    import json
+    from pathlib import Path
+
+    table = {
+        f"fbm-v{_CALIBRATION_VERSION}-h{h:.6f}-s{g}-m{MARGIN:g}": list(_measure(h, g))
+        for h in SHIPPED_HURSTS
+        for g in GRIDS
+    }
+    out = Path(__file__).resolve().parents[1] / "data" / "calibration.json"
+    out.write_text(json.dumps(table) + "\n")
+    print(f"wrote {out}: {len(table)} calibrations")
