@@ -1792,11 +1792,32 @@ def _quiet_gdal() -> None:
         log.propagate = False
 
 
+def _command() -> Any:
+    """The click command of ``app``, its help's type column written for people: nothing for a
+    flag (typer writes ``<bool>``), ``<text>`` for an option given several times (typer writes
+    ``<list[str]>``; each option's help says it repeats)."""
+    root = typer.main.get_command(app)
+    commands = getattr(root, "commands", {})
+    for cmd in [
+        root,
+        *commands.values(),
+        *(sub for c in commands.values() for sub in getattr(c, "commands", {}).values()),
+    ]:
+        helper = cmd.get_help_option(typer.Context(cmd))  # made once, kept by the command
+        for p in [*cmd.params, *([helper] if helper is not None else [])]:
+            if getattr(p, "param_type_name", "") == "option" and p.metavar is None:
+                if getattr(p, "is_flag", False):
+                    p.metavar = ""
+                elif getattr(p, "multiple", False):
+                    p.metavar = "<text>"
+    return root
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: one-line errors, exit status 2 on bad input."""
     _quiet_gdal()
     try:
-        rv = app(args=argv, standalone_mode=False, prog_name="lodscape")
+        rv = _command()(args=argv, standalone_mode=False, prog_name="lodscape")
     except (typer.Abort, KeyboardInterrupt):
         print("lodscape: aborted", file=sys.stderr)
         sys.exit(130)
