@@ -369,3 +369,67 @@ class TerrainServer:
     def close(self) -> None:
         self.httpd.shutdown()
         self.httpd.server_close()
+
+
+class RangeServer:
+    """One file on loopback answering HTTP byte ranges, as a cloud bucket does for a COG (what
+    GDAL's /vsicurl/ reads), counting the requests and the bytes it sends. ``url`` is the
+    file's; any other path is a 404."""
+
+    def __init__(self, path: Path) -> None:
+        self.data = path.read_bytes()
+        self.sent = 0
+        self.requests = 0
+        owner = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args: object) -> None:
+                pass
+
+            def _missing(self) -> bool:
+                if self.path.lstrip("/") == path.name:
+                    return False
+                self.send_response(404)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+                return True
+
+            def do_HEAD(self) -> None:
+                if self._missing():
+                    return
+                self.send_response(200)
+                self.send_header("Content-Length", str(len(owner.data)))
+                self.send_header("Accept-Ranges", "bytes")
+                self.end_headers()
+
+            def do_GET(self) -> None:
+                if self._missing():
+                    return
+                owner.requests += 1
+                m = re.match(r"bytes=(\d+)-(\d*)", self.headers.get("Range", ""))
+                a = 0
+                if m is None:
+                    body, code = owner.data, 200
+                else:
+                    a = int(m.group(1))
+                    b = int(m.group(2)) if m.group(2) else len(owner.data) - 1
+                    body, code = owner.data[a : b + 1], 206
+                self.send_response(code)
+                self.send_header("Content-Length", str(len(body)))
+                self.send_header("Accept-Ranges", "bytes")
+                if code == 206:
+                    self.send_header(
+                        "Content-Range", f"bytes {a}-{a + len(body) - 1}/{len(owner.data)}"
+                    )
+                self.end_headers()
+                self.wfile.write(body)
+                owner.sent += len(body)
+
+        self.httpd = _QuietServer(("127.0.0.1", 0), Handler)
+        self.httpd.daemon_threads = True
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/{path.name}"
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()

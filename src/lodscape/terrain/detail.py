@@ -153,7 +153,7 @@ def _calibrate(hurst: float, segments: int) -> tuple[float, ...]:
 
     from lodscape._cache import user_cache
 
-    name = f"fbm-v{_CALIBRATION_VERSION}-h{hurst:.6f}-s{segments}-m{MARGIN:g}"
+    name = _calibration_name(hurst, segments)
     shipped = _shipped_calibrations().get(name)
     if shipped is not None:
         return shipped
@@ -173,6 +173,11 @@ def _calibrate(hurst: float, segments: int) -> tuple[float, ...]:
     except OSError:
         pass  # a read-only cache: measured again next time
     return out
+
+
+def _calibration_name(hurst: float, segments: int) -> str:
+    """A calibration's key: in the shipped table, and its file name in the cache."""
+    return f"fbm-v{_CALIBRATION_VERSION}-h{hurst:.6f}-s{segments}-m{MARGIN:g}"
 
 
 @cache
@@ -580,13 +585,12 @@ class ProceduralTree:
 
     The planet is the sum of two fBm bands: the continents (``fractal``: σ at lattice level
     PROCEDURAL_START, cells of 2,500 km) and the mountains (σ ``relief`` from lattice level
-    MOUNTAIN_START, cells of 160 km, smoother: H = MOUNTAIN_HURST). A mesh interpolates the sum
+    MOUNTAIN_START, cells of 20 km, smoother: H = MOUNTAIN_HURST). A mesh interpolates the sum
     of the bands' lattices, so a tile's error is at most the sum of the bands' bounds."""
 
     def __init__(self, fractal: Fractal, sigma: float, relief: float = 0.0) -> None:
         self.fractal = fractal
         self.sigma = sigma
-        self.relief = relief
         self.bands: tuple[Band, ...] = tuple(
             b
             for b in (
@@ -726,8 +730,8 @@ class ProceduralHeights:
 PROCEDURAL_START = 4
 PROCEDURAL_HURST = 0.6
 PROCEDURAL_SIGMA = 2500.0
-#: Its mountains: a second fBm below lattice level 8 (cells of 160 km), σ = 2,000 m, smoother
-#: (H = 0.8); its own seed, offset from the planet's.
+#: Its mountains: a second fBm below lattice level 11 (cells of 20 km), σ = 1,000 m, smoother
+#: (H = 0.85); its own seed, offset from the planet's.
 MOUNTAIN_START = 11
 MOUNTAIN_HURST = 0.85
 MOUNTAIN_SIGMA = 1000.0
@@ -793,11 +797,7 @@ if __name__ == "__main__":
     import json
     from pathlib import Path
 
-    table = {
-        f"fbm-v{_CALIBRATION_VERSION}-h{h:.6f}-s{g}-m{MARGIN:g}": list(_measure(h, g))
-        for h in SHIPPED_HURSTS
-        for g in GRIDS
-    }
+    table = {_calibration_name(h, g): list(_measure(h, g)) for h in SHIPPED_HURSTS for g in GRIDS}
     out = Path(__file__).resolve().parents[1] / "data" / "calibration.json"
     out.write_text(json.dumps(table) + "\n")
     print(f"wrote {out}: {len(table)} calibrations")

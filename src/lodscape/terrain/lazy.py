@@ -4,8 +4,8 @@
 tree makes a tile's statistics (existence, height range, geometric error of each grid) the
 first time a selection asks for them, in *chunks*: a tile of level r = zmin + 3i with its
 descendants down to r + 2, from the source sampled over that tile alone at levels r .. r + 4
-(16·2^k + 1 points a side at level r + k, 257² at most, 1,025² for the few roots; each level
-read from the overview whose pixels fit it, as the meshes are). Within a chunk the statistics
+(16·2^k + 1 points a side at level r + k, 257² at most; each level read from the overview
+whose pixels fit it, as the meshes are). Within a chunk the statistics
 are ``build_tree``'s, by the same bottom-up steps: a tile's 16-segment error is its deviation
 from its children's grids plus their largest error.
 
@@ -51,6 +51,7 @@ from lodscape.terrain.pyramid import (
     level_span,
     sag,
 )
+from lodscape.terrain.source import identity
 
 __all__ = [
     "CHUNK_LEVELS",
@@ -70,8 +71,6 @@ CHUNK_LEVELS = 3
 TAIL_SAMPLES = 64
 #: Factor on the measured tail (the largest of a sample is not the largest of all).
 TAIL_MARGIN = 1.5
-#: Levels the roots' chunks sample beyond the others' (1,025² samples a root at most).
-ROOT_EXTRA = 0
 #: Samples of the truth level up to which a source's tree is walked whole when it is opened
 #: (``build_tree``: exact, and for a raster of up to about 2,049² pixels quicker than chunks,
 #: which sample the levels they share more than once).
@@ -91,15 +90,10 @@ class _Chunk:
     error: tuple[F32, ...]
 
 
-def _pool_max(a: NDArray[np.floating], f: int) -> F32:
+def _pool(a: NDArray[np.floating], f: int, op: str = "max") -> F32:
+    """A square per-tile array reduced over f×f blocks (its tiles' ancestors f times larger)."""
     n = a.shape[0] // f
-    out: F32 = a.reshape(n, f, n, f).max(axis=(1, 3)).astype(np.float32)
-    return out
-
-
-def _pool_min(a: NDArray[np.floating], f: int) -> F32:
-    n = a.shape[0] // f
-    out: F32 = a.reshape(n, f, n, f).min(axis=(1, 3)).astype(np.float32)
+    out: F32 = getattr(a.reshape(n, f, n, f), op)(axis=(1, 3)).astype(np.float32)
     return out
 
 
@@ -108,11 +102,9 @@ class _Sidecar:
     folder (``trees``; never beside the user's file), holding the source's whole identity
     (``source.identity``): a file that changed since finds its old statistics dropped."""
 
-    def __init__(self, identity: str, name: str, shape: tuple[int, ...]) -> None:
+    def __init__(self, identity: str, name: str) -> None:
         import hashlib
 
-        self.identity = identity
-        self.shape = shape
         folder = user_cache() / "trees"
         self.path = folder / f"{hashlib.sha1(name.encode()).hexdigest()[:20]}.sqlite"
         self._conn: sqlite3.Connection | None = None
@@ -237,7 +229,6 @@ class LazyTree:
 
     twist = None
     roughness = None
-    coarsened = 0
 
     def __init__(
         self,
@@ -250,7 +241,6 @@ class LazyTree:
     ) -> None:
         """``keep``: find and keep statistics in the sidecar (``_Sidecar``) where the source is
         local files."""
-        # nothing is held whole: the data's full resolution, however large
         span = level_span(
             source.bounds_merc,
             source.resolution_merc,
@@ -263,7 +253,7 @@ class LazyTree:
         self.tile_size = tile_size
         self.zmin = span.zmin
         self.texture_zmax: int | None = span.texture_zmax
-        self.coarsened = span.coarsened
+        self.coarsened = 0  # nothing is held whole: never coarsened
         self._depth = len(grids) - 1
         self.truth = span.texture_zmax + round(math.log2(tile_size / _BASE))
         self._zmax = self.truth - self._depth
@@ -321,19 +311,17 @@ class LazyTree:
                 self._sidecar = None
 
     def _open_sidecar(self) -> _Sidecar | None:
-        from lodscape.terrain.source import identity
-
         ident = identity(self.source)  # type: ignore[arg-type]
         if ident is None:
             return None
         params = (
-            f"tree v1|tile {self.tile_size}|grids {self.grids}|chunk {CHUNK_LEVELS}+"
-            f"{ROOT_EXTRA}|tail {TAIL_SAMPLES}×{TAIL_MARGIN}"
+            f"tree v1|tile {self.tile_size}|grids {self.grids}|chunk {CHUNK_LEVELS}|"
+            f"tail {TAIL_SAMPLES}×{TAIL_MARGIN}"
         )
         # one sidecar per raster (its name leaves out size and time: a changed file finds and
         # drops its old statistics rather than leaving them beside new ones)
         name = "\n".join(line.split("|")[0] for line in ident.splitlines())
-        return _Sidecar(params + "\n" + ident, params + "\n" + name, ())
+        return _Sidecar(params + "\n" + ident, params + "\n" + name)
 
     # --- statistics -------------------------------------------------------------------------
 
@@ -390,20 +378,21 @@ class LazyTree:
         with self._lock:
             missing = {k for k in keys if (c, *k) not in self._chunks}
         if missing:
-            missing -= self._recall(c, sorted(missing))  # kept from an earlier run
+            missing -= self._recall(c, sorted(missing)).keys()  # kept from an earlier run
+        if not missing:
+            return out
         with self._lock:
             for k in missing:
                 if (c, *k) not in self._pending:
                     self._pending.add((c, *k))
                     self._pool.submit(self._learn, c, k)
-        if missing:
-            known = np.array([(int(a), int(b)) not in missing for a, b in zip(cx, cy, strict=True)])
-            out = np.asarray(known.reshape(-1, 4).all(axis=1), bool)
-        return out
+        gone = np.array([(b << 32) | a for a, b in missing], np.int64)
+        known = ~np.isin((cy << 32) | cx, gone)
+        return np.asarray(known.reshape(-1, 4).all(axis=1), bool)
 
-    def _recall(self, r: int, keys: list[tuple[int, int]]) -> set[tuple[int, int]]:
-        """Chunks of ``keys`` found in the sidecar, now in memory."""
-        found: set[tuple[int, int]] = set()
+    def _recall(self, r: int, keys: list[tuple[int, int]]) -> dict[tuple[int, int], _Chunk]:
+        """The chunks of ``keys`` found in the sidecar, now in memory too."""
+        found: dict[tuple[int, int], _Chunk] = {}
         levels = min(CHUNK_LEVELS, self._zmax - r + 1)
         with self._lock:
             if self._sidecar is None:
@@ -412,7 +401,7 @@ class LazyTree:
                 c = self._sidecar.get(r, *key, levels, len(self.grids))
                 if c is not None:
                     self._chunks[(r, *key)] = c
-                    found.add(key)
+                    found[key] = c
             self.found += len(found)
         return found
 
@@ -448,12 +437,7 @@ class LazyTree:
                     out[key] = c
         todo = [key for key in keys if key not in out]
         if todo:
-            self._recall(r, todo)
-            with self._lock:
-                for key in todo:
-                    c = self._chunks.get((r, *key))
-                    if c is not None:
-                        out[key] = c
+            out.update(self._recall(r, todo))
             todo = [key for key in keys if key not in out]
         if len(todo) == 1:
             out[todo[0]] = self._chunk(r, *todo[0])
@@ -492,12 +476,12 @@ class LazyTree:
             cex, clo, chi, ce16 = per_level[0]
             dev = _blocks(np.abs(_upsample(hk) - hc)).max(axis=(2, 3))
             total = np.where(cex, dev + ce16, 0.0)
-            e16 = _pool_max(total, 2)
+            e16 = _pool(total, 2)
             b = _blocks(hk)
-            lo = np.minimum(b.min(axis=(2, 3)).astype(np.float32), _pool_min(clo, 2))
-            hi = np.maximum(b.max(axis=(2, 3)).astype(np.float32), _pool_max(chi, 2))
+            lo = np.minimum(b.min(axis=(2, 3)).astype(np.float32), _pool(clo, 2, "min"))
+            hi = np.maximum(b.max(axis=(2, 3)).astype(np.float32), _pool(chi, 2))
             ex = np.asarray(_blocks(vk).any(axis=(2, 3)), bool) | (
-                _pool_max(cex.astype(np.float32), 2) > 0
+                _pool(cex.astype(np.float32), 2) > 0
             )
             per_level.insert(0, (ex, lo, hi, e16))
         exists, mins, maxs, errors = [], [], [], []
@@ -514,7 +498,7 @@ class LazyTree:
             for j in range(self._depth + 1):
                 ej = per_level[k + j][3]
                 errs.append(
-                    _pool_max(ej, 1 << j) + sag(z, self.grids[j], ys)[:, None].astype(np.float32)
+                    _pool(ej, 1 << j) + sag(z, self.grids[j], ys)[:, None].astype(np.float32)
                 )
             exists.append(ex)
             mins.append(lo)
@@ -523,17 +507,15 @@ class LazyTree:
         return _Chunk(tuple(exists), tuple(mins), tuple(maxs), tuple(errors))
 
     def _finest(self, r: int) -> int:
-        """The finest level a chunk of root level ``r`` samples: four below its root (its
-        tiles' finest grids), two more for the roots' chunks (a few, made first: small DEMs
-        are then exact down to their resolution, as the eager walk)."""
-        return r + CHUNK_LEVELS + self._depth - 1 + (ROOT_EXTRA if r == self.zmin else 0)
+        """The finest level a chunk of root level ``r`` samples: its last level's finest grid's
+        (four below its root)."""
+        return r + CHUNK_LEVELS + self._depth - 1
 
     # --- opening ----------------------------------------------------------------------------
 
     def _measure_tails(self) -> dict[int, float]:
         """Per level L below which chunks do not see: TAIL_MARGIN · Σ_{k ≥ L} D_k (module)."""
-        first = min(self._finest(self.zmin), self._finest(self.zmin + CHUNK_LEVELS))
-        levels = list(range(first, self.truth))
+        levels = list(range(self._finest(self.zmin), self.truth))
         if not levels:
             return {}
         jobs = [(k, t) for k in levels for t in self._spread(k)]
@@ -579,10 +561,8 @@ class LazyTree:
         return float(dev.max()) if dev.size else 0.0
 
     def _height_range(self) -> tuple[float, float]:
+        # a raster's (a fill forwards it) from its coarse grid; a mosaic's from its roots
         known = getattr(self.source, "data_range", None)
-        if known is None:
-            inner = getattr(self.source, "source", None)
-            known = getattr(inner, "data_range", None)
         if known is not None:
             return float(known[0]), float(known[1])
         st = self.level(self.zmin).stats(*self.roots())

@@ -1370,7 +1370,7 @@ def identity(source: HeightSource) -> str | None:
             files = [r.path, *(f for f in r._ds.files if f != r.path)]
         except Exception:  # a driver that cannot list its files: the raster's own alone
             files = [r.path]
-        for f in files[:4096]:
+        for f in files:
             try:
                 st = os.stat(f)
             except OSError:
