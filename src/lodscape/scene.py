@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from os import PathLike
 from typing import Any
@@ -22,12 +21,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import CameraError, LodscapeError
+from lodscape.frame import FrameLoop, FrameStats
+from lodscape.frame.terrain import CityLayer, EllipsoidLayer, TerrainLayer
 from lodscape.geo.keys import is_overlay
 from lodscape.geo.tiles import merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 from lodscape.lod.view import TerrainView
 from lodscape.render import Renderer
+from lodscape.render.passes import EllipsoidPass, RendererTarget, TerrainPass
 from lodscape.render.tess_pass import MAX_OVERLAYS, TessellationUnavailable
 from lodscape.store.provider import Provider, RasterProvider
 from lodscape.stream import RealClock, StreamOptions
@@ -39,9 +41,6 @@ from lodscape.terrain.source import HeightSource
 __all__ = ["Capture", "FrameStats", "Picture", "Scene", "SceneOptions"]
 
 SKY = (0.62, 0.75, 0.88)
-#: Selections a one-shot render makes over a tree that learns as its tiles come (a level of a
-#: server's terrain each), at most.
-MAX_LEARNING_ROUNDS = 32
 
 
 def _over_network(provider: Any) -> bool:
@@ -168,53 +167,6 @@ class Capture:
     camera: Camera
 
 
-@dataclass(frozen=True)
-class FrameStats:
-    """What one frame drew and how long its stages took."""
-
-    selection: dict[str, float | int]
-    draw_calls: int
-    #: Triangles the renderer drew, skirts included.
-    triangles: int
-    loaded: int
-    resident_mb: float
-    select_ms: float
-    load_ms: float
-    draw_ms: float
-    #: The streaming pipeline's figures for this frame (empty when not streaming).
-    stream: dict[str, float] = field(default_factory=dict)
-    #: Tiles skipped as facing away from the camera, and the triangles they held.
-    backfacing: int = 0
-    backfacing_triangles: int = 0
-    #: The city pass's figures (draw calls, triangles, objects culled…), when a city is on.
-    city: dict[str, int] = field(default_factory=dict)
-    #: Milliseconds the CPU spent issuing the terrain's draws (in ``draw_ms``, no GPU wait).
-    submit_ms: float = 0.0
-    terrain_mode: str = "cpu"
-    #: Imagery layers' failed tiles by kind since the scene opened (``imagery_<kind>``), tiles
-    #: one-shot frames drew without their layer tile (``imagery_missed``), and the tile
-    #: servers' HTTP requests and the terrain server's failed tiles (``terrain_failed``).
-    imagery: dict[str, int] = field(default_factory=dict)
-
-    def as_dict(self) -> dict[str, float | int]:
-        return {
-            **self.selection,
-            "triangles": self.triangles,
-            "draw_calls": self.draw_calls,
-            "loaded": self.loaded,
-            "resident_mb": round(self.resident_mb, 2),
-            "select_ms": round(self.select_ms, 2),
-            "load_ms": round(self.load_ms, 2),
-            "draw_ms": round(self.draw_ms, 2),
-            "submit_ms": round(self.submit_ms, 2),
-            "backfacing": self.backfacing,
-            "backfacing_triangles": self.backfacing_triangles,
-            **self.stream,
-            **self.city,
-            **self.imagery,
-        }
-
-
 @functools.cache
 def _blue_marble() -> NDArray[np.uint8] | None:
     """NASA's Blue Marble for the world outside the data, read once a process (None: not
@@ -256,10 +208,14 @@ class Scene:
         # frame after frame (flights, the viewer): a one-shot render shows its own surfaces
         self.view.morph = self._options.morph and self._options.stream is not None
         self.clock: Clock = clock or RealClock()
+        self._terrain = TerrainLayer(self.view, self.prepare)
+        self._loop: FrameLoop | None = None
         self._renderer: Renderer | None = None
         self._loader: Loader | None = None
         #: A context to draw in (a viewer's window) instead of a headless one of its own.
         self._ctx: Any = None
+        #: Frames are drawn under a globe (``join_globe``).
+        self._under_globe = False
         #: Why frames are drawn in the CPU terrain mode though the options asked for "gpu".
         self.terrain_mode_note: str | None = None
         self.city: Any = None
@@ -379,37 +335,40 @@ class Scene:
         return self._renderer.drain()
 
     def _render(
-        self, camera: Camera, *, depth: bool, ring: int, labels: bool = False
+        self,
+        camera: Camera,
+        *,
+        depth: bool,
+        ring: int,
+        labels: bool = False,
+        before: Sequence[tuple[Any, Any]] = (),
+        background: tuple[float, float, float] | None = None,
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32] | None]:
-        cam = self.prepare(camera)
-        renderer = self._renderer_for(cam)
+        """One frame through the loop: ``before`` (layer, pass) stages first (the globe's)."""
+        if self._renderer is None:
+            self.prepare(camera)  # a camera under the ground is refused before any GL
+        renderer = self._renderer_for(camera)
         if ring != renderer.ring and renderer.pending:
             raise RuntimeError("pictures left in the read ring: take them with drain() first")
         renderer.ring, renderer.read_depth = ring, depth
-        loader = self._loader_for(renderer)
-        blocking = not self.streaming
-        t0 = time.perf_counter()
-        if not blocking:
-            loader.begin()
-        epoch = getattr(self.tree, "epoch", None)
-        if hasattr(self.tree, "wait"):
-            # a tree made on demand: a whole picture waits for the statistics it needs, a
-            # streamed frame does not
-            self.tree.wait = blocking
-        plan = self.view.update(cam, loader.resident(), blocking=blocking)
+        loop = self._loop_for(renderer)
+        loop.stages = [*before, *self._stages(renderer)]
+        loader = loop.loader
         late = loader.late
-        report = loader.serve(plan, blocking=blocking)
-        if blocking and epoch is not None:
-            # a tree that learns as tiles come (a server's): select again with what the loads
-            # taught, a level deeper a round, until nothing new is learnt
-            tree: Any = self.tree
-            for _ in range(MAX_LEARNING_ROUNDS):
-                if tree.epoch == epoch:
-                    break
-                epoch = tree.epoch
-                cam = self.prepare(camera)
-                plan = self.view.update(cam, loader.resident(), blocking=True)
-                report = loader.serve(plan, blocking=True)
+        rgb, dist = loop.run(
+            camera,
+            blocking=not self.streaming,
+            background=self._options.background if background is None else background,
+        )
+        self._drawn = self._terrain.camera
+        labelled = None
+        if labels:
+            # the same draws again, for each pixel's normal and label
+            target = RendererTarget(renderer, labelled=True)
+            target.begin(self._drawn)
+            for (_, each), what in zip(loop.stages, loop.draws, strict=True):
+                each.draw(what, target)
+            labelled, _ = target.end(self._drawn)
         if loader.late > late and not self._said_late:
             from lodscape.imagery.layers import warn_stderr
 
@@ -419,66 +378,30 @@ class Scene:
                 f"{self._options.imagery_timeout:g} s imagery timeout; drawn without them "
                 "(--imagery-timeout)"
             )
-        t2 = time.perf_counter()
-        if report.absent:
-            # a root the server failed is not drawn (the ellipsoid shows there) until it comes
-            kept = [
-                it
-                for it in plan.items
-                if it.key not in report.absent and it.texture not in report.absent
-            ]
-            plan = replace(plan, items=kept)
-        items, culled, culled_tris = self.view.facing(
-            plan, loader.gpu.meshes, whole_tiles=renderer.terrain_mode == "gpu"
-        )
-        rgb, dist = renderer.draw(
-            cam, items, background=self._options.background, after=self._city_passes(renderer)
-        )
-        self._drawn = cam
-        labelled = None
-        if labels:
-            # the same items and passes again, drawing normals and labels
-            cp = self._city_pass
-            if cp is not None:
-                cp.use_labels(True)
-                last = cp.last
-            try:
-                labelled, _ = renderer.draw_labels(cam, items, after=self._city_passes(renderer))
-            finally:
-                if cp is not None:
-                    cp.use_labels(False)
-                    cp.last = last
-        t3 = time.perf_counter()
-        loader.finish(plan)
-        stream: dict[str, float] = {}
-        if not blocking:
-            stream = loader.stream_stats()
-            # a simulated clock's waits for the workers are not the frame's own work
-            waited = float(stream.get("sim_wait_ms", 0.0))
-            stream.update(
-                stall_ms=round(report.stall_ms, 2),
-                frame_cpu_ms=round(max((t2 - t0) * 1e3 - waited, 0.0), 2),
-            )
-        self.last = FrameStats(
-            plan.selection.stats(),
-            renderer.last_stats.draw_calls,
-            renderer.last_stats.triangles,
-            report.loaded,
-            loader.gpu.nbytes / 2**20,
-            plan.select_ms,
-            report.load_ms,
-            (t3 - t2) * 1e3,
-            stream,
-            culled,
-            culled_tris,
-            self._city_stats(),
-            renderer.last_stats.submit_ms,
-            renderer.terrain_mode,
-            self._imagery_stats(loader),
-        )
+        assert loop.last is not None
+        self.last = loop.last.with_section("imagery", self._imagery_stats(loader))
         if self._options.imagery_strict:
             self._strict_imagery()
         return rgb, dist, labelled
+
+    def _loop_for(self, renderer: Renderer) -> FrameLoop:
+        if self._loop is None:
+            self._terrain.whole_tiles = renderer.terrain_mode == "gpu"
+            self._loop = FrameLoop(self._loader_for(renderer), [], RendererTarget(renderer))
+        return self._loop
+
+    def _stages(self, renderer: Renderer) -> list[tuple[Any, Any]]:
+        """The terrain's layers and their passes, in the order they draw."""
+        stages: list[tuple[Any, Any]] = [(self._terrain, TerrainPass(renderer))]
+        if renderer.ellipsoid:
+            stages.append(
+                (EllipsoidLayer(self._terrain, self.ground_height), EllipsoidPass(renderer))
+            )
+        if self.city is not None:
+            stages.append(
+                (CityLayer(self._terrain, self.ground_height), self._city_stage(renderer))
+            )
+        return stages
 
     def frame_stats(self) -> dict[str, float]:
         """The last frame's figures by name (``FrameStats.as_dict``); empty before the first."""
@@ -651,46 +574,34 @@ class Scene:
             lon, lat - dlat, alt, (lon, lat, ground), fov_y=fov_y, width=width, height=height
         )
 
-    def _city_passes(self, renderer: Renderer) -> list[Callable[[Camera, Any], None]]:
-        if self.city is None:
-            return []
-        if self._city_pass is None:
-            from lodscape.render.city_pass import CityPass
+    def _city_stage(self, renderer: Renderer) -> Any:
+        """The city's pass in the renderer's context, made when first drawn."""
+        from lodscape.render.city_pass import CityPass
+        from lodscape.render.passes import CityDrawPass
 
+        if self._city_pass is None:
             self._city_pass = CityPass(
                 renderer.ctx,
                 self.city,
                 renderer.anisotropy,
                 compress=renderer.compress,
                 buffers=self.city_options.buffers,
+                log_depth=renderer.log_depth,
             )
-        cp, opts = self._city_pass, self.city_options
-        from lodscape.render._context import is_software
-
-        software = is_software(renderer.ctx)
-
-        def draw(camera: Camera, fbo: Any) -> None:
-            ground = self.ground_height(camera.lon, camera.lat)
-            height = None if ground is None else camera.alt - ground
-            cp.draw(camera, opts.resolved(software, height), fbo)
-
-        return [draw]
-
-    def _city_stats(self) -> dict[str, int]:
-        if self._city_pass is None or self.city is None:
-            return {}
-        stats: dict[str, int] = self._city_pass.last.as_dict()
-        return stats
+        return CityDrawPass(self._city_pass, lambda: self.city_options)
 
     def _renderer_for(self, camera: Camera) -> Renderer:
         if self._renderer is None:
             opts = self._options
+            # under a globe, the globe is the world outside the data
+            ellipsoid = opts.ellipsoid and not self._under_globe
             common: dict[str, Any] = {
                 "ctx": self._ctx,
                 "background": opts.background,
                 "anisotropy": opts.anisotropy,
                 "ground": self.ground,
-                "ellipsoid": opts.ellipsoid,
+                "ellipsoid": ellipsoid,
+                "log_depth": self._under_globe,
                 "compress": opts.compress_textures,
                 # more than a renderer can draw is refused by the frame that carries them
                 "layers": min(len(self.provider.layers), MAX_OVERLAYS),
@@ -710,7 +621,7 @@ class Scene:
                 from lodscape.imagery.layers import warn_stderr
 
                 warn_stderr(self._renderer.compress_note)
-            if opts.ellipsoid and opts.earth:
+            if ellipsoid and opts.earth:
                 b = self.provider.bounds_merc
                 (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
                 box = (float(w), float(s), float(e), float(n))
@@ -728,6 +639,15 @@ class Scene:
         if self._renderer is not None:
             raise RuntimeError("use_context before the first frame")
         self._ctx = ctx
+
+    def join_globe(self, ctx: Any) -> None:
+        """Draw in ``ctx`` under a globe from the next frame on: the globe's pass first in the
+        same target, one logarithmic depth for both (``render._depth``), and no ellipsoid of
+        the terrain's own (the globe is the world outside the data)."""
+        if self._renderer is not None:
+            raise RuntimeError("join_globe before the first frame")
+        self._ctx = ctx
+        self._under_globe = True
 
     @property
     def renderer(self) -> Renderer | None:

@@ -32,6 +32,7 @@ from lodscape.city.materials import layers, material
 from lodscape.city.mesh import MODELS
 from lodscape.city.model import CityModel, CityOptions
 from lodscape.lod.camera import Camera
+from lodscape.render._depth import with_log_depth
 from lodscape.render.labels import object_label
 
 __all__ = ["CityPass", "CityStats"]
@@ -236,8 +237,11 @@ class CityPass:
         anisotropy: float = 1.0,
         compress: bool = False,
         buffers: bool = False,
+        log_depth: bool = False,
     ) -> None:
         self.ctx = ctx
+        #: Fragments write the logarithmic depth of the frame they join (``render._depth``).
+        self.log_depth = log_depth
         self.model = model
         self.indirect_ok = ctx.version_code >= 430
         #: The camera in a uniform buffer (written once a frame for every program) and the
@@ -254,13 +258,13 @@ class CityPass:
         prog = self._keep(
             ctx.program(
                 vertex_shader=_variant(_VERTEX, *blocks),
-                fragment_shader=_variant(_FRAGMENT, *blocks),
+                fragment_shader=self._fragment(_FRAGMENT, *blocks),
             )
         )
         iprog = self._keep(
             ctx.program(
                 vertex_shader=_variant(_VERTEX, "INSTANCED", *blocks),
-                fragment_shader=_variant(_FRAGMENT, *blocks),
+                fragment_shader=self._fragment(_FRAGMENT, *blocks),
             )
         )
         self._frame_ubo: moderngl.Buffer | None = None
@@ -324,7 +328,7 @@ class CityPass:
         bprog = self._keep(
             ctx.program(
                 vertex_shader=_variant(_BOX_VERTEX, *blocks),
-                fragment_shader=_variant(_BOX_FRAGMENT, *blocks),
+                fragment_shader=self._fragment(_BOX_FRAGMENT, *blocks),
             )
         )
         self._bprog: Any = bprog
@@ -427,9 +431,14 @@ class CityPass:
         self._other = mine
         self.labels = on
 
+    def _fragment(self, source: str, *defines: str) -> str:
+        """A fragment shader's variant, writing the log depth where the frame asks for it."""
+        out = _variant(source, *defines)
+        return with_log_depth(out) if self.log_depth else out
+
     def _label_variants(self) -> tuple[Any, Any, dict[Any, Any], dict[Any, Any]]:
         ctx, blocks = self.ctx, self._blocks
-        frag = _variant(_FRAGMENT, *blocks, "LABELS")
+        frag = self._fragment(_FRAGMENT, *blocks, "LABELS")
         prog: Any = self._keep(
             ctx.program(vertex_shader=_variant(_VERTEX, *blocks), fragment_shader=frag)
         )

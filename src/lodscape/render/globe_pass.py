@@ -4,34 +4,20 @@ equally steady), textured from an equirectangular image by each facet's own long
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape.frame.globe import ImageryDraw
 from lodscape.lod.camera import Camera
 from lodscape.lod.globe import GlobeMesh, pole_longitudes
-from lodscape.render._context import create_context, make_current
+from lodscape.render._context import make_current
+from lodscape.render._depth import LOG_DEPTH_GLSL
 
-__all__ = ["GlobeRenderer", "ImageryDraw"]
-
-
-@dataclass(frozen=True)
-class ImageryDraw:
-    """One imagery layer's tiles for a frame: per tile, its patch (positions relative to the
-    camera, (T, V, 3), V = (n+1)² points of an n × n grid, rows north to south), where those
-    points are in the tile ((V, 2), 0..1 with the patch's margin beyond), the texture key it is
-    drawn with (its own or an ancestor's) and where in that image it lies ((T, 4): u0, v0,
-    du, dv)."""
-
-    positions: NDArray[np.float64]
-    t: NDArray[np.float64]
-    keys: list[int]
-    subs: NDArray[np.float64]
-    n: int
+__all__ = ["GlobePass"]
 
 
 _VERTEX = """
@@ -57,12 +43,13 @@ uniform sampler2D u_tex;
 uniform sampler2D u_region;  // the terrain's own imagery over its box (alpha 0: no data)
 uniform vec4 u_box;          // the box in u_tex's coordinates: u0, v0, u1, v1
 uniform bool u_has_region;
-uniform bool u_mark_region;  // the view distance negated where the region has data
+uniform bool u_behind_region;  // the terrain's own tiles draw the region: only fill there
 in vec2 v_uv;
 in float v_dist;
 in float v_shade;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out float f_dist;
+LOG_DEPTH_GLSL
 void main() {
     vec3 rgb = min(texture(u_tex, v_uv).rgb * v_shade, vec3(1.0));
     float covered = 0.0;
@@ -77,10 +64,15 @@ void main() {
             }
         }
     }
-    f_color = vec4(rgb, 1.0);
-    f_dist = (u_mark_region && covered > 0.5) ? -v_dist : v_dist;
+    f_color = vec4(rgb, 0.0);  // alpha 0: the globe's pixel (the terrain scene's are 1)
+    f_dist = v_dist;
+    // over the data the terrain's tiles win wherever they draw (the globe fills their holes),
+    // a surface below the ellipsoid included; elsewhere the nearer wins, the terrain where
+    // the two meet within a hair (its skirts and edges lie on the same ellipsoid)
+    bool behind = u_behind_region && covered > 0.5;
+    gl_FragDepth = behind ? behind_depth(v_dist) : log_depth(v_dist * 1.001 + 1.0);
 }
-"""
+""".replace("LOG_DEPTH_GLSL", LOG_DEPTH_GLSL)
 
 #: Imagery tiles over the globe (``lodscape.lod.mercator``), each a patch of the surface lifted
 #: a little above it (by its cells' sag) and widened a little past its edges, so that together
@@ -148,47 +140,32 @@ def relief_shade(p: NDArray[np.float64], latlon: NDArray[np.float64]) -> NDArray
     return np.where(norm > 0, out, 1.0)
 
 
-class GlobeRenderer:
-    """Headless: draws a ``GlobeMesh`` and reads back RGB and view distance."""
+class GlobePass:
+    """The globe's GL objects in one context (its image, the terrain's region); draws a
+    ``GlobeMesh`` and the imagery over it first in a frame's target, in the logarithmic depth
+    the terrain and the city of that frame share (``render._depth``). Imagery tiles are the
+    target renderer's textures, loaded by the frame's one loader."""
 
-    def __init__(
-        self,
-        image: NDArray[np.uint8],
-        background: tuple[float, float, float],
-        ctx: moderngl.Context | None = None,
-    ) -> None:
-        self._owns_ctx = ctx is None
-        self.ctx = create_context() if ctx is None else ctx
-        make_current(self.ctx)
-        #: False: ``draw`` leaves the picture in ``colour_framebuffer`` (a window copies it).
-        self.read_back = True
+    def __init__(self, ctx: moderngl.Context, image: NDArray[np.uint8]) -> None:
+        self.ctx = ctx
+        make_current(ctx)
         self.wireframe = False
-        self.lod_colours = False
-        self._colour_fbo: moderngl.Framebuffer | None = None
-        self.background = background
-        self.prog = self.ctx.program(vertex_shader=_VERTEX, fragment_shader=_FRAGMENT)
+        self.prog = ctx.program(vertex_shader=_VERTEX, fragment_shader=_FRAGMENT)
         img = np.ascontiguousarray(image[::-1])  # row 0 at the bottom: v = 0 at latitude -90
-        self.tex = self.ctx.texture((img.shape[1], img.shape[0]), 3, img.tobytes(), alignment=1)
+        self.tex = ctx.texture((img.shape[1], img.shape[0]), 3, img.tobytes(), alignment=1)
         self.tex.build_mipmaps()
         self.tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
         self.tex.repeat_x = True
         self.tex.repeat_y = False
-        self._fbo: moderngl.Framebuffer | None = None
-        self._size = (0, 0)
         self.region: moderngl.Texture | None = None
         self.prog["u_tex"] = 0
         self.prog["u_region"] = 1
         self.prog["u_has_region"] = False
-        #: Negate the view distance where the draped region has data (the terrain's own tiles
-        #: are drawn there, see ``lodscape.globe``).
-        self.mark_region = False
-        self._targets: list[Any] = []
-        self._dist: moderngl.Texture | None = None
-        self._colour: moderngl.Texture | None = None
-        self._patch_fbo: moderngl.Framebuffer | None = None
-        #: Imagery tiles on the GPU: key -> (texture, bytes).
-        self._tiles: dict[int, tuple[moderngl.Texture, int]] = {}
-        self._imagery_prog = self.ctx.program(
+        #: The terrain's own tiles draw the region's data: the globe only fills their holes.
+        self.behind_region = False
+        #: The imagery patches' own depth and framebuffer over the target's colour.
+        self._patch: tuple[Any, moderngl.Renderbuffer, moderngl.Framebuffer] | None = None
+        self._imagery_prog = ctx.program(
             vertex_shader=_IMAGERY_VERTEX, fragment_shader=_IMAGERY_FRAGMENT
         )
         self._imagery_prog["u_tile"] = 0
@@ -213,101 +190,79 @@ class GlobeRenderer:
         )
         self.prog["u_has_region"] = True
 
-    def draw(
-        self, camera: Camera, mesh: GlobeMesh, imagery: Sequence[ImageryDraw] = ()
-    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
-        """Draw the globe from ``camera``, then the imagery layers' tiles over it (bottom to
-        top); RGB and view distance read back (unless ``read_back`` is off)."""
+    def draw_facets(self, camera: Camera, mesh: GlobeMesh, fbo: moderngl.Framebuffer) -> None:
+        """Draw the globe's facets from ``camera`` into ``fbo`` (its colour, its distance),
+        before anything else of the frame."""
         make_current(self.ctx)
-        w, h = camera.width, camera.height
-        if self._size != (w, h):
-            self._release_targets()
-            color = self.ctx.texture((w, h), 4)
-            dist = self.ctx.texture((w, h), 1, dtype="f4")
-            dist.filter = (moderngl.NEAREST, moderngl.NEAREST)
-            depth = self.ctx.depth_renderbuffer((w, h))
-            patches = self.ctx.depth_renderbuffer((w, h))
-            self._targets = [color, dist, depth, patches]
-            self._fbo = self.ctx.framebuffer([color, dist], depth)
-            self._colour_fbo = self.ctx.framebuffer([color])
-            self._patch_fbo = self.ctx.framebuffer([color], patches)
-            self._dist = dist
-            self._colour = color
-            self._size = (w, h)
-        fbo = self._fbo
-        assert fbo is not None
+        if not len(mesh.positions):  # nothing of the Earth in view: the background alone
+            return
         fbo.use()
-        fbo.color_mask = ((True,) * 4, (False,) * 4)  # type: ignore[assignment]
-        fbo.clear(*self.background, 1.0, depth=1.0)
-        fbo.color_mask = ((False,) * 4, (True,) * 4)  # type: ignore[assignment]
-        fbo.clear(float("inf"), 0.0, 0.0, 0.0)
-        fbo.color_mask = ((True,) * 4, (True,) * 4)  # type: ignore[assignment]
         self.ctx.enable_only(moderngl.DEPTH_TEST)
-        if len(mesh.positions):  # nothing of the Earth in view: the background alone
-            rel = (mesh.positions - camera.position).reshape(-1, 3).astype(np.float32)
-            ll = pole_longitudes(mesh.latlon)
-            lat, lon = ll[..., 0], ll[..., 1]
-            uv = np.stack([(lon + 180.0) / 360.0, (lat + 90.0) / 180.0], axis=-1).reshape(-1, 2)
-            shade = np.repeat(relief_shade(mesh.positions, ll), 3).astype(np.float32)[:, None]
-            data = np.hstack([rel, uv.astype(np.float32), shade])
-            vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
-            vao = self.ctx.vertex_array(
-                self.prog, [(vbo, "3f 2f 1f", "in_pos", "in_uv", "in_shade")]
-            )
-            mvp = camera.view_projection(camera.position)
-            self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
-            self.prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]
-            self.prog["u_mark_region"] = self.mark_region
-            self.tex.use(0)
-            if self.region is not None:
-                self.region.use(1)
-            self.ctx.wireframe = self.wireframe
-            vao.render(moderngl.TRIANGLES)
-            self.ctx.wireframe = False
-            vao.release()
-            vbo.release()
-            for layer in imagery:
-                self._draw_imagery(camera, layer)
-        if not self.read_back:
-            return np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
-        rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
-        d = np.frombuffer(fbo.read(components=1, attachment=1, alignment=1, dtype="f4"), np.float32)
-        return (
-            np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1]),
-            np.ascontiguousarray(d.reshape(h, w)[::-1]),
-        )
+        self.ctx.depth_func = "<"
+        rel = (mesh.positions - camera.position).reshape(-1, 3).astype(np.float32)
+        ll = pole_longitudes(mesh.latlon)
+        lat, lon = ll[..., 0], ll[..., 1]
+        uv = np.stack([(lon + 180.0) / 360.0, (lat + 90.0) / 180.0], axis=-1).reshape(-1, 2)
+        shade = np.repeat(relief_shade(mesh.positions, ll), 3).astype(np.float32)[:, None]
+        data = np.hstack([rel, uv.astype(np.float32), shade])
+        vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
+        vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 2f 1f", "in_pos", "in_uv", "in_shade")])
+        mvp = camera.view_projection(camera.position)
+        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
+        self.prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]
+        self.prog["u_behind_region"] = self.behind_region
+        self.tex.use(0)
+        if self.region is not None:
+            self.region.use(1)
+        self.ctx.wireframe = self.wireframe
+        vao.render(moderngl.TRIANGLES)
+        self.ctx.wireframe = False
+        vao.release()
+        vbo.release()
 
-    # --- imagery tiles (``stream.gpu.GpuResources``) --------------------------------------
-
-    def prepare(self, key: int, made: Any) -> Any:
-        """On a worker: nothing to make beside the image."""
-        return made
-
-    def upload_resource(self, key: int, made: Any) -> int:
-        """Upload imagery tile ``key`` ((H, W, 4) RGBA, row 0 north) with mipmaps; its bytes."""
+    def draw_imagery(
+        self,
+        camera: Camera,
+        imagery: Sequence[ImageryDraw],
+        colour: moderngl.Renderbuffer,
+        dist: moderngl.Texture,
+        texture: Callable[[int], moderngl.Texture | None],
+    ) -> None:
+        """The imagery layers' tiles (bottom to top) over the globe drawn in the target whose
+        colour attachment is ``colour``, each patch where the globe's surface is (``dist``, as
+        the facets left it), with its image ``texture(key)``."""
         make_current(self.ctx)
-        if key in self._tiles:
-            return self._tiles[key][1]
-        image = np.ascontiguousarray(made, dtype=np.uint8)
-        if image.ndim != 3 or image.shape[2] not in (3, 4):
-            raise ValueError(
-                f"imagery tile {key}: expected an (H, W, 3|4) image, got {image.shape}"
-            )
-        tex = self.ctx.texture((image.shape[1], image.shape[0]), image.shape[2], image, alignment=1)
-        tex.build_mipmaps()
-        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-        tex.repeat_x = tex.repeat_y = False
-        nbytes = image.nbytes * 4 // 3
-        self._tiles[key] = (tex, nbytes)
-        return nbytes
+        patch = self._patch_fbo(colour)
+        for layer in imagery:
+            self._draw_imagery(camera, layer, patch, dist, texture)
+        self.ctx.depth_func = "<"
+        self.ctx.enable_only(moderngl.DEPTH_TEST)
 
-    def release(self, key: int) -> None:
-        tile = self._tiles.pop(key, None)
-        if tile is not None:
-            make_current(self.ctx)
-            tile[0].release()
+    def _patch_fbo(self, colour: moderngl.Renderbuffer) -> moderngl.Framebuffer:
+        """The imagery patches' framebuffer: the target's colour and a depth of their own."""
+        if self._patch is not None and self._patch[0] is colour:
+            return self._patch[2]
+        self._release_patch()
+        depth = self.ctx.depth_renderbuffer(colour.size)
+        self._patch = (colour, depth, self.ctx.framebuffer([colour], depth))
+        return self._patch[2]
 
-    def _draw_imagery(self, camera: Camera, layer: ImageryDraw) -> None:
+    def _release_patch(self) -> None:
+        if self._patch is not None:
+            # moderngl rebinds its idea of the bound framebuffer: not a deleted one
+            self.ctx.detect_framebuffer(0).use()
+            self._patch[2].release()
+            self._patch[1].release()
+            self._patch = None
+
+    def _draw_imagery(
+        self,
+        camera: Camera,
+        layer: ImageryDraw,
+        fbo: moderngl.Framebuffer,
+        dist: moderngl.Texture,
+        texture: Callable[[int], moderngl.Texture | None],
+    ) -> None:
         if not layer.keys:
             return
         n = layer.n
@@ -326,9 +281,6 @@ class GlobeRenderer:
         vao = self.ctx.vertex_array(
             self._imagery_prog, [(vbo, "3f 2f 4f", "in_pos", "in_t", "in_sub")]
         )
-        fbo = self._patch_fbo
-        assert fbo is not None
-        assert self._dist is not None
         fbo.use()
         fbo.color_mask = (False, False, False, False)
         fbo.clear(depth=1.0)  # the patches' own depths: the colour stays
@@ -336,48 +288,31 @@ class GlobeRenderer:
         fbo.use()
         self.ctx.enable_only(moderngl.DEPTH_TEST | moderngl.BLEND)
         self.ctx.depth_func = "<="
-        self.ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
+        # the colour blended, the alpha (the globe's mark) kept
+        self.ctx.blend_func = (  # type: ignore[assignment]
+            moderngl.SRC_ALPHA,
+            moderngl.ONE_MINUS_SRC_ALPHA,
+            moderngl.ZERO,
+            moderngl.ONE,
+        )
         mvp = camera.view_projection(camera.position)
         self._imagery_prog["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32))  # type: ignore[union-attr]
         self._imagery_prog["u_rot"].write(np.ascontiguousarray(camera.rotation.T, np.float32))  # type: ignore[union-attr]
-        self._dist.use(1)
+        dist.use(1)
         for i, key in enumerate(layer.keys):
-            self._tiles[key][0].use(0)
+            tex = texture(key)
+            if tex is None:  # evicted since the frame chose it: the globe shows there
+                continue
+            tex.use(0)
             vao.render(moderngl.TRIANGLES, vertices=per, first=i * per)
         vao.release()
         vbo.release()
-        self.ctx.depth_func = "<"
-        self.ctx.enable_only(moderngl.DEPTH_TEST)
-        assert self._fbo is not None
-        self._fbo.use()
-
-    def _release_targets(self) -> None:
-        for obj in (self._fbo, self._colour_fbo, self._patch_fbo, *self._targets):
-            if obj is not None:
-                obj.release()
-        self._targets = []
-        self._fbo = self._colour_fbo = self._patch_fbo = None
-        self._dist = self._colour = None
-
-    def show(self, rgb: NDArray[np.uint8]) -> None:
-        """Put ``rgb`` ((H, W, 3), row 0 at the top, the last frame's size) in the colour
-        framebuffer (what a window copies): a picture composed on the CPU."""
-        assert self._colour is not None
-        make_current(self.ctx)
-        rgba = np.concatenate([rgb[::-1], np.full((*rgb.shape[:2], 1), 255, np.uint8)], axis=2)
-        self._colour.write(np.ascontiguousarray(rgba).tobytes())
-
-    @property
-    def colour_framebuffer(self) -> moderngl.Framebuffer | None:
-        """The last frame's colour alone (what a window's framebuffer is copied from)."""
-        return self._colour_fbo
 
     def close(self) -> None:
+        make_current(self.ctx)
         if self.region is not None:
             self.region.release()
             self.region = None
-        for key in list(self._tiles):
-            self.release(key)
-        self._release_targets()
-        if self._owns_ctx:
-            self.ctx.release()
+        self._release_patch()
+        for obj in (self.tex, self._imagery_prog, self.prog):
+            obj.release()

@@ -33,6 +33,7 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.view import DrawItem
 from lodscape.render import labels
 from lodscape.render._context import create_context, is_software, make_current
+from lodscape.render._depth import with_log_depth
 from lodscape.render.tess_pass import LAYER_UNIT, MAX_OVERLAYS, TessTerrain, bind_layers
 from lodscape.terrain.heightmap import height_tile
 from lodscape.terrain.mesh import TileMesh, grid_indices
@@ -387,7 +388,7 @@ class _GpuTile:
 class _Target:
     size: tuple[int, int]
     color: moderngl.Renderbuffer
-    dist: moderngl.Renderbuffer
+    dist: moderngl.Renderbuffer | moderngl.Texture
     depth: moderngl.Renderbuffer
     fbo: moderngl.Framebuffer
     #: The colour attachment alone (what a window's framebuffer can be copied from).
@@ -416,6 +417,7 @@ class Renderer:
         ellipsoid: bool = True,
         compress: bool = False,
         layers: int = MAX_OVERLAYS,
+        log_depth: bool = False,
     ) -> None:
         if terrain_mode not in ("cpu", "gpu"):
             raise ValueError(f"terrain mode is cpu or gpu, got {terrain_mode!r}")
@@ -441,6 +443,11 @@ class Renderer:
         self.layers = layers
         fragment = _FRAGMENT_SHADER if ground == "imagery" else _LANDCOVER_FRAGMENT_SHADER
         fragment = _with_define(fragment, f"LAYERS {layers}")
+        #: Depth is the log of the distance (``render._depth``): one depth test for passes
+        #: from the street to orbit (the globe's), at the cost of the early depth test.
+        self.log_depth = log_depth
+        if log_depth:
+            fragment = with_log_depth(fragment)
         self._fragment = fragment
         self._program = self._track(
             self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=fragment)
@@ -508,6 +515,9 @@ class Renderer:
         self.ring = 0
         self._ring: collections.deque[tuple[moderngl.Buffer, int, int]] = collections.deque()
         self._ring_free: list[tuple[moderngl.Buffer, int]] = []
+        #: Log-depth frames: pixels of the last picture read back that the terrain and the
+        #: city drew (the globe's have alpha 0).
+        self.covered = 0
         #: Draw the terrain's triangles as lines (the viewer's wireframe key).
         self.wireframe = False
         #: Tint each tile by its level (the viewer's LOD colouring key).
@@ -538,6 +548,11 @@ class Renderer:
         return None if self._target is None else self._target.fbo
 
     @property
+    def label_framebuffer(self) -> moderngl.Framebuffer | None:
+        """The label pass's target (normals and labels, distance), once it was begun."""
+        return None if self._labels_target is None else self._labels_target.fbo
+
+    @property
     def colour_framebuffer(self) -> moderngl.Framebuffer | None:
         """The last frame's colour alone, as a framebuffer a window's can be copied from."""
         t = self._target
@@ -546,6 +561,15 @@ class Renderer:
         if t.colour_fbo is None:
             t.colour_fbo = self._track(self.ctx.framebuffer([t.color]))
         return t.colour_fbo
+
+    @property
+    def attachments(self) -> tuple[moderngl.Renderbuffer, moderngl.Texture]:
+        """The colour attachment and the distance texture of the frame being drawn (what a
+        pass drawn before the terrain works with)."""
+        t = self._target
+        if t is None or not isinstance(t.dist, moderngl.Texture):
+            raise RuntimeError("no frame target yet")
+        return t.color, t.dist
 
     @property
     def anisotropy(self) -> float:
@@ -738,6 +762,11 @@ class Renderer:
         out.update((key, nbytes) for key, (_, nbytes) in self._textures.items())
         return out
 
+    def texture(self, key: int) -> moderngl.Texture | None:
+        """The texture uploaded as ``key`` (None: not on the GPU)."""
+        entry = self._textures.get(key)
+        return None if entry is None else entry[0]
+
     def live_objects(self) -> int:
         """GL objects this renderer holds now (programs, buffers, VAOs, textures, FBO parts)."""
         return self._live
@@ -751,11 +780,13 @@ class Renderer:
         *,
         background: Rgb | None = None,
         after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]] = (),
+        before: Sequence[Callable[[Camera, moderngl.Framebuffer], None]] = (),
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """Render ``items`` from ``camera``: RGB (H, W, 3) uint8, row 0 at the top, and view
         distance (H, W) float32 in metres along the view axis, +inf where nothing was drawn.
-        ``after`` passes (the city) draw into the same framebuffer once the terrain is in."""
-        return self._draw(camera, items, background, after, labelled=False)
+        ``before`` passes (the globe) draw into the cleared framebuffer first, ``after``
+        passes (the city) once the terrain is in: one target, one depth test."""
+        return self._draw(camera, items, background, after, labelled=False, before=before)
 
     def draw_labels(
         self,
@@ -770,22 +801,7 @@ class Renderer:
         The draw statistics stay the colour frame's."""
         if self.ring:
             raise RuntimeError("draw_labels reads back at once: no read ring")
-        stats = self.last_stats
-        main = self._program
-        self._bind(self._label_program())
-        if self._tess is not None:
-            self._tess.use_labels(True, labels.ground_labels(self._classes))
-        try:
-            out = self._draw(camera, items, None, after, labelled=True)
-        finally:
-            self._bind(main)
-            if self._tess is not None:
-                self._tess.use_labels(False, labels.ground_labels(self._classes))
-            for vao in self._label_vaos.values():
-                self._free(vao)
-            self._label_vaos.clear()
-            self.last_stats = stats
-        return out  # type: ignore[return-value]
+        return self._draw(camera, items, None, after, labelled=True)  # type: ignore[return-value]
 
     def _label_program(self) -> moderngl.Program:
         """The label pass's variant of the terrain program (made when first asked for)."""
@@ -865,9 +881,27 @@ class Renderer:
         after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]],
         *,
         labelled: bool,
+        before: Sequence[Callable[[Camera, moderngl.Framebuffer], None]] = (),
     ) -> tuple[NDArray[Any], NDArray[np.float32]]:
         self._use()
         # resolve every key before touching GL state, so a bad frame changes nothing
+        resolved = self._resolve(items)
+        fbo = self.begin(camera, background=background, labelled=labelled)
+        for under in before:
+            under(camera, fbo)
+            fbo.use()
+        self._draw_tiles(camera, items, resolved, fbo, labelled)
+        if self.ellipsoid:
+            self.draw_ellipsoid(camera, labelled)
+        for extra in after:
+            extra(camera, fbo)
+            fbo.use()
+        return self.end(camera, labelled)
+
+    def _resolve(
+        self, items: Sequence[DrawItem]
+    ) -> tuple[list[_Tile | _GpuTile], list[moderngl.Texture]]:
+        """The GL objects of ``items``' meshes and textures; a KeyError names one not uploaded."""
         tiles: list[_Tile | _GpuTile] = []
         textures = []
         for item in items:
@@ -880,16 +914,22 @@ class Renderer:
                 raise KeyError(f"{what} is not uploaded to this renderer (upload it first)")
             tiles.append(tile)
             textures.append(texture[0])
-        layers = [self._layers(item) for item in items]
-        rot = camera.rotation
+        return tiles, textures
+
+    def begin(
+        self, camera: Camera, *, background: Rgb | None = None, labelled: bool = False
+    ) -> moderngl.Framebuffer:
+        """Start a frame of ``camera``'s size: the target cleared to ``background`` (the
+        renderer's own when None), its distance to +inf; the target's framebuffer, bound."""
+        self._use()
         if labelled:
             fbo = self._label_target_for(camera.width, camera.height)
             bg: tuple[float, float, float, float] = (0.0, 0.0, 0.0, float(labels.SKY))
         else:
             fbo = self._target_for(camera.width, camera.height).fbo
-            bg = (*(self.background if background is None else _rgb(background)), 1.0)
-
-        ctx = self.ctx
+            # a frame with the globe marks the terrain scene's pixels by their alpha (1)
+            alpha = 0.0 if self.log_depth else 1.0
+            bg = (*(self.background if background is None else _rgb(background)), alpha)
         fbo.use()
         # glClear writes one value to every colour attachment: mask each in turn instead
         # (the stubs type color_mask for one attachment; moderngl takes one mask per attachment)
@@ -898,6 +938,59 @@ class Renderer:
         fbo.color_mask = (_NONE, _ALL)  # type: ignore[assignment]
         fbo.clear(float("inf"), 0.0, 0.0, 0.0)
         fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
+        if not labelled:
+            self.last_stats = DrawStats()
+        return fbo
+
+    def draw_tiles(self, camera: Camera, items: Sequence[DrawItem], labelled: bool = False) -> None:
+        """The terrain pass: ``items`` into the frame ``begin`` started."""
+        self._use()
+        fbo = self.label_framebuffer if labelled else self.framebuffer
+        assert fbo is not None
+        self._draw_tiles(camera, items, self._resolve(items), fbo, labelled)
+
+    def _draw_tiles(
+        self,
+        camera: Camera,
+        items: Sequence[DrawItem],
+        resolved: tuple[list[_Tile | _GpuTile], list[moderngl.Texture]],
+        fbo: moderngl.Framebuffer,
+        labelled: bool,
+    ) -> None:
+        if not labelled:
+            self._draw_resolved(camera, items, resolved, fbo, labelled)
+            return
+        # the label pass: the same tiles by the label variants; the statistics stay the colour
+        # frame's
+        stats = self.last_stats
+        main = self._program
+        self._bind(self._label_program())
+        if self._tess is not None:
+            self._tess.use_labels(True, labels.ground_labels(self._classes))
+        try:
+            self._draw_resolved(camera, items, resolved, fbo, labelled)
+        finally:
+            self._bind(main)
+            if self._tess is not None:
+                self._tess.use_labels(False, labels.ground_labels(self._classes))
+            for vao in self._label_vaos.values():
+                self._free(vao)
+            self._label_vaos.clear()
+            self.last_stats = stats
+
+    def _draw_resolved(
+        self,
+        camera: Camera,
+        items: Sequence[DrawItem],
+        resolved: tuple[list[_Tile | _GpuTile], list[moderngl.Texture]],
+        fbo: moderngl.Framebuffer,
+        labelled: bool,
+    ) -> None:
+        tiles, textures = resolved
+        layers = [self._layers(item) for item in items]
+        rot = camera.rotation
+        ctx = self.ctx
+        fbo.use()
         # no culling: skirts and steep faces are seen from both sides
         ctx.enable_only(moderngl.DEPTH_TEST)
         ctx.wireframe = self.wireframe
@@ -924,7 +1017,8 @@ class Renderer:
                 ],
             )
             self.last_stats = DrawStats(calls, triangles, submit_s * 1e3)
-            return self._finish(camera, fbo, after, labelled)
+            ctx.wireframe = False
+            return
         triangles = calls = 0
         cpu_tiles = [t for t in tiles if isinstance(t, _Tile)]
         view_projections = [camera.view_projection(tile.center) for tile in cpu_tiles]
@@ -979,15 +1073,16 @@ class Renderer:
         if self._program is not main:
             self._bind(main)
         self.last_stats = DrawStats(calls, triangles, (time.perf_counter() - t_submit) * 1e3)
-        return self._finish(camera, fbo, after, labelled)
+        ctx.wireframe = False
 
-    def _draw_ellipsoid(
-        self, camera: Camera, fbo: moderngl.Framebuffer, labelled: bool = False
-    ) -> None:
+    def draw_ellipsoid(self, camera: Camera, labelled: bool = False) -> None:
         """The ellipsoid behind everything, drawn after the terrain at the far plane where the
         depth buffer is still clear (the depth test runs before its shader, so the pixels the
         terrain covers cost nothing), no depth written (the city's passes then draw as over
         the sky); its distance in the distance attachment."""
+        fbo = self.label_framebuffer if labelled else self.framebuffer
+        assert fbo is not None
+        fbo.use()
         ctx = self.ctx
         ctx.wireframe = False
         ctx.enable_only(moderngl.DEPTH_TEST)
@@ -1081,20 +1176,14 @@ class Renderer:
             out.append((self._clear if entry is None else entry[0], window))
         return out
 
-    def _finish(
-        self,
-        camera: Camera,
-        fbo: moderngl.Framebuffer,
-        after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]],
-        labelled: bool = False,
+    def end(
+        self, camera: Camera, labelled: bool = False
     ) -> tuple[NDArray[Any], NDArray[np.float32]]:
-        """The ellipsoid where the terrain left the sky, the other passes, then the
-        read-back."""
-        if self.ellipsoid:
-            self._draw_ellipsoid(camera, fbo, labelled)
-        for extra in after:
-            extra(camera, fbo)
-            fbo.use()
+        """End the frame: its picture and distance read back (once; into the read ring when
+        ``ring``; not at all when ``read_back`` is off, a window showing the target)."""
+        self._use()
+        fbo = self.label_framebuffer if labelled else self.framebuffer
+        assert fbo is not None
         self.ctx.wireframe = False
         h, w = camera.height, camera.width
         if labelled:
@@ -1114,8 +1203,15 @@ class Renderer:
             late = self.drain(keep=self.ring - 1)
             return (late[0] if late else np.zeros((0, 0, 3), np.uint8)), no_depth
         # GL rows go bottom-up: flip so row 0 is the top of the picture
-        rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
-        rgb = np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1])
+        if self.log_depth:
+            # the same read with the alpha: the pixels the terrain scene drew, globe aside
+            rgba = np.frombuffer(fbo.read(components=4, attachment=0, alignment=1), np.uint8)
+            rgba = rgba.reshape(h, w, 4)[::-1]
+            self.covered = int(np.count_nonzero(rgba[..., 3] > 127))
+            rgb = np.ascontiguousarray(rgba[..., :3])
+        else:
+            rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
+            rgb = np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1])
         if not self.read_depth:
             return rgb, no_depth
         dist = np.frombuffer(
@@ -1241,7 +1337,10 @@ class Renderer:
             self._free_target(target)
         size = (width, height)
         color = self._track(self.ctx.renderbuffer(size, 4))
-        dist = self._track(self.ctx.renderbuffer(size, 1, dtype="f4"))
+        # a texture: a pass drawn after another may read the distances it left (the globe's
+        # imagery reads the globe's)
+        dist = self._track(self.ctx.texture(size, 1, dtype="f4"))
+        dist.filter = (moderngl.NEAREST, moderngl.NEAREST)
         depth = self._track(self.ctx.depth_renderbuffer(size))
         fbo = self._track(self.ctx.framebuffer([color, dist], depth))
         self._target = _Target(size, color, dist, depth, fbo)

@@ -1,0 +1,139 @@
+"""The terrain as a frame's layer (its quadtree selection, its tiles' loads and the patches
+facing away), and the layers that stand on it: the city and the ellipsoid behind it."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.lod.camera import Camera
+from lodscape.lod.view import DrawItem, FramePlan, TerrainView
+from lodscape.stream.loader import Loader, LoadReport
+
+__all__ = ["CameraDraws", "CityLayer", "EllipsoidLayer", "TerrainDraws", "TerrainLayer"]
+
+
+@dataclass(frozen=True)
+class TerrainDraws:
+    """The terrain's tiles a frame draws, with the camera fitted to them."""
+
+    camera: Camera
+    items: list[DrawItem]
+
+
+@dataclass(frozen=True)
+class CameraDraws:
+    """A layer drawn whole from the frame's camera (the city's objects, the ellipsoid), and the
+    camera's height above the ground under it (None: no ground there)."""
+
+    camera: Camera
+    above_ground: float | None = None
+
+
+class TerrainLayer:
+    """A tile tree's selection for each camera (``lod.view.TerrainView``): the tiles to draw,
+    the loads they need, and (once served) the draw list less what faces away."""
+
+    name = "terrain"
+
+    def __init__(self, view: TerrainView, fit: Callable[[Camera], Camera]) -> None:
+        self.view = view
+        #: The camera with its clip distances fitted to the terrain (refuses one underground).
+        self.fit = fit
+        self.tree: Any = view.tree
+        #: Draw tiles whole unless all of them faces away (the GPU terrain mode's patches).
+        self.whole_tiles = False
+        #: The last plan (None before the first).
+        self.last: FramePlan | None = None
+        self._epoch: int | None = None
+        self._figures: dict[str, Any] = {}
+
+    @property
+    def camera(self) -> Camera:
+        """The last plan's fitted camera."""
+        if self.last is None:
+            raise RuntimeError("no frame planned yet")
+        return self.last.camera
+
+    def plan(self, camera: Camera, resident: NDArray[np.uint64], *, blocking: bool) -> FramePlan:
+        cam = self.fit(camera)
+        tree = self.tree
+        self._epoch = getattr(tree, "epoch", None)
+        if hasattr(tree, "wait"):
+            # a tree made on demand: a whole picture waits for the statistics it needs, a
+            # streamed frame does not
+            tree.wait = blocking
+        self.last = self.view.update(cam, resident, blocking=blocking)
+        return self.last
+
+    def learned(self) -> bool:
+        # a tree that learns as tiles come (a server's): a level deeper a round
+        return self._epoch is not None and getattr(self.tree, "epoch", None) != self._epoch
+
+    def draws(self, report: LoadReport, loader: Loader) -> TerrainDraws:
+        plan = self.last
+        assert plan is not None
+        if report.absent:
+            # a root the server failed is not drawn (what is behind shows there) until it comes
+            kept = [
+                it
+                for it in plan.items
+                if it.key not in report.absent and it.texture not in report.absent
+            ]
+            plan = replace(plan, items=kept)
+        items, culled, culled_tris = self.view.facing(
+            plan, loader.gpu.meshes, whole_tiles=self.whole_tiles
+        )
+        self._figures = {
+            "selection": plan.selection.stats(),
+            "backfacing": culled,
+            "backfacing_triangles": culled_tris,
+        }
+        return TerrainDraws(plan.camera, items)
+
+    def figures(self) -> dict[str, Any]:
+        return self._figures
+
+
+class _StandsOnTerrain:
+    """A layer with nothing to load, drawn from the terrain layer's fitted camera."""
+
+    name = ""
+
+    def __init__(
+        self, terrain: TerrainLayer, ground: Callable[[float, float], float | None]
+    ) -> None:
+        self.terrain = terrain
+        self.ground = ground
+
+    def plan(self, camera: Camera, resident: NDArray[np.uint64], *, blocking: bool) -> None:
+        return None
+
+    def learned(self) -> bool:
+        return False
+
+    def draws(self, report: LoadReport, loader: Loader) -> CameraDraws:
+        cam = self.terrain.camera
+        ground = self.ground(cam.lon, cam.lat)
+        return CameraDraws(cam, None if ground is None else cam.alt - ground)
+
+    def figures(self) -> dict[str, Any]:
+        return {}
+
+
+class CityLayer(_StandsOnTerrain):
+    """The city's objects (paper 001): its R-tree scene is culled and its LODs chosen by the
+    pass itself, on the GPU's occlusion queries."""
+
+    name = "city"
+
+
+class EllipsoidLayer(_StandsOnTerrain):
+    """The ellipsoid (height 0) wherever the terrain leaves the sky: the world outside the data
+    and under its holes (cesium-native's ``EllipsoidTilesetLoader``, one ray per pixel)."""
+
+    name = "ellipsoid"
