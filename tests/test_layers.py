@@ -23,7 +23,8 @@ LAYERS: dict[str, set[str]] = {
     "store": {"geo", "terrain", "imagery", "city"},
     "build": {"geo", "terrain", "imagery", "city", "store"},
     "stream": {"geo", "lod", "terrain"},
-    "render": {"geo", "lod", "terrain", "imagery", "city"},
+    "frame": {"geo", "lod", "stream"},
+    "render": {"geo", "lod", "terrain", "imagery", "city", "frame"},
 }
 APP = {
     "scene",
@@ -50,11 +51,18 @@ def _modules() -> dict[str, Path]:
     return out
 
 
-def _imports(path: Path) -> set[str]:
-    """The lodscape modules a file imports, anywhere in it."""
+def _imports(path: Path, name: str = "lodscape.m") -> set[str]:
+    """The lodscape modules a file (module ``name``) imports, anywhere in it, relative imports
+    resolved."""
     found = set()
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+        if isinstance(node, ast.ImportFrom) and node.level > 0:
+            base = package[: len(package) - (node.level - 1)]
+            module = ".".join([*base, *([node.module] if node.module else [])])
+            found.add(module)
+            found.update(f"{module}.{a.name}" for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module:
             if node.module.startswith("lodscape"):
                 found.add(node.module)
                 # ``from lodscape.geo import keys`` imports the module lodscape.geo.keys
@@ -82,7 +90,7 @@ def test_every_module_has_a_layer() -> None:
 def test_layers_import_only_below(name: str) -> None:
     layer = _layer(name)
     allowed = LAYERS[layer] | BASE | {layer}
-    for target in _imports(MODULES[name]):
+    for target in _imports(MODULES[name], name):
         if target not in MODULES:
             continue  # a name imported from a module, not a module
         assert _layer(target) in allowed, f"{name} imports {target} ({_layer(target)})"
@@ -90,7 +98,7 @@ def test_layers_import_only_below(name: str) -> None:
 
 def test_no_import_cycle() -> None:
     graph = {
-        n: {t for t in _imports(p) if t in MODULES and t != n and not _is_parent(t, n)}
+        n: {t for t in _imports(p, n) if t in MODULES and t != n and not _is_parent(t, n)}
         for n, p in MODULES.items()
     }
     state: dict[str, int] = {}
@@ -123,3 +131,7 @@ def test_the_contract_sees_a_violation(tmp_path: Path) -> None:
     f = tmp_path / "m.py"
     f.write_text("def f():\n    from lodscape.render import Renderer\n")
     assert "lodscape.render" in _imports(f)
+    # and a relative one, resolved against the module's package
+    f.write_text("from ..render.terrain_pass import Renderer\nfrom . import keys\n")
+    got = _imports(f, "lodscape.lod.view")
+    assert {"lodscape.render.terrain_pass", "lodscape.lod.keys"} <= got
