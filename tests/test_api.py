@@ -42,6 +42,7 @@ def test_exported_members_resolve() -> None:
         "sources",
         "dataset",
         "widget",
+        "frame",
         "annotations",
     }
 

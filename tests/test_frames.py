@@ -1,6 +1,8 @@
-"""Streaming frame by frame with no GL: the view plans, the loader serves the plan through a fake
-GPU (the ``GpuResources`` seam), on a simulated clock, over an in-memory height source. The
-Scene runs these same two steps around its draw."""
+"""Frame by frame with no GL: the real frame loop (``lodscape.frame.FrameLoop``) over the terrain
+layer, its loads served through a fake GPU (the ``GpuResources`` seam), a fake pass and a fake
+target, on a simulated clock, over an in-memory height source; as cesium-native tests its
+selection (``TestTilesetSelectionAlgorithm.cpp``). The Scene runs the same loop with the GL
+passes."""
 
 from __future__ import annotations
 
@@ -8,6 +10,8 @@ import numpy as np
 import pytest
 
 from _synthetic import fbm_heights
+from lodscape.frame import FrameLoop
+from lodscape.frame.terrain import TerrainDraws, TerrainLayer
 from lodscape.geo.keys import is_texture
 from lodscape.geo.tiles import merc_to_lonlat
 from lodscape.lod.camera import Camera
@@ -64,8 +68,42 @@ def cam(provider: RasterProvider) -> Camera:
     return _camera(provider)
 
 
+class FakeTarget:
+    """The frame's target: counts frames; an empty picture of the camera's size."""
+
+    labelled = False
+
+    def __init__(self) -> None:
+        self.frames = 0
+
+    def begin(self, camera: Camera, *, background: object = None) -> None:
+        self.frames += 1
+
+    def end(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        h, w = camera.height, camera.width
+        return np.zeros((h, w, 3), np.uint8), np.full((h, w), np.inf, np.float32)
+
+
+class FakeTerrainPass:
+    """What the real pass needs of the loop: every mesh and texture it draws on the GPU."""
+
+    def __init__(self, gpu: FakeGpu) -> None:
+        self.gpu = gpu
+        self.frames = 0
+
+    def draw(self, draws: TerrainDraws, target: FakeTarget) -> None:
+        keys = {k for it in draws.items for k in (it.key, it.texture)}
+        missing = keys - set(self.gpu.live)
+        assert not missing, f"drawn but not uploaded: {sorted(missing)[:5]}"
+        self.frames += 1
+
+    def figures(self) -> dict[str, int]:
+        return {"fake_frames": self.frames}
+
+
 class Rig:
-    """A view and a loader over one provider and one fake GPU, stepped one frame at a time."""
+    """The real frame loop over one provider's terrain layer, with a fake GPU, pass and target,
+    on a simulated clock, stepped one frame at a time."""
 
     def __init__(
         self,
@@ -78,18 +116,27 @@ class Rig:
         self.view = TerrainView(provider.tree, texture_levels=texture_levels)
         self.gpu = FakeGpu()
         self.clock = SimClock()
-        opts = StreamOptions(ahead=ahead, upload_ms=upload_ms)
-        self.loader = Loader(
-            provider,
-            self.gpu,
-            opts,
-            self.clock,
-            gpu_budget_bytes=gpu_budget,
-            predict=lambda c: self.view.predict(self.fit(c)),
-        )
         self.provider = provider
-        #: The last plan's loads.
+        self.layer = TerrainLayer(self.view, self.fit)
+        self.use_loader(
+            Loader(
+                provider,
+                self.gpu,
+                StreamOptions(ahead=ahead, upload_ms=upload_ms),
+                self.clock,
+                gpu_budget_bytes=gpu_budget,
+                predict=lambda c: self.view.predict(self.fit(c)),
+            )
+        )
+        #: The last plan's loads, and the frames stepped.
         self.wanted: set[int] = set()
+        self.steps = 0
+
+    def use_loader(self, loader: Loader) -> None:
+        self.loader = loader
+        self.target = FakeTarget()
+        self.steps = 0
+        self.loop = FrameLoop(loader, [(self.layer, FakeTerrainPass(self.gpu))], self.target)
 
     def fit(self, cam: Camera) -> Camera:
         return self.view.fit(cam, self.provider.ground_height(cam.lon, cam.lat))
@@ -98,21 +145,18 @@ class Rig:
         self, cam: Camera, *, blocking: bool = False, dt: float = 1 / 30
     ) -> tuple[FramePlan, LoadReport]:
         n = len(self.gpu.uploads)
-        if not blocking:
-            self.loader.begin()
-        # what the last frame wanted goes up, and prefetched resources only into free budget
-        extra = set(self.gpu.uploads[n:]) - self.wanted
+        self.loop.run(cam, blocking=blocking)
+        plan, report = self.layer.last, self.loop.report
+        assert plan is not None
+        assert report is not None
+        # what goes up is what the last frame wanted, what this one requires, and prefetched
+        # resources only into free budget
+        extra = set(self.gpu.uploads[n:]) - self.wanted - set(plan.required)
         assert not extra or self.loader.gpu.nbytes <= self.loader.gpu.budget_bytes
-        plan = self.view.update(self.fit(cam), self.loader.resident(), blocking=blocking)
-        n = len(self.gpu.uploads)
-        report = self.loader.serve(plan, blocking=blocking)
-        # then only what the plan requires
-        assert set(self.gpu.uploads[n:]) <= set(plan.required)
         self.wanted = {int(k) for k in plan.loads}
-        # what the renderer would draw is on the GPU
-        missing = plan.drawn - set(self.gpu.live)
-        assert not missing, f"drawn but not uploaded: {sorted(missing)[:5]}"
-        self.loader.finish(plan)
+        # one target begun and read a frame, and the pass drew in every one
+        self.steps += 1
+        assert self.target.frames == self.steps == self.loop.stages[0][1].frames
         self.loader.streamer.drain()
         self.clock.advance(dt)
         return plan, report
@@ -227,7 +271,10 @@ def test_a_failing_source_is_retried_while_ancestors_stand_in(
 
     flaky = Flaky()
     rig = Rig(provider)
-    rig.loader = Loader(flaky, rig.gpu, StreamOptions(ahead=()), rig.clock, gpu_budget_bytes=1e12)
+    rig.loader.close()
+    rig.use_loader(
+        Loader(flaky, rig.gpu, StreamOptions(ahead=()), rig.clock, gpu_budget_bytes=1e12)
+    )
     try:
         for _ in range(10):
             plan, _ = rig.step(cam)

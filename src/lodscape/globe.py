@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import LodscapeError
-from lodscape.frame import FrameLoop, FrameStats
+from lodscape.frame import FrameLoop, FrameStats, Layer, Pass
 from lodscape.frame.globe import (
     SKY_HIGH,
     SKY_LOW,
@@ -150,13 +150,13 @@ class Globe:
         }
         return rgb, dist
 
-    def _stages(self) -> list[tuple[Any, Any]]:
+    def _stages(self) -> list[tuple[Layer, Pass]]:
         """The globe's layers and their passes, drawn first in the frame."""
         from lodscape.render.passes import GlobeFacetPass, GlobeImageryPass
 
         globe = self._pass_for()
         globe.behind_region = self._draws_tiles and globe.region is not None
-        stages: list[tuple[Any, Any]] = [(self._globe, GlobeFacetPass(globe))]
+        stages: list[tuple[Layer, Pass]] = [(self._globe, GlobeFacetPass(globe))]
         if self._imagery is not None:
             stages.append((self._imagery, GlobeImageryPass(globe)))
         return stages

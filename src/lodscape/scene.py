@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lodscape.errors import CameraError, LodscapeError
-from lodscape.frame import FrameLoop, FrameStats
+from lodscape.frame import FrameLoop, FrameStats, Layer, Pass
 from lodscape.frame.terrain import CityLayer, EllipsoidLayer, TerrainLayer
 from lodscape.geo.keys import is_overlay
 from lodscape.geo.tiles import merc_to_lonlat
@@ -341,7 +341,7 @@ class Scene:
         depth: bool,
         ring: int,
         labels: bool = False,
-        before: Sequence[tuple[Any, Any]] = (),
+        before: Sequence[tuple[Layer, Pass]] = (),
         background: tuple[float, float, float] | None = None,
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32] | None]:
         """One frame through the loop: ``before`` (layer, pass) stages first (the globe's)."""
@@ -390,9 +390,9 @@ class Scene:
             self._loop = FrameLoop(self._loader_for(renderer), [], RendererTarget(renderer))
         return self._loop
 
-    def _stages(self, renderer: Renderer) -> list[tuple[Any, Any]]:
+    def _stages(self, renderer: Renderer) -> list[tuple[Layer, Pass]]:
         """The terrain's layers and their passes, in the order they draw."""
-        stages: list[tuple[Any, Any]] = [(self._terrain, TerrainPass(renderer))]
+        stages: list[tuple[Layer, Pass]] = [(self._terrain, TerrainPass(renderer))]
         if renderer.ellipsoid:
             stages.append(
                 (EllipsoidLayer(self._terrain, self.ground_height), EllipsoidPass(renderer))

@@ -84,9 +84,14 @@ class Target(Protocol):
 
 
 class Pass(Protocol):
-    """Draws one layer's ``draws`` into the frame's target (GL state lives in ``render``)."""
+    """Draws one layer's ``draws`` into the frame's target (GL state lives in ``render``); the
+    target is the loop's, whose kind the pass knows (the renderer's, or a test's fake)."""
 
-    def draw(self, draws: Any, target: Target) -> None: ...
+    def draw(self, draws: Any, target: Any) -> None: ...
+
+    def figures(self) -> dict[str, Any]:
+        """What the pass drew this frame (merged into its layer's section)."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -203,11 +208,6 @@ class FrameStats:
         return dict(self.section("imagery"))
 
 
-def _figures(each: Pass) -> dict[str, Any]:
-    figures = getattr(each, "figures", None)
-    return {} if figures is None else dict(figures())
-
-
 def _flatten(section: dict[str, Any], out: dict[str, float | int]) -> None:
     for key, value in section.items():
         if isinstance(value, dict):
@@ -234,6 +234,8 @@ class FrameLoop:
         #: The last frame's merged plan, each stage's draws, and its statistics.
         self.plan: LoadPlan | None = None
         self.draws: list[Any] = []
+        #: What the loader did for the last frame.
+        self.report: LoadReport | None = None
         self.last: FrameStats | None = None
 
     def run(
@@ -268,6 +270,7 @@ class FrameLoop:
             made += len(again)
             report = loader.serve(self._merge(camera, plans), blocking=True)
         t2 = time.perf_counter()
+        self.report = report
         draws = self.draws = [layer.draws(report, loader) for layer in layers]
         rgb, dist = np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
         if draw:
@@ -296,7 +299,7 @@ class FrameLoop:
             plans=made,
             stream=stream,
             layers={
-                layer.name: {**layer.figures(), **_figures(each)} for layer, each in self.stages
+                layer.name: {**layer.figures(), **each.figures()} for layer, each in self.stages
             },
         )
         return rgb, dist
