@@ -429,3 +429,42 @@ def test_the_sky_near_the_ground_and_space_from_orbit() -> None:
     assert all(0.0 < m < s for m, s in zip(mid, SKY, strict=True))
     # asked for: space all the way down
     assert background_at(lodscape.globe.GlobeOptions(sky=None), 10.0) == (0.02, 0.02, 0.06)
+
+
+@pytest.mark.gl
+def test_a_globe_frame_is_one_target_read_back_once(
+    dem: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``lodscape.open(..., globe=)``: the globe's facets and imagery and the terrain's tiles go
+    through one frame loop into one target: a frame reads its picture (and its distance) once,
+    and not at all when it stays on the GPU (a window)."""
+    import moderngl
+
+    reads: list[int] = []
+    real = moderngl.Framebuffer.read
+
+    def counted(self: moderngl.Framebuffer, *args: object, **kwargs: object) -> bytes:
+        reads.append(1)
+        return real(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(moderngl.Framebuffer, "read", counted)
+    cam = Camera(-78.7, 36.53, 6000.0, pitch=-30, heading=10, width=240, height=150)
+    with lodscape.open(dem, globe=lodscape.GlobeOptions()) as g:
+        assert isinstance(g, lodscape.Globe)
+        _, dist = g.render(cam)
+        assert len(reads) == 2  # the picture and its distance, once each
+        assert g.last["terrain_pixels"] > 0.2 * 240 * 150
+        assert g.frame_stats()["facets"] > 0
+        reads.clear()
+        g.render(cam, depth=False)
+        assert len(reads) == 1
+        reads.clear()
+        g.renderer.read_back = False  # what a window does: the picture stays in the target
+        got, _ = g.render(cam)
+        assert got.size == 0
+        assert reads == []
+    assert 0.5 < np.isfinite(dist).mean() < 1.0  # ground below, the sky above
+    # the globe alone, opened the same way
+    with lodscape.open("none", globe=lodscape.GlobeOptions()) as bare:
+        rgb2, _ = bare.render(cam.moved(alt=2.0e6, pitch=-90.0))
+        assert rgb2.shape == (150, 240, 3)

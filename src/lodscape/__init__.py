@@ -21,6 +21,7 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 
 if _typing.TYPE_CHECKING:
+    from lodscape.globe import Globe, GlobeOptions
     from lodscape.scene import FrameStats, Picture, Scene, SceneOptions
     from lodscape.sources import open
 
@@ -30,6 +31,8 @@ __all__ = [
     "Camera",
     "CameraError",
     "FrameStats",
+    "Globe",
+    "GlobeOptions",
     "LodscapeError",
     "Picture",
     "Scene",
@@ -54,4 +57,8 @@ def __getattr__(name: str) -> _typing.Any:
         from lodscape import scene
 
         return getattr(scene, name)
+    if name in ("Globe", "GlobeOptions"):
+        from lodscape import globe
+
+        return getattr(globe, name)
     raise AttributeError(f"module 'lodscape' has no attribute {name!r}")

@@ -27,8 +27,8 @@ from lodscape.geo.tiles import ORIGIN, merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import SelectOptions
 from lodscape.scene import Scene, SceneOptions
-from lodscape.sources import SourceSpec, parse_source
 from lodscape.sources import open as open_scene
+from lodscape.sources import parse_source
 from lodscape.stream.streamer import Clock
 from lodscape.terrain.detail import Fractal, parse_procedural
 
@@ -389,29 +389,31 @@ class TerrainFlags:
         detail: Fractal | bool | None = True,
     ) -> Scene:
         """The scene the flags ask for (``detail`` True: the flags' own fractal detail)."""
+        scene: Scene = open_scene(source, options, clock=clock, **self.open_kwargs(source, detail))
+        return scene
+
+    def open_kwargs(self, source: str, detail: Fractal | bool | None = True) -> dict[str, Any]:
+        """``lodscape.open``'s keywords for SOURCE from the flags."""
         cover = _landcover(self.ground, self.landcover, self.city)
         if self.imagery and cover is not None:
             raise LodscapeError("--imagery and --ground landcover both colour the ground: pick one")
         if parse_source(source).text == "flat" and self.city is None:
             raise LodscapeError("SOURCE flat (level ground) needs --city to know where")
-        return open_scene(
-            source,
-            options,
-            clock=clock,
-            detail=self.fractal(source) if detail is True else detail or None,
-            landcover=cover,
-            imagery=self.imagery or None,
-            imagery_cache=self.imagery_cache,
-            imagery_maxzoom=self.imagery_maxzoom,
-            imagery_bands=self.imagery_bands,
-            city=self.city,
-            fill=self.fill,
-            sea_level=_sea_level(self.sea_level),
-            band=self.band,
-            nodata=self.nodata,
-            z_units=self.z_units,
-            city_options=self.city_options(),
-        )
+        return {
+            "detail": self.fractal(source) if detail is True else detail or None,
+            "landcover": cover,
+            "imagery": self.imagery or None,
+            "imagery_cache": self.imagery_cache,
+            "imagery_maxzoom": self.imagery_maxzoom,
+            "imagery_bands": self.imagery_bands,
+            "city": self.city,
+            "fill": self.fill,
+            "sea_level": _sea_level(self.sea_level),
+            "band": self.band,
+            "nodata": self.nodata,
+            "z_units": self.z_units,
+            "city_options": self.city_options(),
+        }
 
     def city_options(self) -> Any:
         from lodscape.city.model import CityOptions
@@ -1545,20 +1547,11 @@ def _globe(
     clock: Clock | None = None,
 ) -> Any:
     """The QTM globe over SOURCE (None, "-" or "none": the ellipsoid alone), for ``globe`` and
-    every command's --globe: SOURCE opened with the terrain FLAGS (its imagery layers, city,
-    ground) draws its own tiles where it has data, and the imagery layers stream over the
-    whole globe. With ``clock``, frames stream on it (flights, the viewer)."""
-    from dataclasses import replace
-
-    from lodscape.globe import Globe
-    from lodscape.sources import _bands, _open_layers
-
+    every command's --globe: ``lodscape.open`` with the terrain FLAGS and ``globe=``. With
+    ``clock``, frames stream on it (flights, the viewer)."""
     flags = flags or TerrainFlags()
-    spec: SourceSpec | None = None if source is None else parse_source(source)
-    options = replace(options, imagery_timeout=flags.imagery_timeout)
-    if spec is not None and spec.kind == "procedural":
-        options = replace(options, earth="procedural")  # an invented planet, asked for
-    if spec is None or spec.kind == "none":
+    none = source is None or parse_source(source).kind == "none"
+    if none:
         if flags.city is not None:
             raise LodscapeError("--city on the globe needs SOURCE (a DEM, a tileset, or flat)")
         if flags.ground != "tint" or flags.landcover is not None or flags.detail != "none":
@@ -1566,30 +1559,10 @@ def _globe(
                 "--ground, --landcover and --detail colour a terrain: give SOURCE (a DEM or a "
                 "tileset) for the globe to draw them on"
             )
-        layers = _open_layers(
-            flags.imagery or [],
-            flags.imagery_cache,
-            flags.imagery_maxzoom,
-            flags.imagery_timeout,
-            flags.imagery_strict,
-            _bands(flags.imagery_bands),
-        )
-        stream = None
-        if clock is not None:
-            stream = (scene_options or flags.options(256.0)).stream
-        try:
-            return Globe(None, options, layers=layers, clock=clock, stream=stream)
-        except BaseException:
-            for layer in layers:
-                layer.close()
-            raise
-    opts = scene_options or flags.options()
-    terrain = flags.open(spec.text, opts, clock=clock)
-    try:
-        return Globe(terrain, options)
-    except BaseException:
-        terrain.close()
-        raise
+    opts = scene_options or flags.options(256.0 if none else None)
+    text = "none" if none or source is None else source
+    kwargs = flags.open_kwargs(text, None if none else True)
+    return open_scene(text, opts, clock=clock, globe=options, **kwargs)
 
 
 def _globe_camera(

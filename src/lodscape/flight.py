@@ -341,8 +341,7 @@ def fly(
     rows of its frames). Returns the per-frame statistics.
 
     ``scene`` is a ``Scene`` or a ``lodscape.globe.Globe`` streaming on a ``SimClock``: one
-    frame loop for both (the globe's rows have ``GLOBE_COLUMNS``)."""
-    from lodscape.globe import Globe
+    frame loop for both; its rows have the scene's ``columns``."""
     from lodscape.stream import SimClock
 
     clock = scene.clock
@@ -350,11 +349,9 @@ def fly(
         raise ValueError(
             "fly needs a Scene or Globe streaming on a SimClock (Scene(..., clock=SimClock()))"
         )
-    globe = isinstance(scene, Globe)
-    columns = GLOBE_COLUMNS if globe else STAT_COLUMNS
-    # a scene's pictures come through the pixel-pack ring, RING - 1 frames late (not a globe's:
-    # it lays the terrain into its own picture on the CPU)
-    ring = 0 if globe or video is None else RING
+    columns = scene.columns
+    # the pictures come through the pixel-pack ring, RING - 1 frames late
+    ring = 0 if video is None else RING
     budget = 1000.0 / fps
     rows = FlightRows(columns)
     with _Video(video, fps) as out, _StatsFile(stats, columns) as csv_rows:
@@ -366,7 +363,7 @@ def fly(
                         out.send(late)
                 else:
                     # no video: the picture is read (part of a frame's cost), not the distance
-                    rgb, _ = scene.render(cam) if video or globe else scene.render(cam, depth=False)
+                    rgb, _ = scene.render(cam, depth=False)
                     out.send(rgb)
                 d = scene.frame_stats()
                 row = {c: d.get(c, 0) for c in columns}

@@ -116,12 +116,37 @@ class Globe:
         """RGB and view distance of the globe from ``camera``: the globe's facets and imagery,
         then the terrain's tiles and its city, one loop, one target, one depth test, read back
         once (not at all in a window)."""
+        return self._frame(camera, depth=depth, ring=0)
+
+    def render_behind(self, camera: Camera, ring: int = 3) -> NDArray[np.uint8] | None:
+        """Render ``camera`` and return the picture of ``ring - 1`` frames before (None for the
+        first ones), read through a ring of pixel-pack buffers (``Scene.render_behind``)."""
+        if ring < 1:
+            raise ValueError(f"ring must be at least 1, got {ring}")
+        rgb, _ = self._frame(camera, depth=False, ring=ring)
+        return rgb if rgb.size else None
+
+    def drain(self) -> list[NDArray[np.uint8]]:
+        """The pictures ``render_behind`` has not returned yet, oldest first."""
+        target = self.renderer
+        return [] if target is None else list(target.drain())
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The figures a flight records of each frame (``frame_stats``)."""
+        from lodscape.flight import GLOBE_COLUMNS
+
+        return GLOBE_COLUMNS
+
+    def _frame(
+        self, camera: Camera, *, depth: bool, ring: int
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         self._globe.camera(camera)  # a camera under the ground is refused before any GL
         stages = self._stages()
         background = background_at(self.options, camera.alt)
         if self._draws_tiles:
             rgb, dist, _ = self.terrain._render(
-                camera, depth=depth, ring=0, before=stages, background=background
+                camera, depth=depth, ring=ring, before=stages, background=background
             )
             stats = self.terrain.last
             target = self.terrain.renderer
@@ -129,7 +154,9 @@ class Globe:
             loop = self._own_loop(camera)
             loop.stages = stages
             target = loop.target.renderer  # type: ignore[attr-defined]
-            target.read_depth = depth
+            if ring != target.ring and target.pending:
+                raise RuntimeError("pictures left in the read ring: take them with drain() first")
+            target.ring, target.read_depth = ring, depth
             rgb, dist = loop.run(camera, blocking=not self.streaming, background=background)
             stats = loop.last
         assert stats is not None

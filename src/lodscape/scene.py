@@ -328,6 +328,13 @@ class Scene:
         rgb, _, _ = self._render(camera, depth=False, ring=ring)
         return rgb if rgb.size else None
 
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The figures a flight records of each frame (``frame_stats``)."""
+        from lodscape.flight import STAT_COLUMNS
+
+        return STAT_COLUMNS
+
     def drain(self) -> list[NDArray[np.uint8]]:
         """The pictures ``render_behind`` has not returned yet, oldest first."""
         if self._renderer is None:

@@ -11,18 +11,22 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from os import PathLike
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lodscape._cache import user_cache
 from lodscape.errors import LodscapeError, SourceError
+from lodscape.frame.globe import GlobeOptions
 from lodscape.imagery.layers import warn_stderr
 from lodscape.scene import Scene, SceneOptions
+
+if TYPE_CHECKING:
+    from lodscape.globe import Globe
 from lodscape.store.provider import FractalProvider, Provider, RasterProvider
 from lodscape.store.tileset import TilesetProvider, is_tileset
 from lodscape.stream.streamer import Clock
@@ -92,8 +96,23 @@ def parse_source(source: str | PathLike[str]) -> SourceSpec:
     return SourceSpec("raster", text)
 
 
+Opened = str | PathLike[str] | HeightSource | Provider | NDArray[np.floating]
+
+
+@overload
 def open(
-    source: str | PathLike[str] | HeightSource | Provider | NDArray[np.floating],
+    source: Opened, options: SceneOptions | None = None, *, globe: None = None, **kwargs: Any
+) -> Scene: ...
+
+
+@overload
+def open(
+    source: Opened, options: SceneOptions | None = None, *, globe: GlobeOptions, **kwargs: Any
+) -> Globe: ...
+
+
+def open(
+    source: Opened,
     options: SceneOptions | None = None,
     *,
     clock: Clock | None = None,
@@ -110,8 +129,9 @@ def open(
     nodata: float | None = None,
     z_units: str | None = None,
     city_options: Any = None,
+    globe: GlobeOptions | None = None,
     **array_kwargs: Any,
-) -> Scene:
+) -> Scene | Globe:
     """A scene over a tileset built by ``lodscape build`` (.lods), a GeoTIFF (any GDAL raster), a
     numpy array (with ``transform``, ``crs``), the procedural planet (``"procedural:seed=N"``),
     level ground (``"flat:W,S,E,N"``, or ``"flat"`` under ``city``), or a ready HeightSource or
@@ -139,8 +159,33 @@ def open(
     - ``band`` picks a multi-band raster's height band; ``nodata`` declares a nodata value the
       file does not; ``z_units`` (``m``, ``ft``, ``us-ft`` or metres per unit) says what unit
       its heights are in, where the file's own unit, vertical CRS or projected CRS would not.
+    - ``globe`` (``GlobeOptions``): the whole Earth on the QTM grid (paper 002) with the scene's
+      own tiles (and its city) where it has data, one frame loop and one picture from orbit to
+      the street (``lodscape.globe.Globe``); SOURCE ``"none"``: the globe alone, with the
+      ``imagery`` layers over all of it.
 
     A scene opened from a path or an array closes what it opened when it closes."""
+    if globe is not None:
+        return _open_globe(
+            source,
+            options,
+            globe,
+            clock=clock,
+            detail=detail,
+            landcover=landcover,
+            imagery=imagery,
+            imagery_cache=imagery_cache,
+            imagery_maxzoom=imagery_maxzoom,
+            imagery_bands=imagery_bands,
+            city=city,
+            fill=fill,
+            sea_level=sea_level,
+            band=band,
+            nodata=nodata,
+            z_units=z_units,
+            city_options=city_options,
+            **array_kwargs,
+        )
     specs = _imagery_specs(imagery)
     if landcover is not None and specs:
         raise LodscapeError("imagery and a land cover both colour the ground: pick one")
@@ -218,6 +263,49 @@ def open(
         scene.close()
         raise
     return scene
+
+
+def _open_globe(
+    source: Any, options: SceneOptions | None, globe: GlobeOptions, **kwargs: Any
+) -> Globe:
+    """The globe over SOURCE's scene, or (SOURCE "none") over the ellipsoid with the imagery
+    layers alone."""
+    from lodscape.globe import Globe
+
+    options = options or SceneOptions()
+    globe = replace(globe, imagery_timeout=options.imagery_timeout)
+    if isinstance(source, str) and parse_source(source).kind == "none":
+        if kwargs.get("city") is not None:
+            raise LodscapeError("a city on the globe needs SOURCE (a DEM, a tileset, or flat)")
+        if any(kwargs.get(k) is not None for k in ("landcover", "detail")):
+            raise LodscapeError(
+                "land cover and fractal detail colour and shape a terrain: give SOURCE (a DEM "
+                "or a tileset) for the globe to draw them on"
+            )
+        layers = _open_layers(
+            _imagery_specs(kwargs.get("imagery")),
+            kwargs.get("imagery_cache"),
+            kwargs.get("imagery_maxzoom"),
+            options.imagery_timeout,
+            options.imagery_strict,
+            _bands(kwargs.get("imagery_bands")),
+        )
+        clock = kwargs.get("clock")
+        stream = options.stream if clock is not None else None
+        try:
+            return Globe(None, globe, layers=layers, clock=clock, stream=stream)
+        except BaseException:
+            for layer in layers:
+                layer.close()
+            raise
+    if isinstance(source, str) and parse_source(source).kind == "procedural":
+        globe = replace(globe, earth="procedural")  # an invented planet, asked for
+    scene = open(source, options, **kwargs)
+    try:
+        return Globe(scene, globe)
+    except BaseException:
+        scene.close()
+        raise
 
 
 def _city_on(town: Any, provider: Any) -> None:

@@ -40,6 +40,8 @@ U64 = NDArray[np.uint64]
 
 @dataclass(frozen=True)
 class GlobeOptions:
+    """How the globe is selected and drawn; the defaults are the documented behaviour."""
+
     #: "sse": refined by screen-space error; "thinning": the paper's base level and thinning area.
     mode: str = "sse"
     max_sse: float = 2.0

@@ -516,7 +516,8 @@ class Renderer:
         self._ring: collections.deque[tuple[moderngl.Buffer, int, int]] = collections.deque()
         self._ring_free: list[tuple[moderngl.Buffer, int]] = []
         #: Log-depth frames: pixels of the last picture read back that the terrain and the
-        #: city drew (the globe's have alpha 0).
+        #: city drew (the globe's have alpha 0); through the read ring, of the picture that
+        #: came back.
         self.covered = 0
         #: Draw the terrain's triangles as lines (the viewer's wireframe key).
         self.wireframe = False
@@ -1227,16 +1228,24 @@ class Renderer:
     def drain(self, keep: int = 0) -> list[NDArray[np.uint8]]:
         """The pictures still in the read ring, oldest first, leaving the newest ``keep``."""
         out = []
+        n = self._components
         while len(self._ring) > keep:
             buf, w, h = self._ring.popleft()
-            rgb = np.frombuffer(buf.read(), np.uint8)
-            out.append(np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1]))
-            self._ring_free.append((buf, w * h * 3))
+            got = np.frombuffer(buf.read(), np.uint8).reshape(h, w, n)[::-1]
+            if n == 4:  # the terrain scene's pixels of the picture that comes back
+                self.covered = int(np.count_nonzero(got[..., 3] > 127))
+            out.append(np.ascontiguousarray(got[..., :3]))
+            self._ring_free.append((buf, w * h * n))
         return out
+
+    @property
+    def _components(self) -> int:
+        """Read-backs take the alpha too in log-depth frames (it marks the terrain's pixels)."""
+        return 4 if self.log_depth else 3
 
     def _pack(self, fbo: moderngl.Framebuffer, w: int, h: int) -> moderngl.Buffer:
         """Start reading the picture into a pixel-pack buffer (the GL copies asynchronously)."""
-        size = w * h * 3
+        size = w * h * self._components
         for buf, n in [e for e in self._ring_free if e[1] != size]:
             self._ring_free.remove((buf, n))
             self._free(buf)
@@ -1244,7 +1253,7 @@ class Renderer:
             buf, _ = self._ring_free.pop()
         else:
             buf = self._track(self.ctx.buffer(reserve=size))
-        fbo.read_into(buf, components=3, attachment=0, alignment=1)
+        fbo.read_into(buf, components=self._components, attachment=0, alignment=1)
         return buf
 
     # --- lifetime ---------------------------------------------------------------------------
