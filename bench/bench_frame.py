@@ -1,13 +1,19 @@
 """Frame benchmark: selections per frame and CPU time per frame, for this checkout and (with
 ``--before REV``) an earlier commit of the repository, in one script.
 
-Two workloads, through the public API only (so an older lodscape runs them too):
+Three workloads, through the public API only (so an older lodscape runs them too):
 - **views**: the spine's four test views (straight down, oblique, low and grazing, steep and
   near) of a 2049² spectral fBm DEM at 1280×720, one-shot renders (the blocking loader), each
   drawn ``--repeat`` times once everything is resident;
 - **flight**: the issue-4 flight (300 m/s, 300 m above the smoothed ground, 30 frames/s,
   640×360, 16 MiB per stage) over the same DEM built into a tileset, streaming on a simulated
-  clock.
+  clock;
+- **globe**: the globe with the DEM's own tiles (``Globe(lodscape.open(dem))``) from orbit, from
+  100 km and from 5 km over the DEM at 960×540, one-shot frames drawn ``--repeat`` times once
+  resident, then the same frames as a window draws them (the picture left on the GPU): the
+  pictures read back per frame (``Framebuffer.read`` calls), textures written per frame, the
+  frame's wall time and its CPU time on the frame's thread (llvmpipe rasterises on threads
+  of its own).
 
 Counted: calls to the selection on the frame's thread per frame (the prefetch's predicted
 selections run on workers and are counted apart), and the frame's CPU time: selection and
@@ -31,6 +37,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import lodscape
 from lodscape import SceneOptions
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -64,12 +71,82 @@ class Counter:
                 mod.select = counted  # type: ignore[attr-defined]
 
 
-def measure(dem: Path, tileset: Path, seconds: float, repeat: int) -> dict[str, Any]:
+class GLCalls:
+    """Counts framebuffer read-backs and texture writes (uploads) made through moderngl."""
+
+    def __init__(self) -> None:
+        import moderngl
+
+        self.reads = self.writes = 0
+        read, write = moderngl.Framebuffer.read, moderngl.Texture.write
+
+        def counted_read(fbo: Any, *args: Any, **kwargs: Any) -> Any:
+            self.reads += 1
+            return read(fbo, *args, **kwargs)
+
+        def counted_write(tex: Any, *args: Any, **kwargs: Any) -> Any:
+            self.writes += 1
+            return write(tex, *args, **kwargs)
+
+        moderngl.Framebuffer.read = counted_read  # type: ignore[method-assign]
+        moderngl.Texture.write = counted_write  # type: ignore[method-assign]
+
+
+def measure_globe(dem: Path, repeat: int) -> dict[str, Any]:
+    """A globe-with-terrain frame from three heights: one-shot, then as a window draws it."""
+    from lodscape.geo.tiles import merc_to_lonlat
+    from lodscape.globe import Globe, GlobeOptions
+
+    calls = GLCalls()
+    out: dict[str, Any] = {}
+    g = Globe(lodscape.open(dem, SceneOptions(anisotropy=1.0)), GlobeOptions())
+    try:
+        b = g.terrain.provider.bounds_merc
+        lon, lat = (
+            float(v) for v in merc_to_lonlat((b.left + b.right) / 2, (b.bottom + b.top) / 2)
+        )
+        views = {
+            "orbit": lodscape.Camera(lon, lat, 2.0e6, pitch=-90.0, width=960, height=540),
+            "100 km": lodscape.Camera(lon, lat - 0.9, 1.0e5, pitch=-35.0, width=960, height=540),
+            "5 km": lodscape.Camera(lon, lat - 0.08, 5000.0, pitch=-25.0, width=960, height=540),
+        }
+        for window in (False, True):
+            for name, cam in views.items():
+                g.render(cam)  # loads
+                if window:  # what the viewer does after the first frame
+                    g.renderer.read_back = False
+                wall, cpu, reads, writes = [], [], [], []
+                for _ in range(repeat):
+                    r0, w0 = calls.reads, calls.writes
+                    t, c = time.perf_counter(), time.thread_time()
+                    g.render(cam)
+                    wall.append((time.perf_counter() - t) * 1e3)
+                    cpu.append((time.thread_time() - c) * 1e3)
+                    reads.append(calls.reads - r0)
+                    writes.append(calls.writes - w0)
+                out[("window " if window else "") + name] = {
+                    "reads": statistics.median(reads),
+                    "writes": statistics.median(writes),
+                    "frame_ms": statistics.median(wall),
+                    "cpu_ms": statistics.median(cpu),
+                    "range_ms": [round(min(wall), 1), round(max(wall), 1)],
+                }
+    finally:
+        g.close()
+    return out
+
+
+def measure(
+    dem: Path, tileset: Path, seconds: float, repeat: int, only: str | None = None
+) -> dict[str, Any]:
     # the modules whose ``select`` the counter replaces (lod.view is absent before the split)
     import lodscape.flight
     import lodscape.scene
     import lodscape.store.tileset
     from lodscape.stream import SimClock, StreamOptions
+
+    if only == "globe":
+        return {"lodscape": lodscape.__file__, "globe": measure_globe(dem, repeat)}
 
     with contextlib.suppress(ImportError):
         import lodscape.lod.view
@@ -105,22 +182,30 @@ def measure(dem: Path, tileset: Path, seconds: float, repeat: int) -> dict[str, 
         "cpu_ms": statistics.median(r["frame_cpu_ms"] for r in rows),
         "fallback_gt_1": sum(r["fallback_max"] > 1 for r in rows if r["time_s"] >= 1.0),
     }
+    out["globe"] = measure_globe(dem, repeat)
     return out
 
 
 def _report(label: str, r: dict[str, Any]) -> None:
     print(f"{label} ({r['lodscape']}):")
-    for name, v in r["views"].items():
+    for name, v in r.get("views", {}).items():
         print(
             f"  view {name:<11} selections/frame {v['selections']:.0f}  "
             f"CPU {v['cpu_ms']:6.2f} ms  whole frame {v['frame_ms']:6.1f} ms"
         )
-    f = r["flight"]
-    print(
-        f"  flight ({f['frames']} frames) selections/frame {f['selections_per_frame']:.2f}  "
-        f"predictions/frame {f['predictions_per_frame']:.2f}  CPU median {f['cpu_ms']:.2f} ms  "
-        f"fallbacks > 1 level: {f['fallback_gt_1']}"
-    )
+    f = r.get("flight")
+    if f is not None:
+        print(
+            f"  flight ({f['frames']} frames) selections/frame {f['selections_per_frame']:.2f}  "
+            f"predictions/frame {f['predictions_per_frame']:.2f}  CPU median {f['cpu_ms']:.2f} "
+            f"ms  fallbacks > 1 level: {f['fallback_gt_1']}"
+        )
+    for name, v in r["globe"].items():
+        print(
+            f"  globe {name:<13} read-backs/frame {v['reads']:.0f}  uploads/frame "
+            f"{v['writes']:.0f}  frame {v['frame_ms']:6.1f} ms {v['range_ms']}  "
+            f"CPU (frame's thread) {v['cpu_ms']:6.1f} ms"
+        )
 
 
 def main() -> None:
@@ -129,13 +214,14 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=None, help="keep the DEM and tileset here")
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--only", choices=["globe"], default=None, help="one workload")
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         dem, tileset = dataset(work, 2049)
-        now = measure(dem, tileset, args.seconds, args.repeat)
+        now = measure(dem, tileset, args.seconds, args.repeat, args.only)
         if args.json:
             print(json.dumps(now))
             return
@@ -153,6 +239,7 @@ def main() -> None:
             cmd = [sys.executable, str(Path(__file__).resolve()), "--json"]
             cmd += ["--work", str(work), "--seconds", str(args.seconds)]
             cmd += ["--repeat", str(args.repeat)]
+            cmd += ["--only", args.only] if args.only else []
             run = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
             before = json.loads(run.stdout.strip().splitlines()[-1])
         finally:
@@ -160,11 +247,20 @@ def main() -> None:
                 ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False
             )
         _report(f"before ({args.before})", before)
-        print("ratios, before / now (CPU per frame):")
-        for name, v in now["views"].items():
-            b = before["views"][name]
-            print(f"  view {name:<11} ×{b['cpu_ms'] / max(v['cpu_ms'], 1e-9):.2f}")
-        print(f"  flight           ×{before['flight']['cpu_ms'] / now['flight']['cpu_ms']:.2f}")
+        if "flight" in now:
+            print("ratios, before / now (CPU per frame):")
+            for name, v in now["views"].items():
+                b = before["views"][name]
+                print(f"  view {name:<11} ×{b['cpu_ms'] / max(v['cpu_ms'], 1e-9):.2f}")
+            ratio = before["flight"]["cpu_ms"] / now["flight"]["cpu_ms"]
+            print(f"  flight           ×{ratio:.2f}")
+        print("ratios, before / now (globe frame, wall and CPU):")
+        for name, v in now["globe"].items():
+            b = before["globe"][name]
+            print(
+                f"  globe {name:<13} ×{b['frame_ms'] / max(v['frame_ms'], 1e-9):.2f} wall  "
+                f"×{b['cpu_ms'] / max(v['cpu_ms'], 1e-9):.2f} CPU"
+            )
 
 
 if __name__ == "__main__":

@@ -43,6 +43,7 @@ def test_exported_members_resolve() -> None:
         "dataset",
         "widget",
         "frame",
+        "picture",
         "annotations",
     }
 

@@ -28,6 +28,8 @@ LAYERS: dict[str, set[str]] = {
 }
 APP = {
     "scene",
+    "picture",
+    "_watch",
     "sources",
     "globe",
     "flight",

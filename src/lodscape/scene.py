@@ -10,7 +10,6 @@ never a tile drawn in the last frame.
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -20,7 +19,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.errors import CameraError, LodscapeError
+from lodscape._watch import ImageryWatch
+from lodscape.errors import LodscapeError
 from lodscape.frame import FrameLoop, FrameStats, Layer, Pass
 from lodscape.frame.terrain import CityLayer, EllipsoidLayer, TerrainLayer
 from lodscape.geo.keys import is_overlay
@@ -28,9 +28,9 @@ from lodscape.geo.tiles import merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import Selection, SelectOptions, select
 from lodscape.lod.view import TerrainView
+from lodscape.picture import Capture, Picture
 from lodscape.render import Renderer
-from lodscape.render.passes import EllipsoidPass, RendererTarget, TerrainPass
-from lodscape.render.tess_pass import MAX_OVERLAYS, TessellationUnavailable
+from lodscape.render.passes import EllipsoidPass, RendererTarget, TerrainPass, make_renderer
 from lodscape.store.provider import Provider, RasterProvider
 from lodscape.stream import RealClock, StreamOptions
 from lodscape.stream.loader import Loader
@@ -121,62 +121,6 @@ class SceneOptions:
             raise ValueError(f"Expected terrain_mode cpu or gpu, got {self.terrain_mode!r}")
 
 
-@dataclass(frozen=True, eq=False)
-class Picture:
-    """One rendered view: RGB (H, W, 3) uint8, its distance (H, W) float32 metres (inf: sky)
-    and the camera. In a notebook it shows itself inline (``_repr_png_``)."""
-
-    rgb: NDArray[np.uint8]
-    depth: NDArray[np.float32]
-    camera: Camera
-
-    def png(self) -> bytes:
-        """The picture as PNG bytes."""
-        import io
-
-        from PIL import Image
-
-        buf = io.BytesIO()
-        Image.fromarray(np.ascontiguousarray(self.rgb), "RGB").save(buf, "PNG")
-        return buf.getvalue()
-
-    def _repr_png_(self) -> bytes:
-        return self.png()
-
-    def __repr__(self) -> str:
-        h, w = self.rgb.shape[:2]
-        ground = float(np.isfinite(self.depth).mean()) if self.depth.size else 0.0
-        c = self.camera
-        return (
-            f"Picture({w}x{h}, lon {c.lon:.5f} lat {c.lat:.5f} alt {c.alt:,.0f} m, "
-            f"heading {c.heading:.0f} pitch {c.pitch:.0f}, ground {ground:.0%})"
-        )
-
-
-@dataclass(frozen=True, eq=False)
-class Capture:
-    """One view for a dataset (``Scene.capture``): RGB (H, W, 3) uint8; depth (H, W) float32,
-    metres along the optical axis (inf: sky); normals (H, W, 3) float32, unit, in the camera's
-    OpenCV frame (x right, y down, z ahead), facing the camera (0 where nothing is drawn);
-    labels (H, W) uint8 (``render.labels.LABELS``); and the camera, its clip planes fitted."""
-
-    rgb: NDArray[np.uint8]
-    depth: NDArray[np.float32]
-    normals: NDArray[np.float32]
-    labels: NDArray[np.uint8]
-    camera: Camera
-
-
-@functools.cache
-def _blue_marble() -> NDArray[np.uint8] | None:
-    """NASA's Blue Marble for the world outside the data, read once a process (None: not
-    installed; the ellipsoid stays grey)."""
-    from lodscape.imagery.globe import earth_image
-
-    image, notice = earth_image()
-    return None if notice is not None else image
-
-
 class Scene:
     """A terrain ready to render from any camera: a provider (a raster meshed on the fly, or a
     prebuilt tileset), the view that plans its frames, and the loader and renderer that carry
@@ -208,7 +152,7 @@ class Scene:
         # frame after frame (flights, the viewer): a one-shot render shows its own surfaces
         self.view.morph = self._options.morph and self._options.stream is not None
         self.clock: Clock = clock or RealClock()
-        self._terrain = TerrainLayer(self.view, self.prepare)
+        self._terrain = TerrainLayer(self.view, self.prepare, self.ground_height)
         self._loop: FrameLoop | None = None
         self._renderer: Renderer | None = None
         self._loader: Loader | None = None
@@ -224,8 +168,9 @@ class Scene:
         #: The last frame's camera, its clip distances fitted (what ``capture`` reports).
         self._drawn: Camera | None = None
         self.last: FrameStats | None = None
-        self._said_late = False
-        self._said_server: set[str] = set()
+        self._watch = ImageryWatch(
+            self.provider, self._options.imagery_timeout, self._options.imagery_strict
+        )
 
     @property
     def options(self) -> SceneOptions:
@@ -376,19 +321,8 @@ class Scene:
             for (_, each), what in zip(loop.stages, loop.draws, strict=True):
                 each.draw(what, target)
             labelled, _ = target.end(self._drawn)
-        if loader.late > late and not self._said_late:
-            from lodscape.imagery.layers import warn_stderr
-
-            self._said_late = True
-            warn_stderr(
-                f"imagery: {loader.late - late} tiles had not come after the "
-                f"{self._options.imagery_timeout:g} s imagery timeout; drawn without them "
-                "(--imagery-timeout)"
-            )
         assert loop.last is not None
-        self.last = loop.last.with_section("imagery", self._imagery_stats(loader))
-        if self._options.imagery_strict:
-            self._strict_imagery()
+        self.last = loop.last.with_section("imagery", self._watch.after(loader, late))
         return rgb, dist, labelled
 
     def _loop_for(self, renderer: Renderer) -> FrameLoop:
@@ -416,60 +350,7 @@ class Scene:
 
     def imagery_failures(self) -> dict[str, int]:
         """Failed imagery tiles by kind, all layers together, since the scene opened."""
-        out: dict[str, int] = {}
-        for layer in self.provider.layers:
-            for kind, n in layer.failures.items():
-                out[kind] = out.get(kind, 0) + n
-        return out
-
-    def _imagery_stats(self, loader: Loader) -> dict[str, int]:
-        """The imagery layers' and the terrain server's failures and HTTP figures."""
-        out: dict[str, int] = {}
-        if self.provider.layers:
-            from lodscape.imagery.layers import server_figures
-
-            fails = self.imagery_failures()
-            out = {**server_figures(self.provider.layers), "imagery_missed": loader.missed}
-            out.update((f"imagery_{k.replace('-', '_')}", n) for k, n in sorted(fails.items()))
-        server = self._terrain_server()
-        if server is not None:
-            for name, n in server.server_figures().items():
-                out[name] = out.get(name, 0) + n
-            # each kind of failure said once, after a frame drawn without those tiles
-            for kind, line in server.notices().items():
-                if kind not in self._said_server:
-                    from lodscape.imagery.layers import warn_stderr
-
-                    self._said_server.add(kind)
-                    warn_stderr(line)
-        return out
-
-    def _terrain_server(self) -> Any:
-        """The terrain server under the provider's imagery wrappings (None: no server)."""
-        from lodscape.store.remote import RemoteProvider
-
-        provider: Any = self.provider
-        while not isinstance(provider, RemoteProvider):
-            provider = getattr(provider, "base", None)
-            if provider is None:
-                return None
-        return provider
-
-    def _strict_imagery(self) -> None:
-        from lodscape.imagery.sources import ImageryError
-
-        for layer in self.provider.layers:
-            if layer.failed:
-                kinds = ", ".join(f"{n} {k}" for k, n in sorted(layer.failures.items()))
-                raise ImageryError(
-                    f"imagery layer {layer.index} ({layer.name}) failed ({kinds}) and "
-                    "--imagery-strict was given"
-                )
-        if self._loader is not None and self._loader.missed:
-            raise ImageryError(
-                f"{self._loader.missed} imagery tiles did not come within the imagery timeout "
-                "and --imagery-strict was given"
-            )
+        return self._watch.failures()
 
     def _loader_for(self, renderer: Renderer) -> Loader:
         if self._loader is None:
@@ -482,42 +363,13 @@ class Scene:
                 stream,
                 self.clock,
                 gpu_budget_bytes=opts.gpu_budget_mb * 2**20,
-                predict=self._predict,
+                predict=self._terrain.predict,
                 optional=is_overlay if self.provider.layers else None,
                 imagery_wait=opts.imagery_timeout,
-                areas=self._areas,
+                areas=self._terrain.areas_within(opts.stream.radii if opts.stream else None),
                 remote=_everything if _over_network(self.provider) else None,
             )
         return self._loader
-
-    def _predict(self, camera: Camera) -> list[int] | None:
-        """On a worker: the keys a camera the flight is heading for would draw."""
-        try:
-            return self.view.predict(self.prepare(camera))
-        except CameraError:
-            return None
-
-    def _areas(
-        self, camera: Camera, velocity: NDArray[np.float64]
-    ) -> tuple[list[int], list[int], dict[str, int]] | None:
-        """On a worker: paper 004's memory and cache areas around ``camera`` moving at
-        ``velocity`` (``lod.radii``), as keys to prefetch."""
-        from lodscape.lod.radii import radii_for
-
-        stream = self._options.stream
-        if stream is None or stream.radii is None:
-            return None
-        try:
-            cam = self.prepare(camera)
-        except CameraError:
-            return None
-        ground = self.ground_height(cam.lon, cam.lat)
-        floor = self.tree.height_range[0] if ground is None else ground
-        assert cam.far is not None
-        radii = radii_for(
-            cam.position, cam.forward, velocity, cam.alt - floor, cam.far, stream.radii
-        )
-        return self.view.areas(cam, radii)
 
     def frames(
         self, cameras: Iterator[Camera]
@@ -602,37 +454,22 @@ class Scene:
             opts = self._options
             # under a globe, the globe is the world outside the data
             ellipsoid = opts.ellipsoid and not self._under_globe
-            common: dict[str, Any] = {
-                "ctx": self._ctx,
-                "background": opts.background,
-                "anisotropy": opts.anisotropy,
-                "ground": self.ground,
-                "ellipsoid": ellipsoid,
-                "log_depth": self._under_globe,
-                "compress": opts.compress_textures,
-                # more than a renderer can draw is refused by the frame that carries them
-                "layers": min(len(self.provider.layers), MAX_OVERLAYS),
-            }
-            try:
-                self._renderer = Renderer(
-                    camera.width,
-                    camera.height,
-                    terrain_mode=opts.terrain_mode,
-                    tess_px=opts.tess_px,
-                    **common,
-                )
-            except TessellationUnavailable as exc:
-                self.terrain_mode_note = f"{exc}; drawing in the CPU terrain mode"
-                self._renderer = Renderer(camera.width, camera.height, **common)
-            if self._renderer.compress_note is not None:
-                from lodscape.imagery.layers import warn_stderr
-
-                warn_stderr(self._renderer.compress_note)
-            if ellipsoid and opts.earth:
-                b = self.provider.bounds_merc
-                (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
-                box = (float(w), float(s), float(e), float(n))
-                self._renderer.set_earth(_blue_marble(), box)
+            b = self.provider.bounds_merc
+            (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+            self._renderer, self.terrain_mode_note = make_renderer(
+                camera,
+                ctx=self._ctx,
+                background=opts.background,
+                anisotropy=opts.anisotropy,
+                ground=self.ground,
+                terrain_mode=opts.terrain_mode,
+                tess_px=opts.tess_px,
+                ellipsoid=ellipsoid,
+                log_depth=self._under_globe,
+                compress=opts.compress_textures,
+                layers=len(self.provider.layers),
+                earth=(float(w), float(s), float(e), float(n)) if opts.earth else None,
+            )
         return self._renderer
 
     @property

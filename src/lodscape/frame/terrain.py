@@ -10,9 +10,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lodscape.errors import CameraError
 from lodscape.lod.camera import Camera
+from lodscape.lod.radii import RadiiOptions, radii_for
 from lodscape.lod.view import DrawItem, FramePlan, TerrainView
-from lodscape.stream.loader import Loader, LoadReport
+from lodscape.stream.loader import Areas, Loader, LoadReport
 
 __all__ = ["CameraDraws", "CityLayer", "EllipsoidLayer", "TerrainDraws", "TerrainLayer"]
 
@@ -40,10 +42,17 @@ class TerrainLayer:
 
     name = "terrain"
 
-    def __init__(self, view: TerrainView, fit: Callable[[Camera], Camera]) -> None:
+    def __init__(
+        self,
+        view: TerrainView,
+        fit: Callable[[Camera], Camera],
+        ground: Callable[[float, float], float | None] | None = None,
+    ) -> None:
         self.view = view
-        #: The camera with its clip distances fitted to the terrain (refuses one underground).
+        #: The camera with its clip distances fitted to the terrain (refuses one underground),
+        #: and the ground's height under a point (None: outside the data).
         self.fit = fit
+        self.ground = ground
         self.tree: Any = view.tree
         #: Draw tiles whole unless all of them faces away (the GPU terrain mode's patches).
         self.whole_tiles = False
@@ -97,6 +106,42 @@ class TerrainLayer:
 
     def figures(self) -> dict[str, Any]:
         return self._figures
+
+    # --- what the loader asks ahead of the frames (on its workers) ---------------------------
+
+    def predict(self, camera: Camera) -> list[int] | None:
+        """The keys a camera the flight is heading for would draw (None: it cannot be)."""
+        try:
+            return self.view.predict(self.fit(camera))
+        except CameraError:
+            return None
+
+    def areas_within(self, radii: RadiiOptions | None) -> Areas | None:
+        """Paper 004's areas with ``radii`` (None: no areas, the loader predicts alone)."""
+        if radii is None:
+            return None
+
+        def areas(
+            camera: Camera, velocity: NDArray[np.float64]
+        ) -> tuple[list[int], list[int], dict[str, int]] | None:
+            return self.areas(camera, velocity, radii)
+
+        return areas
+
+    def areas(
+        self, camera: Camera, velocity: NDArray[np.float64], radii: RadiiOptions
+    ) -> tuple[list[int], list[int], dict[str, int]] | None:
+        """The memory and cache areas around ``camera`` moving at ``velocity``
+        (``lod.radii``), as keys to prefetch (None: the camera cannot be)."""
+        try:
+            cam = self.fit(camera)
+        except CameraError:
+            return None
+        ground = None if self.ground is None else self.ground(cam.lon, cam.lat)
+        floor = self.tree.height_range[0] if ground is None else ground
+        assert cam.far is not None
+        r = radii_for(cam.position, cam.forward, velocity, cam.alt - floor, cam.far, radii)
+        return self.view.areas(cam, r)
 
 
 class _StandsOnTerrain:

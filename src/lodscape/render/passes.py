@@ -3,6 +3,7 @@ layer that draws into it."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -17,6 +18,7 @@ from lodscape.render._context import is_software
 from lodscape.render.city_pass import CityPass
 from lodscape.render.globe_pass import GlobePass
 from lodscape.render.terrain_pass import Renderer
+from lodscape.render.tess_pass import MAX_OVERLAYS, TessellationUnavailable
 
 __all__ = [
     "CityDrawPass",
@@ -25,9 +27,53 @@ __all__ = [
     "GlobeImageryPass",
     "RendererTarget",
     "TerrainPass",
+    "make_renderer",
 ]
 
 Rgb = tuple[float, float, float]
+
+
+def make_renderer(
+    camera: Camera,
+    *,
+    ctx: moderngl.Context | None,
+    terrain_mode: str,
+    tess_px: float,
+    layers: int,
+    earth: tuple[float, float, float, float] | None,
+    **options: Any,
+) -> tuple[Renderer, str | None]:
+    """A scene's renderer: in ``terrain_mode`` where the GL has tessellation (else the CPU
+    mode, and the note that says why), drawing at most ``MAX_OVERLAYS`` of ``layers`` imagery
+    layers (more are refused by the frame that carries them), the Blue Marble on its ellipsoid
+    outside the ``earth`` box (west, south, east, north) where installed; ``options`` are the
+    ``Renderer``'s. A texture compression the GL cannot do is said on stderr."""
+    from lodscape.imagery.layers import warn_stderr
+
+    common = {"ctx": ctx, "layers": min(layers, MAX_OVERLAYS), **options}
+    note = None
+    try:
+        renderer = Renderer(
+            camera.width, camera.height, terrain_mode=terrain_mode, tess_px=tess_px, **common
+        )
+    except TessellationUnavailable as exc:
+        note = f"{exc}; drawing in the CPU terrain mode"
+        renderer = Renderer(camera.width, camera.height, **common)
+    if renderer.compress_note is not None:
+        warn_stderr(renderer.compress_note)
+    if renderer.ellipsoid and earth is not None:
+        renderer.set_earth(_blue_marble(), earth)
+    return renderer, note
+
+
+@functools.cache
+def _blue_marble() -> NDArray[np.uint8] | None:
+    """NASA's Blue Marble for the world outside the data, read once a process (None: not
+    installed; the ellipsoid stays grey)."""
+    from lodscape.imagery.globe import earth_image
+
+    image, notice = earth_image()
+    return None if notice is not None else image
 
 
 class RendererTarget:
