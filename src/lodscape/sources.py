@@ -186,7 +186,47 @@ def open(
             city_options=city_options,
             **array_kwargs,
         )
-    specs = _imagery_specs(imagery)
+    opts = options or SceneOptions()
+    provider, owns, town = _assemble(
+        source,
+        opts,
+        detail,
+        landcover,
+        _imagery_specs(imagery),
+        (imagery_cache, imagery_maxzoom, imagery_bands),
+        city,
+        (fill, sea_level, band, nodata, z_units),
+        array_kwargs,
+    )
+    scene = Scene(provider, options, owns=owns, clock=clock)
+    try:
+        stored = provider.city()
+        if stored is not None and town is not None:
+            stored = stored.merged(town)
+        if stored is not None or town is not None:
+            scene.add_city(stored if stored is not None else town, city_options)
+    except BaseException:
+        scene.close()
+        raise
+    return scene
+
+
+def _assemble(
+    source: Any,
+    opts: SceneOptions,
+    detail: Fractal | None,
+    landcover: Any,
+    specs: list[str],
+    imagery: tuple[Any, int | None, Any],
+    city: Any,
+    ground_args: tuple[Any, float | None, int | None, float | None, str | None],
+    array_kwargs: dict[str, Any],
+) -> tuple[Provider, bool, Any]:
+    """``open``'s provider: SOURCE's terrain (a tileset, a raster, an array, the procedural
+    planet, level ground), with its land cover or its imagery layers; whether the scene owns
+    it; the city read (None: none)."""
+    imagery_cache, imagery_maxzoom, imagery_bands = imagery
+    fill, sea_level, band, nodata, z_units = ground_args
     if landcover is not None and specs:
         raise LodscapeError("imagery and a land cover both colour the ground: pick one")
     town = _read_city(city)
@@ -214,7 +254,6 @@ def open(
     ground = _Ground(
         fill if isinstance(fill, Fill) else parse_fill(fill), sea_level, band, nodata, z_units
     )
-    opts = options or SceneOptions()
     layers = _open_layers(
         specs,
         imagery_cache,
@@ -252,17 +291,7 @@ def open(
         if owns:
             provider.close()
         raise
-    scene = Scene(provider, options, owns=owns, clock=clock)
-    try:
-        stored = provider.city()
-        if stored is not None and town is not None:
-            stored = stored.merged(town)
-        if stored is not None or town is not None:
-            scene.add_city(stored if stored is not None else town, city_options)
-    except BaseException:
-        scene.close()
-        raise
-    return scene
+    return provider, owns, town
 
 
 def _open_globe(

@@ -292,39 +292,8 @@ class CityPass:
         self._models: dict[tuple[str, str], tuple[moderngl.VertexArray, int]] = {}
         #: Per street-object kind, its instances' storage buffer (the buffers' path).
         self._instances: dict[str, moderngl.Buffer] = {}
-        for kind, inst in model.instances.items():
-            if not len(inst):
-                continue
-            ibuf = self._keep(ctx.buffer(np.ascontiguousarray(inst, np.float32).tobytes()))
-            self._instances[kind] = ibuf
-            for mat, geo in MODELS[kind].items():
-                vbo = self._keep(ctx.buffer(geo.vertices().tobytes()))
-                ibo = self._keep(ctx.buffer(geo.triangles.tobytes()))
-                layout: list[Any] = [(vbo, "3f 3f 2f", "in_pos", "in_normal", "in_uv")]
-                if not self.buffers:
-                    layout.append((ibuf, "4f 1f/i", "in_inst", "in_heading"))
-                vao = self._keep(ctx.vertex_array(iprog, layout, ibo, 4))
-                self._models[(kind, mat)] = (vao, len(geo.triangles))
-                self._buffers[(kind, mat)] = (vbo, ibo, ibuf)
-        # materials: one texture array, a layer each (deduplicated by name), mipmapped
-        names = sorted({mat for _, mat in model.geometry} | {mat for _, mat in self._models}) or [
-            "plaster"
-        ]
-        self._layer = {name: i for i, name in enumerate(names)}
-        texels = layers(names)
-        size = texels.shape[1]
-        if compress:  # the facade and roof atlas block-compressed (BC3), its mips made here
-            from lodscape.imagery.compress import compress as compress_image
-            from lodscape.render._compressed import texture_array
-
-            tex = self._keep(texture_array(ctx, [compress_image(t) for t in texels]))
-        else:
-            tex = self._keep(ctx.texture_array((size, size, len(names)), 4, texels.tobytes()))
-            tex.build_mipmaps()
-            tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-        tex.repeat_x = tex.repeat_y = True
-        tex.anisotropy = anisotropy
-        self._materials = tex
+        self._upload_instances(iprog)
+        self._materials = self._material_atlas(compress, anisotropy)
         bprog = self._keep(
             ctx.program(
                 vertex_shader=_variant(_BOX_VERTEX, *blocks),
@@ -358,6 +327,46 @@ class CityPass:
         #: variants of the programs and their vertex arrays, swapped in by ``use_labels``.
         self.labels = False
         self._other: tuple[Any, Any, dict[Any, Any], dict[Any, Any]] | None = None
+
+    def _upload_instances(self, iprog: Any) -> None:
+        """The street objects: per kind its instances, per material its model's buffers."""
+        ctx = self.ctx
+        for kind, inst in self.model.instances.items():
+            if not len(inst):
+                continue
+            ibuf = self._keep(ctx.buffer(np.ascontiguousarray(inst, np.float32).tobytes()))
+            self._instances[kind] = ibuf
+            for mat, geo in MODELS[kind].items():
+                vbo = self._keep(ctx.buffer(geo.vertices().tobytes()))
+                ibo = self._keep(ctx.buffer(geo.triangles.tobytes()))
+                layout: list[Any] = [(vbo, "3f 3f 2f", "in_pos", "in_normal", "in_uv")]
+                if not self.buffers:
+                    layout.append((ibuf, "4f 1f/i", "in_inst", "in_heading"))
+                vao = self._keep(ctx.vertex_array(iprog, layout, ibo, 4))
+                self._models[(kind, mat)] = (vao, len(geo.triangles))
+                self._buffers[(kind, mat)] = (vbo, ibo, ibuf)
+
+    def _material_atlas(self, compress: bool, anisotropy: float) -> Any:
+        """The materials the city's meshes and street objects use, as one texture array."""
+        ctx = self.ctx
+        # materials: one texture array, a layer each (deduplicated by name), mipmapped
+        found = {m for _, m in self.model.geometry} | {m for _, m in self._models}
+        names = sorted(found) or ["plaster"]
+        self._layer = {name: i for i, name in enumerate(names)}
+        texels = layers(names)
+        size = texels.shape[1]
+        if compress:  # the facade and roof atlas block-compressed (BC3), its mips made here
+            from lodscape.imagery.compress import compress as compress_image
+            from lodscape.render._compressed import texture_array
+
+            tex = self._keep(texture_array(ctx, [compress_image(t) for t in texels]))
+        else:
+            tex = self._keep(ctx.texture_array((size, size, len(names)), 4, texels.tobytes()))
+            tex.build_mipmaps()
+            tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        tex.repeat_x = tex.repeat_y = True
+        tex.anisotropy = anisotropy
+        return tex
 
     def reset(self) -> None:
         """Forget last frame's visibility (occlusion culling starts from nothing seen)."""

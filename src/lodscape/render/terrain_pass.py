@@ -475,21 +475,8 @@ class Renderer:
         #: The Earth's image on the ellipsoid (``set_earth``; None: the no-data grey).
         self._earth: moderngl.Texture | None = None
         self._data_box = np.zeros(4, np.float32)
-        self._materials: moderngl.TextureArray | None = None
-        if ground == "landcover":
-            from lodscape.imagery.landcover import ground_layers
-
-            stack = ground_layers()
-            mats = self._track(
-                self.ctx.texture_array(
-                    (stack.shape[2], stack.shape[1], stack.shape[0]), 4, stack.tobytes()
-                )
-            )
-            mats.build_mipmaps()
-            mats.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-            mats.repeat_x = mats.repeat_y = True
-            self._materials = mats
-            self._uniform("u_ground_materials").value = 4
+        #: The ground materials a land-cover mask is coloured from.
+        self._materials = self._ground_materials() if ground == "landcover" else None
         # 1 turns it off. On a software rasteriser (llvmpipe) anisotropic filtering triples the
         # cost of a frame and takes minutes at a grazing view over a magnified texture: off there
         cap = 1.0 if is_software(self.ctx) else float(self.ctx.max_anisotropy)
@@ -505,6 +492,19 @@ class Renderer:
             self._classes = CLASSES
         #: "gpu": tiles are height textures tessellated in hardware (``render.tess_pass``).
         self.terrain_mode = terrain_mode
+        self._init_read_back()
+        #: Imagery textures go to the GPU block-compressed (BC1 RGB, BC3 RGBA; compressed on
+        #: the workers in ``prepare``) where the context takes S3TC; asked for where it does
+        #: not, textures stay uncompressed and ``compress_note`` says why.
+        self.compress, self.compress_note = self._compression(compress and ground == "imagery")
+        self._tess: TessTerrain | None = None
+        self._gpu_tiles: dict[int, _GpuTile] = {}
+        if terrain_mode == "gpu":
+            self._tess = TessTerrain(self.ctx, fragment)
+            self._tess.px_per_segment = float(tess_px)
+
+    def _init_read_back(self) -> None:
+        """How frames come back, and the viewer's switches."""
         #: False: ``draw`` leaves the picture in ``framebuffer`` and returns empty arrays.
         self.read_back = True
         #: False: ``draw`` reads the picture only, and returns an empty (0, 0) distance.
@@ -523,25 +523,35 @@ class Renderer:
         self.wireframe = False
         #: Tint each tile by its level (the viewer's LOD colouring key).
         self.lod_colours = False
-        #: Imagery textures go to the GPU block-compressed (BC1 RGB, BC3 RGBA; compressed on
-        #: the workers in ``prepare``) where the context takes S3TC; asked for where it does
-        #: not, textures stay uncompressed and ``compress_note`` says why.
-        self.compress = False
-        self.compress_note: str | None = None
-        if compress and ground == "imagery":
-            from lodscape.render._compressed import has_s3tc
 
-            self.compress = has_s3tc(self.ctx)
-            if not self.compress:
-                self.compress_note = (
-                    "texture compression: this OpenGL has no S3TC (BC1/BC3) textures; "
-                    "textures stay uncompressed"
-                )
-        self._tess: TessTerrain | None = None
-        self._gpu_tiles: dict[int, _GpuTile] = {}
-        if terrain_mode == "gpu":
-            self._tess = TessTerrain(self.ctx, fragment)
-            self._tess.px_per_segment = float(tess_px)
+    def _ground_materials(self) -> moderngl.TextureArray:
+        """The land-cover classes' materials, one mipmapped layer each, on unit 4."""
+        from lodscape.imagery.landcover import ground_layers
+
+        stack = ground_layers()
+        mats = self._track(
+            self.ctx.texture_array(
+                (stack.shape[2], stack.shape[1], stack.shape[0]), 4, stack.tobytes()
+            )
+        )
+        mats.build_mipmaps()
+        mats.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        mats.repeat_x = mats.repeat_y = True
+        self._uniform("u_ground_materials").value = 4
+        return mats
+
+    def _compression(self, asked: bool) -> tuple[bool, str | None]:
+        """Whether textures go block-compressed, and why not where asked for and refused."""
+        if not asked:
+            return False, None
+        from lodscape.render._compressed import has_s3tc
+
+        if has_s3tc(self.ctx):
+            return True, None
+        return False, (
+            "texture compression: this OpenGL has no S3TC (BC1/BC3) textures; textures stay "
+            "uncompressed"
+        )
 
     @property
     def framebuffer(self) -> moderngl.Framebuffer | None:
