@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from lodscape._tmp import temp_beside
 from lodscape.errors import LodscapeError
+from lodscape.frame.globe import GlobeOptions
 from lodscape.geo.tiles import ORIGIN, merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import SelectOptions
@@ -90,6 +91,8 @@ def _roll(value: float | None) -> float | None:
 
 
 SizeOpt = Annotated[str, typer.Option("--size", help="Viewport WIDTHxHEIGHT in pixels.")]
+FovOpt = Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")]
+HeadingOpt = Annotated[float, typer.Option(callback=_finite, help="Degrees clockwise from north.")]
 OutOpt = Annotated[Path, typer.Option("-o", "--output", help="Image to write (.png, .jpg, .tif).")]
 SseOpt = Annotated[float, typer.Option("--max-sse", help="Screen-space error bound, pixels.")]
 CameraFileOpt = Annotated[
@@ -392,6 +395,10 @@ class TerrainFlags:
         scene: Scene = open_scene(source, options, clock=clock, **self.open_kwargs(source, detail))
         return scene
 
+    def inputs(self) -> dict[str, Any]:
+        """The files the flags read (what no output may overwrite), by flag."""
+        return {"--city": self.city, "--imagery": self.imagery, "--landcover": self.landcover}
+
     def open_kwargs(self, source: str, detail: Fractal | bool | None = True) -> dict[str, Any]:
         """``lodscape.open``'s keywords for SOURCE from the flags."""
         cover = _landcover(self.ground, self.landcover, self.city)
@@ -593,7 +600,12 @@ def _check_outputs(image: Path, depth: Path | None) -> None:
         raise LodscapeError(
             f"{depth}: depth is written as .npy or .tif, not {depth.suffix or '(none)'}"
         )
-    for path in (image, depth):
+    _folders_exist(image, depth)
+
+
+def _folders_exist(*paths: Path | None) -> None:
+    """Refuse an output whose folder does not exist."""
+    for path in paths:
         if path is None:
             continue
         folder = path.expanduser().parent
@@ -665,9 +677,7 @@ def render(
             help="Camera altitude, metres above sea level (the WGS84 ellipsoid: no geoid).",
         ),
     ] = None,
-    heading: Annotated[
-        float, typer.Option(callback=_finite, help="Degrees clockwise from north.")
-    ] = 0.0,
+    heading: HeadingOpt = 0.0,
     pitch: Annotated[
         float | None,
         typer.Option(
@@ -677,7 +687,7 @@ def render(
     roll: Annotated[
         float | None, typer.Option(callback=_roll, help="Degrees; banks right (with a position).")
     ] = None,
-    fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 60.0,
+    fov: FovOpt = 60.0,
     size: SizeOpt = "1280x720",
     depth: Annotated[
         Path | None,
@@ -722,94 +732,123 @@ def render(
     --poses and --dataset, a vision dataset of many views."""
     w, h = _size(size)
     if poses is not None or dataset is not None or origin is not None:
-        if poses is None or dataset is None:
-            raise LodscapeError("--poses and --dataset go together (--origin needs both)")
-        given = [
-            flag
-            for flag, v in (
-                ("--lon", lon),
-                ("--lat", lat),
-                ("--alt", alt),
-                ("--camera", camera_file),
-                ("--depth", depth),
-            )
-            if v is not None
-        ]
-        if given or globe:
-            raise LodscapeError(
-                f"a dataset's cameras come from --poses: drop {', '.join(given) or '--globe'}"
-            )
-        _render_dataset(source, poses, dataset, origin, w, h, fov, quiet, terrain)
+        given = {
+            "--lon": lon,
+            "--lat": lat,
+            "--alt": alt,
+            "--camera": camera_file,
+            "--depth": depth,
+        }
+        _render_dataset(
+            source, *_dataset_alone(poses, dataset, given, globe), origin, w, h, fov, quiet, terrain
+        )
         return
     _check_outputs(output, depth)
-    _outputs_apart(
-        {"-o": output, "--depth": depth},
-        {
-            "SOURCE": source,
-            "--camera": camera_file,
-            "--city": terrain.city,
-            "--imagery": terrain.imagery,
-            "--landcover": terrain.landcover,
-        },
-    )
-    if lon is None and lat is None and alt is None and (pitch is not None or roll is not None):
+    inputs = {"SOURCE": source, "--camera": camera_file, **terrain.inputs()}
+    _outputs_apart({"-o": output, "--depth": depth}, inputs)
+    pose = _pose(lon, lat, alt, pitch is not None or roll is not None, camera_file)
+    look = (heading, _or(pitch, -30.0), _or(roll, 0.0))
+    if globe:
+        _render_globe_view(
+            source, output, depth, quiet, terrain, camera_file, pose, look, w, h, fov
+        )
+        return
+    with terrain.open(source, terrain.options()) as scene:
+        camera = _scene_camera(scene, camera_file, pose, look, w, h, fov)
+        _render(scene, camera, output, depth, quiet)
+
+
+def _pose(
+    lon: float | None,
+    lat: float | None,
+    alt: float | None,
+    turned: bool,
+    camera_file: Path | None,
+) -> tuple[float, float, float] | None:
+    """--lon/--lat/--alt, all or none (None), apart from --camera; --pitch and --roll
+    (``turned``) only with them."""
+    if lon is None and lat is None and alt is None and turned:
         raise LodscapeError(
             "--pitch and --roll need --lon/--lat/--alt: without a position the camera is "
             "fitted to the view (or read from --camera)"
         )
-    if globe:
-        if camera_file is not None and (lon is not None or lat is not None or alt is not None):
-            raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
-        if (lon is None) != (lat is None) or (lon is None) != (alt is None):
+    if camera_file is not None and (lon is not None or lat is not None or alt is not None):
+        raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
+    if lon is None or lat is None or alt is None:
+        if lon is not None or lat is not None or alt is not None:
             raise LodscapeError("give all of --lon, --lat and --alt, or none of them")
-        from lodscape.globe import GlobeOptions
+        return None
+    return (lon, lat, alt)
 
-        try:
-            globe_options = GlobeOptions(max_sse=terrain.max_sse)
-        except ValueError as exc:
-            raise LodscapeError(f"bad option: {exc}") from None
-        pose = (
-            None
-            if lon is None or lat is None or alt is None
-            else (lon, lat, alt, heading, _or(pitch, -30.0), _or(roll, 0.0))
-        )
-        _render_globe(
-            source,
-            globe_options,
-            output,
-            depth,
-            quiet,
-            lambda terrain: _globe_camera(terrain, camera_file, pose, w, h, fov),
-            terrain,
-        )
-        return
-    with terrain.open(source, terrain.options()) as scene:
-        if camera_file is not None:
-            if lon is not None or lat is not None or alt is not None:
-                raise LodscapeError("give --camera or --lon/--lat/--alt, not both")
-            from lodscape.view import load_camera
 
-            camera = load_camera(camera_file, w, h)
-        elif lon is None and lat is None and alt is None and scene.city is not None:
-            camera = scene.city_camera(w, h, fov)
-        elif lon is None and lat is None and alt is None:
-            camera = scene.overview_camera(w, h, fov)
-            camera = camera.moved(heading=camera.heading if heading == 0.0 else heading)
-        else:
-            if lon is None or lat is None or alt is None:
-                raise LodscapeError("give all of --lon, --lat and --alt, or none of them")
-            camera = Camera(
-                lon,
-                lat,
-                alt,
-                heading=heading,
-                pitch=_or(pitch, -30.0),
-                roll=_or(roll, 0.0),
-                fov_y=fov,
-                width=w,
-                height=h,
-            )
-        _render(scene, camera, output, depth, quiet)
+def _dataset_alone(
+    poses: Path | None, dataset: Path | None, given: dict[str, Any], globe: bool
+) -> tuple[Path, Path]:
+    """--poses and --dataset: a dataset's cameras come from --poses alone."""
+    if poses is None or dataset is None:
+        raise LodscapeError("--poses and --dataset go together (--origin needs both)")
+    flags = [flag for flag, v in given.items() if v is not None]
+    if flags or globe:
+        raise LodscapeError(
+            f"a dataset's cameras come from --poses: drop {', '.join(flags) or '--globe'}"
+        )
+    return poses, dataset
+
+
+def _scene_camera(
+    scene: Scene,
+    camera_file: Path | None,
+    pose: tuple[float, float, float] | None,
+    look: tuple[float, float, float],
+    w: int,
+    h: int,
+    fov: float,
+) -> Camera:
+    """``render``'s camera: from the camera file, at POSE (lon, lat, alt) looking as LOOK
+    (heading, pitch, roll) says, or the city's or the overview (its heading, if given)."""
+    if camera_file is not None:
+        from lodscape.view import load_camera
+
+        return load_camera(camera_file, w, h)
+    if pose is None and scene.city is not None:
+        return scene.city_camera(w, h, fov)
+    if pose is None:
+        camera = scene.overview_camera(w, h, fov)
+        return camera.moved(heading=camera.heading if look[0] == 0.0 else look[0])
+    heading, pitch, roll = look
+    return Camera(*pose, heading=heading, pitch=pitch, roll=roll, fov_y=fov, width=w, height=h)
+
+
+def _render_globe_view(
+    source: str,
+    output: Path,
+    depth: Path | None,
+    quiet: bool,
+    terrain: TerrainFlags,
+    camera_file: Path | None,
+    pose: tuple[float, float, float] | None,
+    look: tuple[float, float, float],
+    w: int,
+    h: int,
+    fov: float,
+) -> None:
+    """``render --globe``: the globe over SOURCE from the camera file, POSE or the default."""
+    from lodscape.globe import GlobeOptions
+
+    try:
+        globe_options = GlobeOptions(max_sse=terrain.max_sse)
+    except ValueError as exc:
+        raise LodscapeError(f"bad option: {exc}") from None
+    full = None if pose is None else (*pose, *look)
+    _render_globe(
+        source,
+        globe_options,
+        output,
+        depth,
+        quiet,
+        lambda scene: _globe_camera(scene, camera_file, full, w, h, fov),
+        terrain,
+    )
 
 
 def _outputs_apart(outputs: dict[str, Any], inputs: dict[str, Any]) -> None:
@@ -916,7 +955,7 @@ def fly(
     pitch: Annotated[
         float, typer.Option(callback=_pitch, help="Degrees; negative looks down.")
     ] = -15.0,
-    fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 60.0,
+    fov: FovOpt = 60.0,
     size: SizeOpt = "1280x720",
     duration: Annotated[
         float | None, typer.Option(callback=_finite, help="Stop after this many seconds.")
@@ -959,38 +998,15 @@ def fly(
         raise LodscapeError(f"--duration must be a positive number of seconds, got {duration}")
     if not speed > 0.0:
         raise LodscapeError(f"--speed must be a positive number of metres per second, got {speed}")
-    for target in (output, stats):
-        if target is not None and not (target.parent if str(target.parent) else Path(".")).is_dir():
-            raise LodscapeError(f"{target}: folder {target.parent} does not exist")
-    _outputs_apart(
-        {"-o": output, "--stats": stats},
-        {"SOURCE": source, "--path": path, "--city": terrain.city, "--imagery": terrain.imagery},
-    )
-    given = [p for p in (path, orbit, line) if p is not None]
-    if len(given) != 1:
-        raise LodscapeError("give one of --path, --orbit or --line")
-    if path is not None:
-        route = flight.read_route(path, speed)
-    elif orbit is not None:
-        lon, lat, radius, alt = _numbers(orbit, 4, "--orbit LON,LAT,RADIUS,ALT")
-        route = flight.orbit_route(lon, lat, radius, alt, speed)
-    else:
-        assert line is not None
-        lon1, lat1, lon2, lat2, alt = _numbers(line, 5, "--line LON1,LAT1,LON2,LAT2,ALT")
-        route = flight.line_route(lon1, lat1, lon2, lat2, alt, speed)
+    _folders_exist(output, stats)
+    inputs = {"SOURCE": source, "--path": path, **terrain.inputs()}
+    _outputs_apart({"-o": output, "--stats": stats}, inputs)
+    route = _route(path, orbit, line, speed)
     options = terrain.options(budget_mb)
     cams = list(flight.cameras(route, fps, w, h, pitch=pitch, fov=fov, duration=duration))
-    subject: Any
     if globe:
-        from lodscape.globe import GlobeOptions
-
-        subject = _globe(
-            source,
-            GlobeOptions(max_sse=terrain.max_sse, background=(0.0, 0.0, 0.0)),
-            terrain,
-            options,
-            clock=SimClock(),
-        )
+        space = GlobeOptions(max_sse=terrain.max_sse, background=(0.0, 0.0, 0.0))
+        subject: Any = _globe(source, space, terrain, options, clock=SimClock())
     else:
         subject = terrain.open(source, options, clock=SimClock())
     columns = (TextColumn("[bold]flying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
@@ -1014,6 +1030,23 @@ def fly(
                 f"to {max(r['max_level'] for r in flown)}"
             )
         typer.echo(line)
+
+
+def _route(path: Path | None, orbit: str | None, line: str | None, speed: float) -> Any:
+    """The flight's route: a file (GeoJSON, CSV, KML, GPX), an orbit or a line."""
+    from lodscape import flight
+
+    given = [p for p in (path, orbit, line) if p is not None]
+    if len(given) != 1:
+        raise LodscapeError("give one of --path, --orbit or --line")
+    if path is not None:
+        return flight.read_route(path, speed)
+    if orbit is not None:
+        lon, lat, radius, alt = _numbers(orbit, 4, "--orbit LON,LAT,RADIUS,ALT")
+        return flight.orbit_route(lon, lat, radius, alt, speed)
+    assert line is not None
+    lon1, lat1, lon2, lat2, alt = _numbers(line, 5, "--line LON1,LAT1,LON2,LAT2,ALT")
+    return flight.line_route(lon1, lat1, lon2, lat2, alt, speed)
 
 
 def _flight_summary(output: Path, rows: Sequence[dict[str, float]], fps: float) -> str:
@@ -1197,6 +1230,50 @@ def info(
                 )
 
 
+class _TileRate:
+    """A build's progress bar: tiles done of planned, the rate since the first report, ETA."""
+
+    def __init__(self, quiet: bool) -> None:
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        self.bar = Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[rate]} tiles/s"),
+            TimeElapsedColumn(),
+            TextColumn("ETA"),
+            TimeRemainingColumn(),
+            disable=quiet,
+            transient=False,
+        )
+        self.start: tuple[float, int] | None = None
+
+    def __enter__(self) -> _TileRate:
+        self.bar.__enter__()
+        self.task = self.bar.add_task("building", total=None, rate="-")
+        return self
+
+    def __call__(self, done: int, total: int) -> None:
+        import time
+
+        now = time.monotonic()
+        if self.start is None:
+            self.start = (now, done)
+        rate = (done - self.start[1]) / max(now - self.start[0], 1e-9)
+        self.bar.update(self.task, completed=done, total=total, rate=f"{rate:.1f}")
+
+    def __exit__(self, *exc: object) -> None:
+        self.bar.__exit__(None, None, None)
+
+
 @app.command()
 def build(
     inputs: Annotated[
@@ -1257,15 +1334,6 @@ def build(
 ) -> None:
     """Build a tileset from INPUTS once, to render, fly or serve it anywhere. Run it again after
     an interruption: it finishes without redoing what is done."""
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
     from lodscape.build import BuildOptions, executor_for
     from lodscape.build import build as build_tileset
 
@@ -1286,29 +1354,8 @@ def build(
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None
     executor = executor_for(workers, scheduler)
-    columns = (
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[rate]} tiles/s"),
-        TimeElapsedColumn(),
-        TextColumn("ETA"),
-        TimeRemainingColumn(),
-    )
-    start: list[float] = []
     try:
-        with Progress(*columns, disable=quiet, transient=False) as bar:
-            task = bar.add_task("building", total=None, rate="-")
-
-            def progress(done: int, total: int) -> None:
-                import time
-
-                now = time.monotonic()
-                if not start:
-                    start.extend([now, done])
-                rate = (done - start[1]) / max(now - start[0], 1e-9)
-                bar.update(task, completed=done, total=total, rate=f"{rate:.1f}")
-
+        with _TileRate(quiet) as progress:
             report = build_tileset(inputs, output, options, executor=executor, progress=progress)
     finally:
         executor.close()
@@ -1376,7 +1423,7 @@ def view(
         Path, typer.Option(help="Folder the P key writes screenshots into.")
     ] = Path("."),
     size: SizeOpt = "1280x720",
-    fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 60.0,
+    fov: FovOpt = 60.0,
     budget_mb: BudgetOpt = BUDGET_MB,
     exit_after: Annotated[
         float | None,
@@ -1483,13 +1530,11 @@ def globe(
             help="Camera altitude, metres above sea level (the WGS84 ellipsoid: no geoid).",
         ),
     ] = 2.0e7,
-    heading: Annotated[
-        float, typer.Option(callback=_finite, help="Degrees clockwise from north.")
-    ] = 0.0,
+    heading: HeadingOpt = 0.0,
     pitch: Annotated[
         float, typer.Option(callback=_pitch, help="Degrees; negative looks down.")
     ] = -90.0,
-    fov: Annotated[float, typer.Option(callback=_finite, help="Vertical field of view, °.")] = 45.0,
+    fov: FovOpt = 45.0,
     size: SizeOpt = "1024x768",
     output: OutOpt = Path("globe.png"),
     mode: Annotated[
