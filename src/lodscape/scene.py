@@ -43,17 +43,6 @@ __all__ = ["Capture", "FrameStats", "Picture", "Scene", "SceneOptions"]
 SKY = (0.62, 0.75, 0.88)
 
 
-def _over_network(provider: Any) -> bool:
-    """Whether a provider (or the one it wraps) fetches every key over the network."""
-    for _ in range(8):
-        if getattr(provider, "network", False):
-            return True
-        provider = getattr(provider, "base", None)
-        if provider is None:
-            return False
-    return False
-
-
 def _everything(key: int) -> bool:
     return True
 
@@ -367,7 +356,7 @@ class Scene:
                 optional=is_overlay if self.provider.layers else None,
                 imagery_wait=opts.imagery_timeout,
                 areas=self._terrain.areas_within(opts.stream.radii if opts.stream else None),
-                remote=_everything if _over_network(self.provider) else None,
+                remote=_everything if self.provider.network else None,
             )
         return self._loader
 

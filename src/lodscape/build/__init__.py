@@ -166,22 +166,22 @@ def build(
         height_range = _height_range(source)
         imagery_zmax = _imagery_zmax(options.imagery, span.texture_zmax)
         job = Job(
-            tuple(os.path.abspath(p) for p in rasters),
-            options.allow_mixed_crs,
-            options.tile_size,
-            options.error_texels,
-            span.texture_zmax,
-            height_range,
-            source.resolution_merc,
-            span.zmax,
-            tuple(os.path.abspath(p) for p in options.imagery),
-            imagery_zmax,
-            options.fill,
-            options.sea_level,
-            options.band,
-            options.nodata,
-            options.mesher,
-            options.z_units,
+            inputs=tuple(os.path.abspath(p) for p in rasters),
+            allow_mixed_crs=options.allow_mixed_crs,
+            tile_size=options.tile_size,
+            error_texels=options.error_texels,
+            texture_zmax=span.texture_zmax,
+            height_range=height_range,
+            resolution=source.resolution_merc,
+            zmax=span.zmax,
+            imagery=tuple(os.path.abspath(p) for p in options.imagery),
+            imagery_zmax=imagery_zmax,
+            fill=options.fill,
+            sea_level=options.sea_level,
+            band=options.band,
+            nodata=options.nodata,
+            mesher=options.mesher,
+            z_units=options.z_units,
         )
         plan = _plan(source, span.zmin, max(span.zmax, imagery_zmax))
         manifest = _manifest(source, options, inputs, span, height_range, imagery_zmax)

@@ -30,7 +30,7 @@ from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, pa
 __all__ = ["Job", "level_budget", "make_tile", "make_tiles", "tile_budget"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Job:
     """Everything a tile task needs besides its tile; small and picklable."""
 

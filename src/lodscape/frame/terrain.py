@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 from lodscape.errors import CameraError
 from lodscape.lod.camera import Camera
 from lodscape.lod.radii import RadiiOptions, radii_for
+from lodscape.lod.select import LearnsFromLoads, MadeOnDemand
 from lodscape.lod.view import DrawItem, FramePlan, TerrainView
 from lodscape.stream.loader import Areas, Loader, LoadReport
 
@@ -71,17 +72,16 @@ class TerrainLayer:
     def plan(self, camera: Camera, resident: NDArray[np.uint64], *, blocking: bool) -> FramePlan:
         cam = self.fit(camera)
         tree = self.tree
-        self._epoch = getattr(tree, "epoch", None)
-        if hasattr(tree, "wait"):
-            # a tree made on demand: a whole picture waits for the statistics it needs, a
-            # streamed frame does not
+        self._epoch = tree.epoch if isinstance(tree, LearnsFromLoads) else None
+        if isinstance(tree, MadeOnDemand):
+            # a whole picture waits for the statistics it needs, a streamed frame does not
             tree.wait = blocking
         self.last = self.view.update(cam, resident, blocking=blocking)
         return self.last
 
     def learned(self) -> bool:
         # a tree that learns as tiles come (a server's): a level deeper a round
-        return self._epoch is not None and getattr(self.tree, "epoch", None) != self._epoch
+        return self._epoch is not None and self.tree.epoch != self._epoch
 
     def draws(self, report: LoadReport, loader: Loader) -> TerrainDraws:
         plan = self.last

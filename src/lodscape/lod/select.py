@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -57,7 +57,9 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.region import region_view
 
 __all__ = [
+    "LearnsFromLoads",
     "LevelLike",
+    "MadeOnDemand",
     "SelectOptions",
     "Selection",
     "TileStats",
@@ -138,6 +140,26 @@ class TreeLike(Protocol):
     def level(self, z: int) -> LevelLike: ...
 
     def roots(self) -> tuple[I64, I64]: ...
+
+
+@runtime_checkable
+class MadeOnDemand(Protocol):
+    """A tree whose statistics are made as selections reach them (``terrain.lazy.LazyTree``):
+    a tile splits only where ``ready`` says its children's are known; ``wait`` says whether
+    the selection waits for them (a whole picture) or asks and draws the tile whole (a
+    streamed frame)."""
+
+    wait: bool
+
+    def ready(self, z: int, x: I64, y: I64) -> NDArray[np.bool_]: ...
+
+
+@runtime_checkable
+class LearnsFromLoads(Protocol):
+    """A tree that learns as its tiles come (a terrain server's: a tile's heights are known
+    once its mesh is): ``epoch`` grows with each lesson, and a blocking frame selects again."""
+
+    epoch: int
 
 
 @dataclass(frozen=True)
@@ -438,7 +460,7 @@ def select(
                 if z < ztex:
                     hold = _children_hold(options, camera, tree, z, x[was], y[was])
                 refine[was] = rough | hold
-        ready = getattr(tree, "ready", None)
+        ready = tree.ready if isinstance(tree, MadeOnDemand) else None
         if ready is not None and can and refine.any():
             # a tree made on demand splits where its children's statistics are known (the rest
             # are asked for and drawn whole meanwhile, as a tile whose children have not loaded)

@@ -46,6 +46,9 @@ class Provider(Protocol):
     #: Imagery layers over the terrain's own texture (``imagery.layers.ImageryLayer``), bottom
     #: to top; their tiles are texture keys of layers 1.. (``geo.keys``).
     layers: tuple[Any, ...]
+    #: Every key comes over the network (a terrain server): the streamer fetches them on its
+    #: network threads, so a slow server never holds the meshing workers.
+    network: bool
 
     @property
     def texture_levels(self) -> tuple[int, ...]:
@@ -126,6 +129,7 @@ class RasterProvider:
 
     textures = "imagery"
     layers: tuple[Any, ...] = ()
+    network = False
 
     def __init__(
         self, source: HeightSource, tree: Any = None, *, sea_level: float | None = 0.0
@@ -245,6 +249,7 @@ class _Retextured:
         self.tree = base.tree
         self.bounds_merc = base.bounds_merc
         self.layers: tuple[Any, ...] = tuple(base.layers)
+        self.network = base.network
 
     @property
     def texture_levels(self) -> tuple[int, ...]:

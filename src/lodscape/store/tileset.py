@@ -344,6 +344,7 @@ class TilesetProvider:
 
     textures = "imagery"
     layers: tuple[Any, ...] = ()
+    network = False
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)

@@ -1313,11 +1313,15 @@ class FilledSource:
     def close(self) -> None:
         self.source.close()
 
+    #: What a raster source knows beyond its heights, asked for where it is there (the sea
+    #: stored as its level, the data's range, its shares of data and voids): forwarded; no
+    #: other name is.
+    FORWARDED = frozenset({"sea_at", "data_range", "valid_share", "void_share"})
+
     def __getattr__(self, name: str) -> Any:
-        if name == "source":  # not set yet (unpickling): no recursion
-            raise AttributeError(name)
-        # what else the wrapped source knows (shape, data_range…), for callers that ask
-        return getattr(self.source, name)
+        if name in FilledSource.FORWARDED and "source" in self.__dict__:
+            return getattr(self.source, name)
+        raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
 
 
 def open_rasters(
