@@ -33,6 +33,7 @@ from lodscape.city.mesh import MODELS
 from lodscape.city.model import CityModel, CityOptions
 from lodscape.lod.camera import Camera
 from lodscape.render._depth import with_log_depth
+from lodscape.render._shaders import shader
 from lodscape.render.labels import object_label
 
 __all__ = ["CityPass", "CityStats"]
@@ -40,113 +41,11 @@ __all__ = ["CityPass", "CityStats"]
 _G = TypeVar("_G")
 F64 = NDArray[np.float64]
 
-_VERTEX = """
-#version 330
-#ifdef BLOCKS
-// the frame's camera in one uniform buffer, written once a frame for every program
-layout(std140) uniform Frame { mat4 f_mvp; mat4 f_rot; vec4 f_offset; vec4 f_sun; };
-#define MVP f_mvp
-#define ROT mat3(f_rot)
-#define OFFSET f_offset.xyz
-#else
-uniform mat4 u_mvp;      // projection · view for positions in the city's frame
-uniform mat3 u_rot;      // city frame → view rotation
-uniform vec3 u_offset;   // view-space position of the city's origin
-#define MVP u_mvp
-#define ROT u_rot
-#define OFFSET u_offset
-#endif
-in vec3 in_pos;
-in vec3 in_normal;
-in vec2 in_uv;
-#ifdef INSTANCED
-#ifdef BLOCKS
-// per instance x, y, z, scale, heading (five floats), read by the draw's base instance
-layout(std430, binding = 1) readonly buffer Instances { float inst[]; };
-#else
-in vec4 in_inst;         // x, y, z, scale
-in float in_heading;
-#endif
-#endif
-out vec3 v_normal;
-out vec2 v_uv;
-out float v_dist;
-out vec3 v_view;         // view space: the label pass's normal and its facing
-out vec3 v_view_normal;
-void main() {
-    vec3 p = in_pos;
-    vec3 n = in_normal;
-#ifdef INSTANCED
-#ifdef BLOCKS
-    int i = 5 * (gl_BaseInstanceARB + gl_InstanceID);
-    vec4 in_inst = vec4(inst[i], inst[i + 1], inst[i + 2], inst[i + 3]);
-    float in_heading = inst[i + 4];
-#endif
-    float c = cos(in_heading), s = sin(in_heading);
-    mat3 r = mat3(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
-    p = in_inst.xyz + r * (in_inst.w * p);
-    n = r * n;
-#endif
-    gl_Position = MVP * vec4(p, 1.0);
-    v_normal = n;
-    v_uv = in_uv;
-    v_view = OFFSET + ROT * p;
-    v_view_normal = ROT * n;
-    v_dist = -v_view.z;
-}
-"""
+_VERTEX = shader("city_vertex.glsl")
 
-_FRAGMENT = """
-#version 330
-uniform sampler2DArray u_materials;
-uniform float u_layer;   // the material's layer
-uniform vec2 u_repeat;   // metres one repeat of its texture covers
-#ifdef BLOCKS
-layout(std140) uniform Frame { mat4 f_mvp; mat4 f_rot; vec4 f_offset; vec4 f_sun; };
-#define SUN f_sun.xyz
-#else
-uniform vec3 u_sun;
-#define SUN u_sun
-#endif
-#ifdef LABELS
-uniform float u_label;   // a dataset's pass: the view-space normal and the object's label
-#endif
-in vec3 v_normal;
-in vec2 v_uv;
-in float v_dist;
-in vec3 v_view;
-in vec3 v_view_normal;
-layout(location = 0) out vec4 f_color;
-layout(location = 1) out float f_dist;
-void main() {
-#ifdef LABELS
-    vec3 m = normalize(v_view_normal);
-    f_color = vec4(dot(m, v_view) > 0.0 ? -m : m, u_label);
-    f_dist = v_dist;
-    return;
-#endif
-    vec3 n = normalize(v_normal);
-    float light = 0.45 + 0.55 * max(dot(n, SUN), 0.0) + 0.1 * n.z;
-    vec3 albedo = texture(u_materials, vec3(v_uv / u_repeat, u_layer)).rgb;
-    f_color = vec4(albedo * light, 1.0);
-    f_dist = v_dist;
-}
-"""
+_FRAGMENT = shader("city_fragment.glsl")
 
-_BOX_VERTEX = """
-#version 330
-#ifdef BLOCKS
-layout(std140) uniform Frame { mat4 f_mvp; mat4 f_rot; vec4 f_offset; vec4 f_sun; };
-#define MVP f_mvp
-#else
-uniform mat4 u_mvp;
-#define MVP u_mvp
-#endif
-uniform vec3 u_lo;
-uniform vec3 u_hi;
-in vec3 in_pos;
-void main() { gl_Position = MVP * vec4(mix(u_lo, u_hi, in_pos), 1.0); }
-"""
+_BOX_VERTEX = shader("city_box_vertex.glsl")
 
 
 def _variant(source: str, *defines: str) -> str:
@@ -157,11 +56,7 @@ def _variant(source: str, *defines: str) -> str:
     return source.replace("#version 330", "\n".join([head, *(f"#define {d}" for d in defines)]))
 
 
-_BOX_FRAGMENT = """
-#version 330
-layout(location = 0) out vec4 f_color;
-void main() { f_color = vec4(1.0); }
-"""
+_BOX_FRAGMENT = shader("city_box_fragment.glsl")
 _ALL = (True, True, True, True)
 _NONE = (False, False, False, False)
 _CUBE = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], np.float32)

@@ -16,63 +16,13 @@ from lodscape.lod.camera import Camera
 from lodscape.lod.globe import GlobeMesh, pole_longitudes
 from lodscape.render._context import make_current
 from lodscape.render._depth import LOG_DEPTH_GLSL
+from lodscape.render._shaders import shader
 
 __all__ = ["GlobePass"]
 
 
-_VERTEX = """
-#version 330
-uniform mat4 u_mvp;     // projection · view for positions relative to the camera
-uniform mat3 u_rot;
-in vec3 in_pos;
-in vec2 in_uv;
-in float in_shade;
-out vec2 v_uv;
-out float v_dist;
-out float v_shade;
-void main() {
-    gl_Position = u_mvp * vec4(in_pos, 1.0);
-    v_uv = in_uv;
-    v_dist = -(u_rot * in_pos).z;
-    v_shade = in_shade;
-}
-"""
-_FRAGMENT = """
-#version 330
-uniform sampler2D u_tex;
-uniform sampler2D u_region;  // the terrain's own imagery over its box (alpha 0: no data)
-uniform vec4 u_box;          // the box in u_tex's coordinates: u0, v0, u1, v1
-uniform bool u_has_region;
-uniform bool u_behind_region;  // the terrain's own tiles draw the region: only fill there
-in vec2 v_uv;
-in float v_dist;
-in float v_shade;
-layout(location = 0) out vec4 f_color;
-layout(location = 1) out float f_dist;
-LOG_DEPTH_GLSL
-void main() {
-    vec3 rgb = min(texture(u_tex, v_uv).rgb * v_shade, vec3(1.0));
-    float covered = 0.0;
-    if (u_has_region) {
-        // a facet's own longitudes may run past ±180: try the box a turn either way too
-        for (int k = -1; k <= 1; k++) {
-            vec2 uv = (v_uv + vec2(float(k), 0.0) - u_box.xy) / (u_box.zw - u_box.xy);
-            if (all(greaterThanEqual(uv, vec2(0.0))) && all(lessThanEqual(uv, vec2(1.0)))) {
-                vec4 r = texture(u_region, uv);
-                rgb = mix(rgb, r.rgb, r.a);  // its tint carries its own hillshade
-                covered = max(covered, r.a);
-            }
-        }
-    }
-    f_color = vec4(rgb, 0.0);  // alpha 0: the globe's pixel (the terrain scene's are 1)
-    f_dist = v_dist;
-    // over the data the terrain's tiles win wherever they draw (the globe fills their holes),
-    // a surface below the ellipsoid included; elsewhere the nearer wins, the terrain where
-    // the two meet within a hair (its skirts and edges lie on the same ellipsoid)
-    bool behind = u_behind_region && covered > 0.5;
-    gl_FragDepth = behind ? behind_depth(v_dist) : log_depth(v_dist * 1.001 + 1.0);
-}
-""".replace("LOG_DEPTH_GLSL", LOG_DEPTH_GLSL)
+_VERTEX = shader("globe_vertex.glsl")
+_FRAGMENT = shader("globe_fragment.glsl").replace("LOG_DEPTH_GLSL", LOG_DEPTH_GLSL)
 
 #: Imagery tiles over the globe (``lodscape.lod.mercator``), each a patch of the surface lifted
 #: a little above it (by its cells' sag) and widened a little past its edges, so that together
@@ -80,41 +30,8 @@ void main() {
 #: the visible surface (no farther than the globe's at that pixel, which hides the far side of
 #: the Earth and what hills hide), and where it lies inside its own tile; among patches the
 #: nearest wins.
-_IMAGERY_VERTEX = """
-#version 330
-uniform mat4 u_mvp;
-uniform mat3 u_rot;
-in vec3 in_pos;
-in vec2 in_t;     // where the point is in its tile: 0..1 west to east, north to south
-in vec4 in_sub;   // where the tile lies in the image drawn: u0, v0, du, dv
-out vec2 v_t;
-out float v_dist;
-flat out vec4 v_sub;
-void main() {
-    gl_Position = u_mvp * vec4(in_pos, 1.0);
-    v_t = in_t;
-    v_dist = -(u_rot * in_pos).z;
-    v_sub = in_sub;
-}
-"""
-_IMAGERY_FRAGMENT = """
-#version 330
-uniform sampler2D u_tile;
-uniform sampler2D u_dist;   // the globe pass's view distance per pixel (negated: its data)
-in vec2 v_t;
-in float v_dist;
-flat in vec4 v_sub;
-out vec4 f_color;
-void main() {
-    float g = abs(texelFetch(u_dist, ivec2(gl_FragCoord.xy), 0).r);
-    if (isinf(g) || v_dist > g * 1.002 + 30.0) discard;  // no globe here, or hidden
-    // inside its tile a patch is drawn at its depth; in its margin only where no tile's own
-    // patch is (the farthest depth: a crack between two patches' meshes), with its edge texels
-    bool inside = all(greaterThanEqual(v_t, vec2(0.0))) && all(lessThanEqual(v_t, vec2(1.0)));
-    gl_FragDepth = inside ? gl_FragCoord.z : 1.0;
-    f_color = texture(u_tile, v_sub.xy + v_sub.zw * clamp(v_t, 0.0, 1.0));
-}
-"""
+_IMAGERY_VERTEX = shader("globe_imagery_vertex.glsl")
+_IMAGERY_FRAGMENT = shader("globe_imagery_fragment.glsl")
 
 
 def relief_shade(p: NDArray[np.float64], latlon: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -34,6 +34,7 @@ from lodscape.lod.view import DrawItem
 from lodscape.render import labels
 from lodscape.render._context import create_context, is_software, make_current
 from lodscape.render._depth import with_log_depth
+from lodscape.render._shaders import shader
 from lodscape.render.tess_pass import LAYER_UNIT, MAX_OVERLAYS, TessTerrain, bind_layers
 from lodscape.terrain.heightmap import height_tile
 from lodscape.terrain.mesh import TileMesh, grid_indices
@@ -56,264 +57,17 @@ _T = TypeVar("_T", bound=_GLObject)
 #: ground's colours). The CPU meshes are wound counter-clockwise seen from above (``upload``
 #: makes them so), so their back faces are the surface seen from below: the rasteriser's
 #: facing, where the tessellated mode (HEIGHT_NORMALS) works the normal out per fragment.
-_UNDERSIDE = """
-uniform mat3 u_rot;      // the tile's frame -> view
-uniform vec3 u_up;       // the terrain's outside (up at the tile's centre), in its frame
-in float v_skirt;
-const vec3 UNDERSIDE = vec3(0.16, 0.16, 0.18);
-#ifdef HEIGHT_NORMALS
-bool underside(vec3 view) {
-    vec3 up = u_rot * u_up;
-    vec3 n = cross(dFdx(view), dFdy(view));
-    if (dot(n, up) < 0.0) n = -n;
-    return v_skirt > 0.0 ? dot(view, up) > 0.0 : dot(n, view) > 1e-3 * length(n) * length(view);
-}
-#else
-in float v_above;        // how far the fragment is above the eye, along the tile's up
-bool underside(vec3 view) {
-    // a surface fragment is the underside where the rasteriser says it faces away and it lies
-    // above the eye: below the eye only a plumb face could show its back, and what does is a
-    // sliver triangle seen edge-on, whose facing rounding may flip (isolated dark pixels on
-    // the ground and along the horizon)
-    return v_skirt > 0.0 ? v_above > 0.0 : !gl_FrontFacing && v_above > 0.0;
-}
-#endif
-"""
+_UNDERSIDE = shader("terrain_underside.glsl")
 
-_VERTEX_SHADER = """
-#version 330
-uniform mat4 u_mvp;      // projection · view, for positions relative to the tile centre
-uniform mat3 u_rot;      // world → view rotation
-uniform vec3 u_offset;   // view-space position of the tile centre
-uniform vec3 u_up;       // direction skirts hang from (ellipsoid normal at the centre)
-uniform float u_skirt;   // metres to lower skirt vertices in this draw
-uniform vec3 u_uv;       // texture window: offset (u, v) and scale (an ancestor's texture)
-uniform vec3 u_ground;   // the tile's west and north edges (metres, modulo) and its size
-uniform float u_morph;   // how far the tile still shows the surface it replaced (0..1)
-in vec3 in_pos;
-in vec2 in_uv;
-in float in_skirt;
-in vec3 in_morph;        // the move onto the next coarser surface
-out vec2 v_uv;
-out vec2 v_tuv;
-out float v_dist;
-out vec2 v_ground;
-out vec3 v_view;
-out float v_skirt;
-out float v_above;
-void main() {
-    vec3 p = in_pos + u_morph * in_morph - in_skirt * u_skirt * u_up;
-    v_skirt = in_skirt;
-    gl_Position = u_mvp * vec4(p, 1.0);
-    v_uv = u_uv.xy + u_uv.z * in_uv;
-    v_tuv = in_uv;
-    v_ground = vec2(u_ground.x + in_uv.x * u_ground.z, u_ground.y - in_uv.y * u_ground.z);
-    v_view = u_offset + u_rot * p;
-    // both linear in view space, so perspective-correct interpolation keeps them exact
-    v_dist = -v_view.z;
-    v_above = dot(v_view, u_rot * u_up);
-}
-"""
+_VERTEX_SHADER = shader("terrain_vertex.glsl")
 
-_FRAGMENT_SHADER = """
-#version 330
-uniform sampler2D u_tex;
-uniform vec4 u_tint;     // the viewer's LOD colouring: a colour and how much of it
-// imagery layers over the terrain's own texture, bottom to top, each with its own window; a
-// program holds the code of as many as its scene has (LAYERS): a software rasteriser runs
-// every branch a uniform would skip, and four layer lookups cost a fifth of a frame there
-#ifndef LAYERS
-#define LAYERS 4
-#endif
-uniform sampler2D u_layer0;
-uniform sampler2D u_layer1;
-uniform sampler2D u_layer2;
-uniform sampler2D u_layer3;
-uniform vec3 u_layer_uv[4];
-uniform int u_layers;
-in vec2 v_uv;
-in vec2 v_tuv;           // where in the tile (0..1), for the layers' windows
-in float v_dist;
-in vec3 v_view;
-#ifdef HEIGHT_NORMALS
-in vec3 v_normal;        // view space, from the height texture
-#endif
-layout(location = 0) out vec4 f_color;
-layout(location = 1) out float f_dist;
-UNDERSIDE_GLSL
-vec3 over(vec3 c, sampler2D s, vec3 w) {
-    vec4 t = texture(s, w.xy + w.z * v_tuv);
-    return mix(c, t.rgb, t.a);
-}
-void main() {
-    // the imagery already carries its shading: no lighting here
-    // alpha marks where the data covers the tile: the terrain ends at the data's edge. It is
-    // read from the base level's nearest texel: mipmaps average it with the no-data around, and
-    // a steep face seen edge-on (a coarse mip) would otherwise be cut open (textureLod does
-    // the same but is pathologically slow on llvmpipe)
-#ifndef WHOLE
-    // (the WHOLE variant draws tiles whose texture has no such texel: no discard at all, so
-    // the depth test may run before the shader)
-    ivec2 size = textureSize(u_tex, 0);
-    ivec2 texel = clamp(ivec2(floor(v_uv * vec2(size))), ivec2(0), size - 1);
-    if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
-#endif
-#ifdef LABELS
-#ifdef HEIGHT_NORMALS
-    f_color = labelled(v_normal, v_view, u_class_label[0]);
-#else
-    f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[0]);
-#endif
-    f_dist = v_dist;
-    return;
-#endif
-    if (underside(v_view)) {
-        f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
-        f_dist = v_dist;
-        return;
-    }
-    vec3 c = texture(u_tex, v_uv).rgb;
-#if LAYERS > 0
-    if (u_layers > 0) c = over(c, u_layer0, u_layer_uv[0]);
-#endif
-#if LAYERS > 1
-    if (u_layers > 1) c = over(c, u_layer1, u_layer_uv[1]);
-#endif
-#if LAYERS > 2
-    if (u_layers > 2) c = over(c, u_layer2, u_layer_uv[2]);
-#endif
-#if LAYERS > 3
-    if (u_layers > 3) c = over(c, u_layer3, u_layer_uv[3]);
-#endif
-    f_color = vec4(mix(c, u_tint.rgb, u_tint.a), 1.0);
-    f_dist = v_dist;
-}
-"""
+_FRAGMENT_SHADER = shader("terrain_fragment.glsl")
 
-_LANDCOVER_FRAGMENT_SHADER = """
-#version 330
-uniform sampler2D u_tex;          // the tile's class mask, one byte a texel (255: no data)
-uniform sampler2DArray u_ground_materials;
-uniform vec3 u_sun;               // towards the sun, view space
-uniform vec4 u_tint;              // the viewer's LOD colouring
-in vec2 v_uv;
-in float v_dist;
-in vec2 v_ground;                 // metres east and north (modulo a whole number of repeats)
-in vec3 v_view;
-#ifdef HEIGHT_NORMALS
-in vec3 v_normal;                 // view space, from the height texture
-#endif
-layout(location = 0) out vec4 f_color;
-layout(location = 1) out float f_dist;
-UNDERSIDE_GLSL
-int cls(ivec2 t, ivec2 size) {
-    return int(texelFetch(u_tex, clamp(t, ivec2(0), size - 1), 0).r * 255.0 + 0.5);
-}
-void main() {
-    ivec2 size = textureSize(u_tex, 0);
-    int here = cls(ivec2(floor(v_uv * vec2(size))), size);
-    if (here == 255) discard;
-#ifdef LABELS
-#ifdef HEIGHT_NORMALS
-    f_color = labelled(v_normal, v_view, u_class_label[here]);
-#else
-    f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[here]);
-#endif
-    f_dist = v_dist;
-    return;
-#endif
-    if (underside(v_view)) {
-        f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
-        f_dist = v_dist;
-        return;
-    }
-    // near ground repeats every 8 m, far ground every 64 m: sharp close up, no shimmer afar
-    float far = smoothstep(200.0, 1500.0, v_dist);
-    vec2 st = v_uv * vec2(size) - 0.5;
-    ivec2 i0 = ivec2(floor(st));
-    vec2 f = st - vec2(i0);
-    vec3 acc = vec3(0.0);
-    float total = 0.0;
-    for (int k = 0; k < 4; ++k) {
-        ivec2 o = ivec2(k & 1, k >> 1);
-        int c = cls(i0 + o, size);
-        if (c == 255) continue;
-        float w = (o.x == 1 ? f.x : 1.0 - f.x) * (o.y == 1 ? f.y : 1.0 - f.y);
-        vec3 near = texture(u_ground_materials, vec3(v_ground / 8.0, float(c))).rgb;
-        vec3 wide = texture(u_ground_materials, vec3(v_ground / 64.0, float(c))).rgb;
-        acc += w * mix(near, wide, far);
-        total += w;
-    }
-    vec3 albedo = acc / max(total, 1e-6);
-#ifdef HEIGHT_NORMALS
-    vec3 n = normalize(v_normal);
-#else
-    vec3 n = normalize(cross(dFdx(v_view), dFdy(v_view)));
-#endif
-    if (dot(n, v_view) > 0.0) n = -n;
-    float light = 0.35 + 0.65 * max(dot(n, u_sun), 0.0);
-    f_color = vec4(mix(albedo * light, u_tint.rgb, u_tint.a), 1.0);
-    f_dist = v_dist;
-}
-"""
+_LANDCOVER_FRAGMENT_SHADER = shader("terrain_landcover_fragment.glsl")
 
-_ELLIPSOID_VERTEX = """
-#version 330
-void main() {
-    // one triangle over the whole viewport
-    vec2 p = vec2(float((gl_VertexID & 1) << 2) - 1.0, float((gl_VertexID & 2) << 1) - 1.0);
-    gl_Position = vec4(p, 1.0, 1.0);   // the far plane: only where nothing was drawn
-}
-"""
+_ELLIPSOID_VERTEX = shader("terrain_ellipsoid_vertex.glsl")
 
-_ELLIPSOID_FRAGMENT = """
-#version 330
-uniform mat3 u_to_world;   // view -> world (ECEF axes)
-uniform vec2 u_tan;        // tan of half the horizontal and vertical fields of view
-uniform vec2 u_size;       // viewport, pixels
-uniform vec3 u_eye;        // the camera in the ellipsoid's scaled space (a unit sphere)
-uniform float u_c;         // |u_eye|^2 - 1, from float64 on the CPU
-uniform vec3 u_inv_axes;   // 1/a, 1/a, 1/b
-uniform vec3 u_sun;        // towards the sun, world
-uniform vec3 u_colour;
-#ifdef EARTH
-uniform sampler2D u_earth; // equirectangular: row 0 at latitude 90, column 0 at longitude -180
-uniform vec4 u_data;       // the data's box (west, south, east, north, radians): no data there
-#endif
-layout(location = 0) out vec4 f_color;
-layout(location = 1) out float f_dist;
-void main() {
-    vec2 ndc = gl_FragCoord.xy / u_size * 2.0 - 1.0;
-    // a ray whose parameter is the view depth: z = -1 in view space
-    vec3 d = u_to_world * vec3(ndc.x * u_tan.x, ndc.y * u_tan.y, -1.0);
-    vec3 dp = d * u_inv_axes;
-    float a = dot(dp, dp);
-    float b = dot(u_eye, dp);
-    float disc = b * b - a * u_c;
-    if (u_c <= 0.0 || b >= 0.0 || disc < 0.0) discard;
-    // the nearer root as c / (-b + sqrt(disc)): no cancellation however near the camera is
-    float t = u_c / (-b + sqrt(disc));
-    vec3 n = normalize((u_eye + t * dp) * u_inv_axes);
-    float light = 0.35 + 0.65 * max(dot(n, u_sun), 0.0);
-#ifdef LABELS
-    f_color = vec4(n * u_to_world, NO_DATA_LABEL);  // the view-space normal, the no-data label
-#elif defined(EARTH)
-    // the ellipsoid's normal is the geodetic vertical: its latitude and longitude
-    float lat = asin(clamp(n.z, -1.0, 1.0));
-    float lon = atan(n.y, n.x);
-    vec2 uv = vec2(lon / 6.28318531 + 0.5, 0.5 - lat / 3.14159265);
-    // no mip across the antimeridian's seam: the level of the texels a pixel spans here
-    vec3 earth = textureGrad(u_earth, uv, dFdx(uv) - floor(dFdx(uv) + 0.5),
-                             dFdy(uv) - floor(dFdy(uv) + 0.5)).rgb;
-    // inside the data's box what shows through is its holes and collars: no data, grey
-    bool inside = lon >= u_data.x && lon <= u_data.z && lat >= u_data.y && lat <= u_data.w;
-    f_color = vec4((inside ? u_colour : earth) * light, 1.0);
-#else
-    f_color = vec4(u_colour * light, 1.0);
-#endif
-    f_dist = t;
-}
-"""
+_ELLIPSOID_FRAGMENT = shader("terrain_ellipsoid_fragment.glsl")
 _ELLIPSOID_FRAGMENT = _ELLIPSOID_FRAGMENT.replace("NO_DATA_LABEL", f"{float(labels.NO_DATA):.1f}")
 
 #: Colour of the ellipsoid where there is no terrain: the no-data grey, lit as the tint is.
@@ -323,15 +77,7 @@ ELLIPSOID_GREY = (NODATA_GREY / 255.0,) * 3
 #: its view-space normal (towards the camera) and its semantic class (``render.labels``) into
 #: an RGBA32F target instead of its colour; ``u_class_label`` maps a ground class to its label.
 #: A variant, not a branch: the colour programs carry none of it.
-_LABELS = """
-#ifdef LABELS
-uniform float u_class_label[16];
-vec4 labelled(vec3 n, vec3 view, float label) {
-    n = normalize(n);
-    return vec4(dot(n, view) > 0.0 ? -n : n, label);
-}
-#endif
-"""
+_LABELS = shader("terrain_labels.glsl")
 _FRAGMENT_SHADER = _FRAGMENT_SHADER.replace("UNDERSIDE_GLSL", _UNDERSIDE + _LABELS)
 _LANDCOVER_FRAGMENT_SHADER = _LANDCOVER_FRAGMENT_SHADER.replace(
     "UNDERSIDE_GLSL", _UNDERSIDE + _LABELS
