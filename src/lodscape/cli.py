@@ -22,6 +22,7 @@ import typer
 from numpy.typing import NDArray
 
 from lodscape._tmp import temp_beside
+from lodscape.city.rtree import DEFAULT_PACKING
 from lodscape.errors import LodscapeError
 from lodscape.frame.globe import GlobeOptions
 from lodscape.geo.tiles import ORIGIN, merc_to_lonlat
@@ -336,21 +337,26 @@ CityOpt = Annotated[
 ]
 
 
+#: The library's defaults, which the flags' are.
+_SCENE, _SELECT = SceneOptions(), SelectOptions()
+
+
 @dataclass(frozen=True)
 class TerrainFlags:
-    """The terrain flags render, fly and view share, declared once (``_terrain_flags``)."""
+    """The terrain flags render, fly and view share, declared once (``_terrain_flags``): their
+    defaults are the library's options' (``SceneOptions``, ``SelectOptions``), written there."""
 
-    max_sse: float = 2.0
-    terrain_mode: str = "cpu"
+    max_sse: float = _SELECT.max_sse
+    terrain_mode: str = _SCENE.terrain_mode
     ground: str = "tint"
     landcover: Path | None = None
-    anisotropy: float = 16.0
+    anisotropy: float = _SCENE.anisotropy
     imagery: list[str] | None = None
     imagery_cache: Path | None = None
     imagery_maxzoom: int | None = None
     imagery_bands: str | None = None
-    imagery_timeout: float = 10.0
-    imagery_strict: bool = False
+    imagery_timeout: float = _SCENE.imagery_timeout
+    imagery_strict: bool = _SCENE.imagery_strict
     detail: str = "none"
     hurst: float | None = None
     sigma: float | None = None
@@ -361,10 +367,10 @@ class TerrainFlags:
     band: int | None = None
     nodata: float | None = None
     z_units: str | None = None
-    ellipsoid: bool = True
-    morph: bool = True
-    compress_textures: bool = False
-    city_tree: str = "hilbert"
+    ellipsoid: bool = _SCENE.ellipsoid
+    morph: bool = _SCENE.morph
+    compress_textures: bool = _SCENE.compress_textures
+    city_tree: str = DEFAULT_PACKING
     city_buffers: bool = False
 
     def fractal(self, source: str) -> Fractal | None:
@@ -445,48 +451,51 @@ def _in_panel(ann: Any, panel: str) -> Any:
 
 
 #: The shared terrain flags, by help panel: (name, option, default).
-_FLAG_PANELS: dict[str, tuple[tuple[str, Any, Any], ...]] = {
+_FLAG_PANELS: dict[str, tuple[tuple[str, Any], ...]] = {
     "Terrain (DEM)": (
-        ("fill", FillOpt, None),
-        ("sea_level", SeaLevelOpt, "0"),
-        ("band", BandOpt, None),
-        ("nodata", NodataOpt, None),
-        ("z_units", ZUnitsOpt, None),
-        ("detail", DetailOpt, "none"),
-        ("hurst", HurstOpt, None),
-        ("sigma", SigmaOpt, None),
-        ("seed", SeedOpt, None),
+        ("fill", FillOpt),
+        ("sea_level", SeaLevelOpt),
+        ("band", BandOpt),
+        ("nodata", NodataOpt),
+        ("z_units", ZUnitsOpt),
+        ("detail", DetailOpt),
+        ("hurst", HurstOpt),
+        ("sigma", SigmaOpt),
+        ("seed", SeedOpt),
     ),
     "Level of detail and drawing": (
-        ("max_sse", SseOpt, 2.0),
-        ("terrain_mode", TerrainModeOpt, "cpu"),
-        ("anisotropy", AnisotropyOpt, 16.0),
-        ("morph", MorphOpt, True),
-        ("ellipsoid", EllipsoidOpt, True),
-        ("compress_textures", CompressOpt, False),
+        ("max_sse", SseOpt),
+        ("terrain_mode", TerrainModeOpt),
+        ("anisotropy", AnisotropyOpt),
+        ("morph", MorphOpt),
+        ("ellipsoid", EllipsoidOpt),
+        ("compress_textures", CompressOpt),
     ),
     "Imagery and ground": (
-        ("imagery", ImageryOpt, None),
-        ("imagery_cache", CacheOpt, None),
-        ("imagery_maxzoom", MaxZoomOpt, None),
-        ("imagery_bands", ImageryBandsOpt, None),
-        ("imagery_timeout", ImageryTimeoutOpt, 10.0),
-        ("imagery_strict", ImageryStrictOpt, False),
-        ("ground", GroundOpt, "tint"),
-        ("landcover", LandcoverOpt, None),
+        ("imagery", ImageryOpt),
+        ("imagery_cache", CacheOpt),
+        ("imagery_maxzoom", MaxZoomOpt),
+        ("imagery_bands", ImageryBandsOpt),
+        ("imagery_timeout", ImageryTimeoutOpt),
+        ("imagery_strict", ImageryStrictOpt),
+        ("ground", GroundOpt),
+        ("landcover", LandcoverOpt),
     ),
     "City": (
-        ("city", CityOpt, None),
-        ("city_tree", CityTreeOpt, "hilbert"),
-        ("city_buffers", CityBuffersOpt, False),
+        ("city", CityOpt),
+        ("city_tree", CityTreeOpt),
+        ("city_buffers", CityBuffersOpt),
     ),
 }
 _TERRAIN_FLAGS = [
     inspect.Parameter(
-        name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=_in_panel(ann, panel)
+        name,
+        inspect.Parameter.KEYWORD_ONLY,
+        default=TerrainFlags.__dataclass_fields__[name].default,
+        annotation=_in_panel(ann, panel),
     )
     for panel, flags in _FLAG_PANELS.items()
-    for name, ann, default in flags
+    for name, ann in flags
 ]
 
 
@@ -511,12 +520,12 @@ def _scene_options(
     max_sse: float,
     anisotropy: float,
     terrain_mode: str,
-    budget_mb: float | None = None,
-    imagery_timeout: float = 10.0,
-    imagery_strict: bool = False,
-    ellipsoid: bool = True,
-    morph: bool = True,
-    compress_textures: bool = False,
+    budget_mb: float | None,
+    imagery_timeout: float,
+    imagery_strict: bool,
+    ellipsoid: bool,
+    morph: bool,
+    compress_textures: bool,
 ) -> SceneOptions:
     """Scene options from flags; a value the engine refuses is a one-line usage error. With
     ``budget_mb``, a streaming scene with that many MiB each of GPU, memory and cache."""
