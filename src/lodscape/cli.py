@@ -25,7 +25,6 @@ from lodscape._tmp import temp_beside
 from lodscape.city.rtree import DEFAULT_PACKING
 from lodscape.errors import LodscapeError
 from lodscape.frame.globe import GlobeOptions
-from lodscape.geo.tiles import ORIGIN, merc_to_lonlat
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import SelectOptions
 from lodscape.scene import Scene, SceneOptions
@@ -1143,100 +1142,11 @@ def info(
 ) -> None:
     """Print a source's footprint, resolution, heights and tile levels (and for a tileset, its
     size and provenance)."""
-    from lodscape.build.tiles import level_budget
-    from lodscape.store.provider import RefinedProvider
-    from lodscape.store.tileset import TIN_GRID
+    from lodscape.build.describe import describe
 
     with open_scene(source, z_units=z_units) as scene:
-        provider = scene.provider
-        imagery_zmax = provider.texture_levels[0]
-        if isinstance(provider, RefinedProvider):
-            # a tileset whose baked imagery is finer than its terrain: report the terrain's own
-            provider = provider.base
-        tree = provider.tree
-        b = provider.bounds_merc
-        (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
-        line = typer.echo
-        line(f"{'source':>14}: {provider.name}")
-        line(f"{'bounds':>14}: {w:.6f} {s:.6f} {e:.6f} {n:.6f} (lon/lat)")
-        line(f"{'bounds 3857':>14}: {b.left:.1f} {b.bottom:.1f} {b.right:.1f} {b.top:.1f}")
-        lo, hi = tree.height_range
-        line(f"{'heights':>14}: {lo:.1f} .. {hi:.1f} m")
-        line(
-            f"{'levels':>14}: {tree.zmin} .. {tree.zmax}, textures to {tree.texture_zmax}"
-            + (f" (coarsened by {tree.coarsened})" if tree.coarsened else "")
-        )
-        if imagery_zmax != tree.texture_zmax:
-            line(f"{'imagery':>14}: levels {tree.zmin} .. {imagery_zmax} (baked at its own)")
-        manifest = getattr(provider, "manifest", None)  # a tileset's build record
-        if manifest is None:
-            res = provider.resolution_merc
-            if res is not None:
-                line(f"{'resolution':>14}: {res:.3f} m (Web Mercator)")
-            raster = getattr(provider, "source", None)
-            share = getattr(raster, "valid_share", None)
-            if isinstance(share, float) and share < 1.0:
-                line(
-                    f"{'nodata':>14}: {100.0 * (1.0 - share):.1f} % of the raster (drawn as "
-                    "holes; --fill to stand something in)"
-                )
-                voids = getattr(raster, "void_share", None)
-                if isinstance(voids, float) and voids > 0.0:
-                    line(
-                        f"{'voids':>14}: {100.0 * voids:.2f} % of the raster inside the data "
-                        "(--fill interpolate, a build's default, fills them from their rims)"
-                    )
-        else:
-            size = os.path.getsize(source)
-            line(f"{'tileset':>14}: {size / 2**20:.2f} MiB, schema {manifest['schema']}")
-            line(f"{'terrain':>14}: quantized-mesh-1.0, octvertexnormals; imagery: MBTiles PNG")
-            opts = manifest["options"]
-            line(f"{'build':>14}: error {opts['error_texels']} texel(s) per level")
-            fill = opts.get("fill", "nearest")  # builds before the option filled with nearest
-            line(f"{'fill':>14}: {fill} where the data has none")
-            voids = manifest.get("void_share")
-            if voids:
-                what = "filled from their rims" if fill == "interpolate" else f"given {fill}"
-                line(f"{'voids':>14}: {100.0 * voids:.2f} % of the raster inside the data, {what}")
-            for p in manifest["provenance"]:
-                line(f"{'input':>14}: {p['path']} ({p['bytes']:,d} bytes)")
-        stored = [lv for lv in tree.levels if hasattr(lv, "exists")]
-        if len(stored) < len(tree.levels):
-            # a procedural planet's, or a large DEM's made as views reach it: nothing read here
-            line(f"{'tiles':>14}: statistics made as views reach them")
-        for lv in stored:
-            text = (
-                f"{'z' + str(lv.z):>14}: {int(lv.exists.sum())} tiles, max error "
-                f"{float(lv.error[-1][lv.exists].max()):.2f} m"
-            )
-            if manifest is None:
-                line(text + " (finest grid)")
-                continue
-            ys, _ = np.nonzero(lv.exists)
-            budget = level_budget(opts["error_texels"], tree.tile_size, lv.z, ys + lv.y0)
-            err = lv.error[-1][lv.exists]
-            over = int((err > budget * (1.0 + 1e-9)).sum())
-            worst = int(np.argmax(err / np.maximum(budget, 1e-12)))
-            if lv.z < tree.zmax:
-                # a coarse tile over its level's budget is what the build refines: its children
-                # are drawn where it would show more than the budget
-                refined = f"{over} refined by finer tiles" if over else "none needs finer tiles"
-                line(f"{text}; {refined} (budget {float(budget.min()):.2f} m)")
-                continue
-            if not over:
-                line(f"{text}; every tile within its budget ({float(budget.min()):.2f} m)")
-                continue
-            res = float(manifest.get("resolution_merc", 0.0))
-            grid = 2.0 * ORIGIN / (1 << lv.z) / TIN_GRID
-            line(
-                text + f"; {over} over their budget (worst {err[worst]:.2f} m against "
-                f"{budget[worst]:.2f} m)"
-            )
-            if grid <= res / 2.0:
-                line(
-                    f"{'':>14}  as expected: the finest grid is twice as fine as the data, and "
-                    "what is left is the data's own relief between its samples"
-                )
+        for label, text in describe(scene.provider):
+            typer.echo(f"{label:>14}: {text}")
 
 
 class _TileRate:
