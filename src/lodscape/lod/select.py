@@ -419,6 +419,74 @@ def select(
     levels = (own,) if texture_levels is None else tuple(int(v) for v in texture_levels)
     # below the finest level of every texture a tile splits for its geometric error alone
     ztex = min(max(levels), zmax)
+    t, refined, counts = _walk(options, camera, tree, previous, reach, zmax, ztex)
+    visited, culled, outside = counts
+    band = _band_levels(options, tree, t, previous)
+    # under imagery layers the terrain's own texture shows only where they are transparent or
+    # not in yet: it is taken UNDER_LAYERS levels coarser (a sixteenth of the memory)
+    under = UNDER_LAYERS if len(levels) > 1 else 0
+    tex_up = _capped(band + under, t, levels[0], tree.zmin)
+    layer_up = [_capped(band, t, zl, tree.zmin) for zl in levels[1:]]
+    layer_keys = [
+        texture_keys_zxy(t.z - up, t.x >> up, t.y >> up, j + 1) for j, up in enumerate(layer_up)
+    ]
+    loads = _EMPTY_U
+    layer_fallbacks = 0
+    if resident is not None:
+        t, band, tex_up, layer_up, layer_keys, loads, layer_fallbacks = _on_resident(
+            options, camera, tree, previous, resident, t, tex_up, layer_keys, levels, under
+        )
+    # magnified: the finest texture a tile wears is above the band (no finer one exists)
+    finest_up = np.min(np.vstack([tex_up - under, *layer_up]), axis=0) if t.z.size else tex_up
+    magnified = int((t.px * np.exp2(finest_up) > options.split * tsize).sum())
+    # a neighbour's edge may sit up to its own error away: at most max_sse pixels seen from
+    # no farther than our far side, or a fallback tile's whole error
+    back = t.fallback > 0
+    worst = float(t.err[back].max()) if back.any() else 0.0
+    skirt = t.err + np.maximum(options.max_sse * t.dist_far / camera.scale, worst)
+    return Selection(
+        z=t.z,
+        x=t.x,
+        y=t.y,
+        grid=t.k,
+        keys=mesh_keys_zxy(t.z, t.x, t.y, t.k),
+        texture_keys=texture_keys_zxy(t.z - tex_up, t.x >> tex_up, t.y >> tex_up),
+        texture_up=tex_up,
+        screen_px=t.px,
+        sse=t.sse,
+        dist_near=t.dist_near,
+        skirt=skirt,
+        fallback=t.fallback,
+        refined=refined,
+        loads=loads,
+        visited=visited,
+        culled=culled,
+        outside=outside,
+        magnified=magnified,
+        texture_size=tsize,
+        grids=tuple(tree.grids),
+        band_up=band,
+        layer_keys=np.array(layer_keys, np.uint64).reshape(len(levels) - 1, t.z.size),
+        layer_up=np.array(layer_up, np.int64).reshape(len(levels) - 1, t.z.size),
+        layer_fallbacks=layer_fallbacks,
+    )
+
+
+def _walk(
+    options: SelectOptions,
+    camera: Camera,
+    tree: TreeLike,
+    previous: Selection | None,
+    reach: Callable[[F64, F64], NDArray[np.bool_]] | None,
+    zmax: int,
+    ztex: int,
+) -> tuple[_Drawn, U64, tuple[int, int, int]]:
+    """The quadtree walk from the roots, a level at a time: a tile outside the view (or
+    ``reach``) is culled, one too big on screen (above ``ztex``) or too rough splits (with
+    hysteresis against ``previous``, and only where an on-demand tree knows its children), the
+    rest are drawn at their grid. Returns the drawn tiles, the ids refined, and the tiles
+    visited, culled, and left out by the region test."""
+    tsize = tree.tile_size
     prev = previous.refined if previous is not None else _EMPTY_U
     drawn: list[tuple[NDArray[np.generic], ...]] = []
     refined_ids: list[U64] = []
@@ -447,25 +515,11 @@ def select(
         px = ground * scale
         k, too_rough = _grid_choice(options, err, scale)
         ids = tile_id_array(z, x, y)
-        can = z < zmax
-        big = (px > options.split * tsize) & (z < ztex)
-        refine = can & (big | too_rough)
-        if st.leaf is not None:
-            refine &= ~st.leaf[keep]  # nothing finer was built there
-        if can and prev.size:
-            was = _member(ids, prev) & ~refine
-            if was.any():
-                rough = err[-1, was] * scale[was] > options.sse_merge * options.max_sse
-                hold = np.zeros(rough.shape, dtype=bool)
-                if z < ztex:
-                    hold = _children_hold(options, camera, tree, z, x[was], y[was])
-                refine[was] = rough | hold
-        ready = tree.ready if isinstance(tree, MadeOnDemand) else None
-        if ready is not None and can and refine.any():
-            # a tree made on demand splits where its children's statistics are known (the rest
-            # are asked for and drawn whole meanwhile, as a tile whose children have not loaded)
-            idx = np.flatnonzero(refine)
-            refine[idx] = ready(z, x[idx], y[idx])
+        leaf = st.leaf[keep] if st.leaf is not None else None
+        asks = (px > options.split * tsize, too_rough, leaf)
+        refine = _refine(
+            options, camera, tree, (z, zmax, ztex), (x, y, ids), asks, err, scale, prev
+        )
         refined_ids.append(ids[refine])
         draw = ~refine
         # the next level's tiles keep at least their parent's resolution (a child's grid of
@@ -507,72 +561,89 @@ def select(
     floats = [a.astype(np.float64) for a in cols[4:]]
     i, f = ints, floats
     t = _Drawn(i[0], i[1], i[2], i[3], f[0], f[1], f[2], f[3], f[4], np.zeros_like(i[0]))
+    refined = np.unique(np.concatenate(refined_ids)) if refined_ids else _EMPTY_U
+    return t, refined, (visited, culled, outside)
+
+
+def _refine(
+    options: SelectOptions,
+    camera: Camera,
+    tree: TreeLike,
+    levels: tuple[int, int, int],
+    tiles: tuple[I64, I64, U64],
+    asks: tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_] | None],
+    err: NDArray[np.floating],
+    scale: F64,
+    prev: U64,
+) -> NDArray[np.bool_]:
+    """Which tiles of level z (of zmax, textures to ztex) split: too ``big`` on screen above
+    the finest texture level, or ``too_rough`` for their finest grid, never a ``leaf`` (nothing
+    finer was built there); one split last frame (``prev``) stays split until it is well
+    under the bound and its children's textures would not be magnified; on a tree made on
+    demand, only where its children's statistics are known."""
+    z, zmax, ztex = levels
+    x, y, ids = tiles
+    big, too_rough, leaf = asks
+    can = z < zmax
+    refine = can & ((big & (z < ztex)) | too_rough)
+    if leaf is not None:
+        refine &= ~leaf  # nothing finer was built there
+    if can and prev.size:
+        was = _member(ids, prev) & ~refine
+        if was.any():
+            rough = err[-1, was] * scale[was] > options.sse_merge * options.max_sse
+            hold = np.zeros(rough.shape, dtype=bool)
+            if z < ztex:
+                hold = _children_hold(options, camera, tree, z, x[was], y[was])
+            refine[was] = rough | hold
+    ready = tree.ready if isinstance(tree, MadeOnDemand) else None
+    if ready is not None and can and refine.any():
+        # a tree made on demand splits where its children's statistics are known (the rest
+        # are asked for and drawn whole meanwhile, as a tile whose children have not loaded)
+        idx = np.flatnonzero(refine)
+        refine[idx] = ready(z, x[idx], y[idx])
+    return refine
+
+
+def _on_resident(
+    options: SelectOptions,
+    camera: Camera,
+    tree: TreeLike,
+    previous: Selection | None,
+    resident: U64,
+    t: _Drawn,
+    tex_up: I64,
+    layer_keys: list[U64],
+    levels: tuple[int, ...],
+    under: int,
+) -> tuple[_Drawn, I64, I64, list[I64], list[U64], U64, int]:
+    """What ``resident`` lets the frame draw now: the loads its tiles want, each tile drawn
+    from its nearest resident ancestor meanwhile, and textures from the nearest resident
+    level (an imagery layer none of whose levels is resident is not drawn). Returns the
+    drawn tiles, their band, texture levels up, each layer's levels up and keys, the loads,
+    and the layer tiles drawn from an ancestor or not at all."""
+    # what the wanted tiles need; then what stands in for it while it loads
+    wanted = [k[~_member(k, resident)] for k in layer_keys]
+    loads = _missing(resident, t, tex_up)
+    t = _fall_back(camera, tree, resident, t)
     band = _band_levels(options, tree, t, previous)
-    # under imagery layers the terrain's own texture shows only where they are transparent or
-    # not in yet: it is taken UNDER_LAYERS levels coarser (a sixteenth of the memory)
-    under = UNDER_LAYERS if len(levels) > 1 else 0
-    tex_up = _capped(band + under, t, levels[0], tree.zmin)
-    layer_up = [_capped(band, t, zl, tree.zmin) for zl in levels[1:]]
-    layer_keys = [
-        texture_keys_zxy(t.z - up, t.x >> up, t.y >> up, j + 1) for j, up in enumerate(layer_up)
-    ]
-    loads = _EMPTY_U
+    own_up = _capped(band + under, t, levels[0], tree.zmin)
+    tex_up, own_keys, ok = _texture_fall_back(tree.zmin, resident, t, own_up, 0)
+    # a tile with no texture of its own resident anywhere above it must have it loaded
+    unresolved = np.unique(own_keys[~ok])
+    layer_up, layer_keys = [], []
     layer_fallbacks = 0
-    if resident is not None:
-        # what the wanted tiles need; then what stands in for it while it loads
-        wanted = [k[~_member(k, resident)] for k in layer_keys]
-        loads = _missing(resident, t, tex_up)
-        t = _fall_back(camera, tree, resident, t)
-        band = _band_levels(options, tree, t, previous)
-        own_up = _capped(band + under, t, levels[0], tree.zmin)
-        tex_up, own_keys, ok = _texture_fall_back(tree.zmin, resident, t, own_up, 0)
-        # a tile with no texture of its own resident anywhere above it must have it loaded
-        unresolved = np.unique(own_keys[~ok])
-        layer_up, layer_keys = [], []
-        for j, zl in enumerate(levels[1:]):
-            want_up = _capped(band, t, zl, tree.zmin)
-            got_up, got, ok = _texture_fall_back(tree.zmin, resident, t, want_up, j + 1)
-            # an imagery layer is never waited for: where none is resident it is not drawn
-            got[~ok] = NO_TEXTURE
-            layer_up.append(got_up)
-            layer_keys.append(got)
-            layer_fallbacks += int(((got_up > want_up) | ~ok).sum())
-        extra = np.concatenate([unresolved, *wanted])
-        loads = _order_loads(np.concatenate([loads, extra[~_member(extra, loads)]]))
-    # magnified: the finest texture a tile wears is above the band (no finer one exists)
-    finest_up = np.min(np.vstack([tex_up - under, *layer_up]), axis=0) if t.z.size else tex_up
-    magnified = int((t.px * np.exp2(finest_up) > options.split * tsize).sum())
-    # a neighbour's edge may sit up to its own error away: at most max_sse pixels seen from
-    # no farther than our far side, or a fallback tile's whole error
-    back = t.fallback > 0
-    worst = float(t.err[back].max()) if back.any() else 0.0
-    skirt = t.err + np.maximum(options.max_sse * t.dist_far / camera.scale, worst)
-    return Selection(
-        z=t.z,
-        x=t.x,
-        y=t.y,
-        grid=t.k,
-        keys=mesh_keys_zxy(t.z, t.x, t.y, t.k),
-        texture_keys=texture_keys_zxy(t.z - tex_up, t.x >> tex_up, t.y >> tex_up),
-        texture_up=tex_up,
-        screen_px=t.px,
-        sse=t.sse,
-        dist_near=t.dist_near,
-        skirt=skirt,
-        fallback=t.fallback,
-        refined=np.unique(np.concatenate(refined_ids)) if refined_ids else _EMPTY_U,
-        loads=loads,
-        visited=visited,
-        culled=culled,
-        outside=outside,
-        magnified=magnified,
-        texture_size=tsize,
-        grids=tuple(tree.grids),
-        band_up=band,
-        layer_keys=np.array(layer_keys, np.uint64).reshape(len(levels) - 1, t.z.size),
-        layer_up=np.array(layer_up, np.int64).reshape(len(levels) - 1, t.z.size),
-        layer_fallbacks=layer_fallbacks,
-    )
+    for j, zl in enumerate(levels[1:]):
+        want_up = _capped(band, t, zl, tree.zmin)
+        got_up, got, ok = _texture_fall_back(tree.zmin, resident, t, want_up, j + 1)
+        # an imagery layer is never waited for: where none is resident it is not drawn
+        got[~ok] = NO_TEXTURE
+        layer_up.append(got_up)
+        layer_keys.append(got)
+        layer_fallbacks += int(((got_up > want_up) | ~ok).sum())
+    extra = np.concatenate([unresolved, *wanted])
+    loads = _order_loads(np.concatenate([loads, extra[~_member(extra, loads)]]))
+    return t, band, tex_up, layer_up, layer_keys, loads, layer_fallbacks
 
 
 @dataclass(frozen=True, eq=False)
