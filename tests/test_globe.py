@@ -385,9 +385,11 @@ def test_without_the_blue_marble_the_earth_is_plain_and_says_so(
 
 
 @pytest.mark.gl
-@pytest.mark.parametrize("alt", [2.0e6, 1.0e5, 1500.0], ids=["orbit", "100 km", "1.5 km"])
+@pytest.mark.parametrize(
+    "alt", [2.0e6, 1.0e5, 1500.0, 1000.0], ids=["orbit", "100 km", "1.5 km", "1 km"]
+)
 def test_the_terrains_tiles_meet_the_globe_without_a_gap(dem: str, alt: float) -> None:
-    """From orbit to a kilometre and a half over the data's west edge, looking down across it:
+    """From orbit to a kilometre over the data's west edge, looking down across it:
     the terrain's own tiles where it has data, the Earth elsewhere, and not one pixel of the
     magenta background between them."""
     from lodscape.geo.tiles import merc_to_lonlat
@@ -399,11 +401,11 @@ def test_the_terrains_tiles_meet_the_globe_without_a_gap(dem: str, alt: float) -
     west, lat = (float(v) for v in merc_to_lonlat(b.left, (b.bottom + b.top) / 2.0))
     g = Globe(scene, GlobeOptions(background=magenta, sky=None))  # magenta all the way down
     try:
-        top = scene.tree.height_range[1]
+        # near the ground the height is above the data's edge below the camera
+        ground = scene.ground_height(west + 1e-4, lat) or scene.tree.height_range[0]
         pitch = -90.0 if alt > 1e6 else -60.0  # from orbit straight down: no space in view
-        cam = Camera(
-            west, lat, max(alt, top + 600.0), heading=90.0, pitch=pitch, width=240, height=160
-        )
+        above = alt if alt > 1e4 else ground + alt
+        cam = Camera(west, lat, above, heading=90.0, pitch=pitch, width=240, height=160)
         rgb, dist = g.render(cam)
         drawn = g.last["terrain_pixels"]
     finally:
