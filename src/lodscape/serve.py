@@ -45,7 +45,7 @@ import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from lodscape._lru import ByteLRU
 from lodscape.errors import LodscapeError
@@ -53,6 +53,9 @@ from lodscape.store.export import cesium_layer
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import ungzip
 from lodscape.store.tileset import TilesetProvider
+
+if TYPE_CHECKING:
+    from aiohttp import web
 
 __all__ = ["HeaderDeadlines", "TileService", "make_app", "run", "serve"]
 
@@ -386,43 +389,6 @@ def make_app(service: TileService, deadlines: HeaderDeadlines | None = None) -> 
         response.headers.update(CORS)
         return response
 
-    def reply(
-        request: web.Request,
-        body: bytes,
-        content_type: str,
-        *,
-        gzipped: bool = False,
-        compress: bool = False,
-    ) -> web.Response:
-        gz = accepts_gzip(request.headers.get("Accept-Encoding", ""))
-        encoded = False
-        if gzipped:
-            if gz:
-                encoded = True
-            else:
-                body = ungzip(body)
-        elif compress and gz and len(body) > 512:
-            body = gzip.compress(body, mtime=0)
-            encoded = True
-        # a strong tag names the bytes sent: the gzipped and the plain body have their own
-        etag = '"' + hashlib.sha1(body).hexdigest()[:20] + ('-gz"' if encoded else '"')
-        headers = {
-            "ETag": etag,
-            "Cache-Control": "public, max-age=3600",
-            "Vary": "Accept-Encoding",
-        }
-        if etag_matches(request.headers.get("If-None-Match", ""), etag):
-            return web.Response(status=304, headers=headers)
-        if encoded:
-            headers["Content-Encoding"] = "gzip"
-        return web.Response(body=body, headers=headers, content_type=content_type)
-
-    def ints(request: web.Request, *names: str) -> list[int]:
-        try:
-            return [int(request.match_info[n]) for n in names]
-        except (KeyError, ValueError):
-            raise web.HTTPNotFound() from None
-
     async def index(request: web.Request) -> web.Response:
         body = json.dumps(
             {
@@ -433,41 +399,41 @@ def make_app(service: TileService, deadlines: HeaderDeadlines | None = None) -> 
                 "buildings": "3dtiles/tileset.json" if service.has_city else None,
             }
         ).encode()
-        return reply(request, body, "application/json", compress=True)
+        return _reply(request, body, "application/json", compress=True)
 
     async def layer(request: web.Request) -> web.Response:
-        return reply(request, service.layer, "application/json", compress=True)
+        return _reply(request, service.layer, "application/json", compress=True)
 
     async def terrain(request: web.Request) -> web.Response:
-        z, x, y = ints(request, "z", "x", "y")
+        z, x, y = _ints(request, "z", "x", "y")
         data = await service.tile("terrain", z, x, y)
         if data is None:
             raise web.HTTPNotFound()
-        return reply(request, data, "application/vnd.quantized-mesh", gzipped=True)
+        return _reply(request, data, "application/vnd.quantized-mesh", gzipped=True)
 
     async def imagery(request: web.Request) -> web.Response:
-        z, x, y = ints(request, "z", "x", "y")
+        z, x, y = _ints(request, "z", "x", "y")
         data = await service.tile("imagery", z, x, y)
         if data is None:
             raise web.HTTPNotFound()
-        return reply(request, data, "image/png")
+        return _reply(request, data, "image/png")
 
     async def tilejson(request: web.Request) -> web.Response:
         made = await service.run(service.tilejson, f"{request.scheme}://{request.host}")
-        return reply(request, json.dumps(made).encode(), "application/json", compress=True)
+        return _reply(request, json.dumps(made).encode(), "application/json", compress=True)
 
     async def tileset(request: web.Request) -> web.Response:
         made = await service.run(service.tiles3d)
         if made is None:
             raise web.HTTPNotFound()
-        return reply(request, made[0], "application/json", compress=True)
+        return _reply(request, made[0], "application/json", compress=True)
 
     async def content(request: web.Request) -> web.Response:
-        (i,) = ints(request, "i")
+        (i,) = _ints(request, "i")
         made = await service.run(service.tiles3d)
         if made is None or not 0 <= i < len(made[1]):
             raise web.HTTPNotFound()
-        return reply(request, made[1][i], "model/gltf-binary", compress=True)
+        return _reply(request, made[1][i], "model/gltf-binary", compress=True)
 
     app = web.Application(middlewares=[watched, cors])
     num = "{%s:" + _NUMBER + "}"
@@ -479,6 +445,53 @@ def make_app(service: TileService, deadlines: HeaderDeadlines | None = None) -> 
     app.router.add_get("/3dtiles/tileset.json", tileset)
     app.router.add_get(f"/3dtiles/{num % 'i'}.glb", content)
     return app
+
+
+def _reply(
+    request: web.Request,
+    body: bytes,
+    content_type: str,
+    *,
+    gzipped: bool = False,
+    compress: bool = False,
+) -> web.Response:
+    """A tile or document answered with a strong ETag (304 where the client has it), gzipped
+    where the client takes it (``gzipped``: the body is stored gzipped already; ``compress``:
+    gzip a body worth it)."""
+    from aiohttp import web
+
+    gz = accepts_gzip(request.headers.get("Accept-Encoding", ""))
+    encoded = False
+    if gzipped:
+        if gz:
+            encoded = True
+        else:
+            body = ungzip(body)
+    elif compress and gz and len(body) > 512:
+        body = gzip.compress(body, mtime=0)
+        encoded = True
+    # a strong tag names the bytes sent: the gzipped and the plain body have their own
+    etag = '"' + hashlib.sha1(body).hexdigest()[:20] + ('-gz"' if encoded else '"')
+    headers = {
+        "ETag": etag,
+        "Cache-Control": "public, max-age=3600",
+        "Vary": "Accept-Encoding",
+    }
+    if etag_matches(request.headers.get("If-None-Match", ""), etag):
+        return web.Response(status=304, headers=headers)
+    if encoded:
+        headers["Content-Encoding"] = "gzip"
+    return web.Response(body=body, headers=headers, content_type=content_type)
+
+
+def _ints(request: web.Request, *names: str) -> list[int]:
+    """The request's integer path parts (404 where one is not)."""
+    from aiohttp import web
+
+    try:
+        return [int(request.match_info[n]) for n in names]
+    except (KeyError, ValueError):
+        raise web.HTTPNotFound() from None
 
 
 class _OneLine(logging.Formatter):
