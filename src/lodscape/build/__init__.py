@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pyproj import CRS
@@ -140,6 +141,77 @@ def build(
     options = options or BuildOptions()
     out = Path(output)
     t0 = time.perf_counter()
+    job, plan, manifest, span, imagery_zmax = _prepare(inputs, out, options)
+    resolution = job.resolution
+    writer = TilesetWriter(out, manifest)
+    own = executor is None
+    ok = False
+    try:
+        # a tileset left by a build that resumed before this was fixed holds imagery where its
+        # refinement levels' terrain should be: those tiles are made again
+        writer.replan_stray_imagery(imagery_zmax)
+        writer.plan(plan)
+        # the plan's own levels first: deeper pending tiles are a killed run's refinement,
+        # made level by level below once their parents are known
+        planned_zmax = max(span.zmax, imagery_zmax)
+        pending = [t for t in writer.pending() if t[0] <= planned_zmax]
+        done, total = writer.counts()
+        if progress is not None:
+            progress(done, total)
+        if pending:
+            # one numba compile here, not one per worker thread racing for it
+            Rtin(np.zeros((3, 3)))
+            if options.mesher == "greedy":
+                _compile_tin_error()
+            executor = executor or executor_for()
+        label = executor.label if executor is not None else "none"
+        made = len(pending)
+        done = _run(executor, job, pending, writer, options.batch, progress, done, total)
+        zmax = span.zmax
+        if imagery_zmax <= span.zmax:
+            zmax, more, executor = _deepen(
+                writer, job, resolution, executor, options, progress, zmax
+            )
+            made += more
+            label = executor.label if executor is not None else label
+            _, total = writer.counts()
+        span = replace(span, zmax=zmax)
+        left = writer.pending()
+        if left:
+            # never say complete over a hole: a tile planned and not made is a bug to report
+            z, x, y = left[0]
+            raise TilesetError(
+                f"{out}: {len(left)} planned tiles were not made (first {z}/{x}/{y}); "
+                "the file is kept to resume: run the same build again"
+            )
+        writer.finish(_mbtiles(manifest, out), zmax=zmax)
+        ok = True
+    finally:
+        if own and executor is not None:
+            executor.close()
+        writer.close()
+        if not ok and not writer.resumed and _bad_input():
+            # an input that fails midway cannot be resumed from (fixing it changes it): leave
+            # nothing behind; an interruption or a full disk keeps the file to resume
+            for suffix in ("", "-wal", "-shm"):
+                Path(str(out) + suffix).unlink(missing_ok=True)
+    return BuildReport(
+        out,
+        total,
+        made,
+        writer.resumed,
+        time.perf_counter() - t0,
+        label,
+        (span.zmin, span.texture_zmax, span.zmax),
+        imagery_zmax if options.imagery else None,
+    )
+
+
+def _prepare(
+    inputs: Sequence[str | os.PathLike[str]], out: Path, options: BuildOptions
+) -> tuple[Job, list[tuple[int, int, int]], dict[str, Any], LevelSpan, int]:
+    """The inputs opened once (their notes said): the tile task's job, the plan, the
+    manifest, the levels and the finest imagery level."""
     rasters = _rasters(inputs, out, options)
     raw = open_rasters(
         rasters,
@@ -187,81 +259,36 @@ def build(
         manifest = _manifest(source, options, inputs, span, height_range, imagery_zmax)
     finally:
         source.close()
-    writer = TilesetWriter(out, manifest)
-    own = executor is None
-    ok = False
-    try:
-        # a tileset left by a build that resumed before this was fixed holds imagery where its
-        # refinement levels' terrain should be: those tiles are made again
-        writer.replan_stray_imagery(imagery_zmax)
-        writer.plan(plan)
-        # the plan's own levels first: deeper pending tiles are a killed run's refinement,
-        # made level by level below once their parents are known
-        planned_zmax = max(span.zmax, imagery_zmax)
-        pending = [t for t in writer.pending() if t[0] <= planned_zmax]
+    return job, plan, manifest, span, imagery_zmax
+
+
+def _deepen(
+    writer: TilesetWriter,
+    job: Job,
+    resolution: float,
+    executor: BuildExecutor | None,
+    options: BuildOptions,
+    progress: Progress | None,
+    zmax: int,
+) -> tuple[int, int, BuildExecutor | None]:
+    """The finest level made honest: where a tile misses its budget its children are built, a
+    level at a time, until none does or the grid is twice as fine as the data. Returns the
+    finest level, the tiles made, and the executor (made here if none was)."""
+    made = 0
+    while zmax < MAX_ZOOM and 2.0 * ORIGIN / (1 << zmax) / TIN_GRID > resolution / 2.0:
+        over = _over_budget(writer, job, zmax)
+        if not over:
+            break
+        writer.plan(over)
+        pending = [t for t in writer.pending() if t[0] <= zmax + 1]
         done, total = writer.counts()
-        if progress is not None:
-            progress(done, total)
+        made += len(pending)
         if pending:
-            # one numba compile here, not one per worker thread racing for it
-            Rtin(np.zeros((3, 3)))
-            if options.mesher == "greedy":
-                _compile_tin_error()
             executor = executor or executor_for()
-        label = executor.label if executor is not None else "none"
-        made = len(pending)
-        done = _run(executor, job, pending, writer, options.batch, progress, done, total)
-        zmax = span.zmax
-        if imagery_zmax <= span.zmax:
-            # the finest level is honest: where a tile misses its budget, its children are
-            # built, a level at a time, until none does or the grid is twice as fine as the data
-            while (
-                zmax < MAX_ZOOM
-                and 2.0 * ORIGIN / (1 << zmax) / TIN_GRID > source.resolution_merc / 2.0
-            ):
-                over = _over_budget(writer, job, zmax)
-                if not over:
-                    break
-                writer.plan(over)
-                pending = [t for t in writer.pending() if t[0] <= zmax + 1]
-                done, total = writer.counts()
-                made += len(pending)
-                if pending:
-                    executor = executor or executor_for()
-                    label = executor.label
-                finer = replace(job, zmax=zmax + 1)
-                done = _run(executor, finer, pending, writer, options.batch, progress, done, total)
-                zmax += 1
-        span = replace(span, zmax=zmax)
-        left = writer.pending()
-        if left:
-            # never say complete over a hole: a tile planned and not made is a bug to report
-            z, x, y = left[0]
-            raise TilesetError(
-                f"{out}: {len(left)} planned tiles were not made (first {z}/{x}/{y}); "
-                "the file is kept to resume: run the same build again"
-            )
-        writer.finish(_mbtiles(manifest, out), zmax=zmax)
-        ok = True
-    finally:
-        if own and executor is not None:
-            executor.close()
-        writer.close()
-        if not ok and not writer.resumed and _bad_input():
-            # an input that fails midway cannot be resumed from (fixing it changes it): leave
-            # nothing behind; an interruption or a full disk keeps the file to resume
-            for suffix in ("", "-wal", "-shm"):
-                Path(str(out) + suffix).unlink(missing_ok=True)
-    return BuildReport(
-        out,
-        total,
-        made,
-        writer.resumed,
-        time.perf_counter() - t0,
-        label,
-        (span.zmin, span.texture_zmax, span.zmax),
-        imagery_zmax if options.imagery else None,
-    )
+        finer = replace(job, zmax=zmax + 1)
+        _run(executor, finer, pending, writer, options.batch, progress, done, total)
+        zmax += 1
+    return zmax, made, executor
 
 
 def _run(
