@@ -215,7 +215,6 @@ def write_dataset(
     """Render every pose of ``scene`` (``Scene.capture``) into the folder ``out`` (see the
     module; written under a temporary name, renamed when complete). Returns the origin used.
     Every pose is checked (under the ground, outside the Earth) before anything is drawn."""
-    from PIL import Image
 
     target = Path(out).expanduser()
     if target.exists() and (not target.is_dir() or any(target.iterdir())):
@@ -240,96 +239,13 @@ def write_dataset(
         frames: list[dict[str, Any]] = []
         cameras_txt, images_txt = [], []
         for i, pose in enumerate(poses):
-            cap = scene.capture(pose.camera)
-            m = conventions(cap.camera, origin)
-            Image.fromarray(cap.rgb, "RGB").save(tmp / "images" / f"{pose.name}.png")
-            np.save(tmp / "depth" / f"{pose.name}.npy", cap.depth)
-            np.save(tmp / "normals" / f"{pose.name}.npy", cap.normals)
-            Image.fromarray(cap.labels, "L").save(tmp / "semantic" / f"{pose.name}.png")
-            c = cap.camera
-            (tmp / "cameras" / f"{pose.name}.json").write_text(
-                json.dumps(
-                    {
-                        "width": c.width,
-                        "height": c.height,
-                        "K": m.K.tolist(),
-                        "R": m.R.tolist(),
-                        "t": m.t.tolist(),
-                        "dist": [0.0, 0.0, 0.0, 0.0, 0.0],
-                        "centre": m.centre.tolist(),
-                        "geodetic": {
-                            k: float(getattr(c, k))
-                            for k in ("lon", "lat", "alt", "heading", "pitch", "roll", "fov_y")
-                        },
-                        "near": c.near,
-                        "far": c.far,
-                    },
-                    indent=1,
-                )
-                + "\n"
-            )
-            fx, fy, cx, cy = m.colmap_params
-            cameras_txt.append(f"{i + 1} PINHOLE {c.width} {c.height} {_num(fx, fy, cx, cy)}")
-            images_txt.append(f"{i + 1} {_num(*m.qvec, *m.t)} {i + 1} {pose.name}.png\n")
-            frames.append(
-                {
-                    "file_path": f"images/{pose.name}.png",
-                    "depth_file_path": f"depth/{pose.name}.npy",
-                    "semantic_file_path": f"semantic/{pose.name}.png",
-                    "transform_matrix": m.c2w_gl.tolist(),
-                    "fl_x": float(fx),
-                    "fl_y": float(fy),
-                    "cx": float(cx),
-                    "cy": float(cy),
-                    "w": c.width,
-                    "h": c.height,
-                    "camera_angle_x": 2.0 * math.atan(c.width / (2.0 * float(fx))),
-                }
-            )
+            camera_line, image_line, frame = _write_pose(tmp, i, pose, scene, origin)
+            cameras_txt.append(camera_line)
+            images_txt.append(image_line)
+            frames.append(frame)
             if progress is not None:
                 progress(i + 1, len(poses))
-        first = frames[0]
-        transforms = {
-            "camera_model": "OPENCV",
-            **{k: first[k] for k in ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x")},
-            "k1": 0.0,
-            "k2": 0.0,
-            "p1": 0.0,
-            "p2": 0.0,
-            "frames": frames,
-        }
-        (tmp / "transforms.json").write_text(json.dumps(transforms, indent=1) + "\n")
-        (tmp / "colmap" / "cameras.txt").write_text(
-            "# Camera list with one line of data per camera:\n"
-            "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "\n".join(cameras_txt) + "\n"
-        )
-        (tmp / "colmap" / "images.txt").write_text(
-            "# Image list with two lines of data per image:\n"
-            "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
-            "#   POINTS2D[] as (X, Y, POINT3D_ID)\n" + "\n".join(images_txt) + "\n"
-        )
-        (tmp / "colmap" / "points3D.txt").write_text(
-            "# 3D point list (none: the scene's geometry is in depth/)\n"
-        )
-        (tmp / "frame.json").write_text(
-            json.dumps(
-                {
-                    "world": "local east-north-up metres",
-                    "origin": {"lon": origin.lon, "lat": origin.lat, "height": origin.height},
-                    "height": "ellipsoidal (WGS84), metres",
-                    "labels": {str(k): v for k, v in LABELS.items()},
-                    "depth": "float32 metres along the optical axis; inf where nothing is drawn",
-                    "normals": "float32 unit vectors in the OpenCV camera frame "
-                    "(x right, y down, z ahead), facing the camera; 0 where nothing is drawn",
-                    "opencv": "x_cam = R @ x_world + t; pixel centres at whole numbers",
-                    "colmap": "PINHOLE; pixel centres at half-integers",
-                    "nerf": "transform_matrix: camera to world, OpenGL camera axes",
-                    "poses": len(poses),
-                },
-                indent=1,
-            )
-            + "\n"
-        )
+        _write_indexes(tmp, frames, cameras_txt, images_txt, origin)
         if target.exists():
             target.rmdir()  # empty, checked above
         os.replace(tmp, target)
@@ -338,6 +254,113 @@ def write_dataset(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return origin
+
+
+def _write_pose(
+    tmp: Path, i: int, pose: Pose, scene: Any, origin: Origin
+) -> tuple[str, str, dict[str, Any]]:
+    """Pose ``i`` captured and written (image, depth, normals, labels, its camera's JSON);
+    its lines of COLMAP's cameras.txt and images.txt, and its NeRF frame."""
+    from PIL import Image
+
+    cap = scene.capture(pose.camera)
+    m = conventions(cap.camera, origin)
+    Image.fromarray(cap.rgb, "RGB").save(tmp / "images" / f"{pose.name}.png")
+    np.save(tmp / "depth" / f"{pose.name}.npy", cap.depth)
+    np.save(tmp / "normals" / f"{pose.name}.npy", cap.normals)
+    Image.fromarray(cap.labels, "L").save(tmp / "semantic" / f"{pose.name}.png")
+    c = cap.camera
+    (tmp / "cameras" / f"{pose.name}.json").write_text(
+        json.dumps(
+            {
+                "width": c.width,
+                "height": c.height,
+                "K": m.K.tolist(),
+                "R": m.R.tolist(),
+                "t": m.t.tolist(),
+                "dist": [0.0, 0.0, 0.0, 0.0, 0.0],
+                "centre": m.centre.tolist(),
+                "geodetic": {
+                    k: float(getattr(c, k))
+                    for k in ("lon", "lat", "alt", "heading", "pitch", "roll", "fov_y")
+                },
+                "near": c.near,
+                "far": c.far,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
+    fx, fy, cx, cy = m.colmap_params
+    camera_line = f"{i + 1} PINHOLE {c.width} {c.height} {_num(fx, fy, cx, cy)}"
+    image_line = f"{i + 1} {_num(*m.qvec, *m.t)} {i + 1} {pose.name}.png\n"
+    frame = {
+        "file_path": f"images/{pose.name}.png",
+        "depth_file_path": f"depth/{pose.name}.npy",
+        "semantic_file_path": f"semantic/{pose.name}.png",
+        "transform_matrix": m.c2w_gl.tolist(),
+        "fl_x": float(fx),
+        "fl_y": float(fy),
+        "cx": float(cx),
+        "cy": float(cy),
+        "w": c.width,
+        "h": c.height,
+        "camera_angle_x": 2.0 * math.atan(c.width / (2.0 * float(fx))),
+    }
+    return camera_line, image_line, frame
+
+
+def _write_indexes(
+    tmp: Path,
+    frames: list[dict[str, Any]],
+    cameras_txt: list[str],
+    images_txt: list[str],
+    origin: Origin,
+) -> None:
+    """The dataset's indexes: NeRF's transforms.json, COLMAP's text model, and frame.json (the
+    world frame, the units and the conventions)."""
+    first = frames[0]
+    transforms = {
+        "camera_model": "OPENCV",
+        **{k: first[k] for k in ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x")},
+        "k1": 0.0,
+        "k2": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
+        "frames": frames,
+    }
+    (tmp / "transforms.json").write_text(json.dumps(transforms, indent=1) + "\n")
+    (tmp / "colmap" / "cameras.txt").write_text(
+        "# Camera list with one line of data per camera:\n"
+        "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "\n".join(cameras_txt) + "\n"
+    )
+    (tmp / "colmap" / "images.txt").write_text(
+        "# Image list with two lines of data per image:\n"
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
+        "#   POINTS2D[] as (X, Y, POINT3D_ID)\n" + "\n".join(images_txt) + "\n"
+    )
+    (tmp / "colmap" / "points3D.txt").write_text(
+        "# 3D point list (none: the scene's geometry is in depth/)\n"
+    )
+    (tmp / "frame.json").write_text(
+        json.dumps(
+            {
+                "world": "local east-north-up metres",
+                "origin": {"lon": origin.lon, "lat": origin.lat, "height": origin.height},
+                "height": "ellipsoidal (WGS84), metres",
+                "labels": {str(k): v for k, v in LABELS.items()},
+                "depth": "float32 metres along the optical axis; inf where nothing is drawn",
+                "normals": "float32 unit vectors in the OpenCV camera frame "
+                "(x right, y down, z ahead), facing the camera; 0 where nothing is drawn",
+                "opencv": "x_cam = R @ x_world + t; pixel centres at whole numbers",
+                "colmap": "PINHOLE; pixel centres at half-integers",
+                "nerf": "transform_matrix: camera to world, OpenGL camera axes",
+                "poses": len(frames),
+            },
+            indent=1,
+        )
+        + "\n"
+    )
 
 
 def _num(*values: float) -> str:
