@@ -10,7 +10,7 @@ instanced multi-draw each).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from shapely.geometry import Polygon
 
 from lodscape.city.mesh import MODELS, Frame, Geometry, box_mesh, building_mesh
-from lodscape.city.osm import City
+from lodscape.city.osm import Building, City
 from lodscape.city.rtree import DEFAULT_PACKING, RTree, pack
 from lodscape.lod.camera import Camera
 
@@ -234,29 +234,9 @@ def build_city(
     blds = city.buildings
     base_h = _ground_under(ground, [b.footprint for b in blds])
     # footprints in the frame (metres), each building's base on its local up
-    full: list[dict[str, Geometry]] = []
-    boxes_geo: list[dict[str, Geometry]] = []
     boxes = np.zeros((len(blds) + len(city.features), 6))
     size = np.zeros(len(blds) + len(city.features))
-    for i, b in enumerate(blds):
-        ext = np.asarray(b.footprint.exterior.coords)
-        c = b.footprint.representative_point()
-        origin = frame.local(np.array(c.x), np.array(c.y), base_h[i])
-        loc = frame.local(ext[:, 0], ext[:, 1], base_h[i])
-        holes = [
-            frame.local(np.asarray(r.coords)[:, 0], np.asarray(r.coords)[:, 1], base_h[i])[:, :2]
-            for r in b.footprint.interiors
-        ]
-        xy = Polygon(loc[:, :2], holes)
-        if not xy.is_valid:
-            xy = shapely.make_valid(xy)
-            xy = max(getattr(xy, "geoms", [xy]), key=lambda g: g.area)
-        z0 = float(origin[2])
-        full.append(building_mesh(b, xy, z0))
-        boxes_geo.append(box_mesh(b, xy, z0))
-        x0, y0, x1, y1 = xy.bounds
-        boxes[i] = [x0, y0, z0 + b.min_height, x1, y1, z0 + b.height]
-        size[i] = float(np.linalg.norm([x1 - x0, y1 - y0, b.height]))
+    full, boxes_geo = _place_buildings(blds, frame, base_h, boxes, size)
     feats = city.features
     nb = len(blds)
     if feats:
@@ -278,23 +258,7 @@ def build_city(
     order = tree.order
     leaf_of = np.repeat(np.arange(tree.leaves), np.diff(tree.leaf_start))
     materials = sorted({m for g in full + boxes_geo for m in g})
-    geometry: dict[tuple[int, str], Geometry] = {}
-    runs: dict[tuple[int, str], tuple[I64, I64]] = {}
-    object_runs: dict[str, tuple[I64, I64]] = {}
-    empty = Geometry.join([])
-    for lod, per_obj in enumerate((full, boxes_geo)):
-        for m in materials:
-            parts = [per_obj[o].get(m, empty) if o < nb else empty for o in order]
-            counts = np.array([3 * len(p.triangles) for p in parts], dtype=np.int64)
-            first = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-            geometry[(lod, m)] = Geometry.join(parts)
-            lf = np.zeros(tree.leaves, dtype=np.int64)
-            lc = np.zeros(tree.leaves, dtype=np.int64)
-            np.add.at(lc, leaf_of, counts)
-            lf[:] = first[tree.leaf_start[:-1]] if len(first) else 0
-            runs[(lod, m)] = (lf, lc)
-            if lod == 0:
-                object_runs[m] = (first, counts)
+    geometry, runs, object_runs = _merged(tree, (full, boxes_geo), materials, nb)
     instances: dict[str, NDArray[np.float32]] = {}
     instance_runs: dict[str, tuple[I64, I64]] = {}
     rng = np.random.default_rng(0)
@@ -331,6 +295,74 @@ def build_city(
         len(feats),
         report,
     )
+
+
+def _place_buildings(
+    blds: Sequence[Building],
+    frame: Frame,
+    base_h: F64,
+    boxes: F64,
+    size: F64,
+) -> tuple[list[dict[str, Geometry]], list[dict[str, Geometry]]]:
+    """Each building's footprint in the frame on its base height: its full mesh and its box
+    (by material), its bounds written into ``boxes`` and its size into ``size``."""
+    full: list[dict[str, Geometry]] = []
+    boxes_geo: list[dict[str, Geometry]] = []
+    for i, b in enumerate(blds):
+        ext = np.asarray(b.footprint.exterior.coords)
+        c = b.footprint.representative_point()
+        origin = frame.local(np.array(c.x), np.array(c.y), base_h[i])
+        loc = frame.local(ext[:, 0], ext[:, 1], base_h[i])
+        holes = [
+            frame.local(np.asarray(r.coords)[:, 0], np.asarray(r.coords)[:, 1], base_h[i])[:, :2]
+            for r in b.footprint.interiors
+        ]
+        xy = Polygon(loc[:, :2], holes)
+        if not xy.is_valid:
+            xy = shapely.make_valid(xy)
+            xy = max(getattr(xy, "geoms", [xy]), key=lambda g: g.area)
+        z0 = float(origin[2])
+        full.append(building_mesh(b, xy, z0))
+        boxes_geo.append(box_mesh(b, xy, z0))
+        x0, y0, x1, y1 = xy.bounds
+        boxes[i] = [x0, y0, z0 + b.min_height, x1, y1, z0 + b.height]
+        size[i] = float(np.linalg.norm([x1 - x0, y1 - y0, b.height]))
+    return full, boxes_geo
+
+
+def _merged(
+    tree: RTree,
+    per_lod: tuple[list[dict[str, Geometry]], list[dict[str, Geometry]]],
+    materials: list[str],
+    nb: int,
+) -> tuple[
+    dict[tuple[int, str], Geometry],
+    dict[tuple[int, str], tuple[I64, I64]],
+    dict[str, tuple[I64, I64]],
+]:
+    """The buildings' meshes merged per level of detail and material in the tree's leaf
+    order, each leaf's run of vertices, and (full detail) each object's."""
+    order = tree.order
+    leaf_of = np.repeat(np.arange(tree.leaves), np.diff(tree.leaf_start))
+    full, boxes_geo = per_lod
+    geometry: dict[tuple[int, str], Geometry] = {}
+    runs: dict[tuple[int, str], tuple[I64, I64]] = {}
+    object_runs: dict[str, tuple[I64, I64]] = {}
+    empty = Geometry.join([])
+    for lod, per_obj in enumerate((full, boxes_geo)):
+        for m in materials:
+            parts = [per_obj[o].get(m, empty) if o < nb else empty for o in order]
+            counts = np.array([3 * len(p.triangles) for p in parts], dtype=np.int64)
+            first = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+            geometry[(lod, m)] = Geometry.join(parts)
+            lf = np.zeros(tree.leaves, dtype=np.int64)
+            lc = np.zeros(tree.leaves, dtype=np.int64)
+            np.add.at(lc, leaf_of, counts)
+            lf[:] = first[tree.leaf_start[:-1]] if len(first) else 0
+            runs[(lod, m)] = (lf, lc)
+            if lod == 0:
+                object_runs[m] = (first, counts)
+    return geometry, runs, object_runs
 
 
 def _scale(kind: str, height: float | None) -> float:
