@@ -215,11 +215,26 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
     if len(planes) == 1:
         eave = base + b.height
 
-    def uv(p: F64) -> F64:
-        d = p - centre
-        return np.stack([d @ u, d @ v], axis=-1)
+    axes = (centre, u, v)
+    walls = _walls(xy, planes, axes, eave, bottom)
+    roof = _roof(xy, planes, axes, (a, bb), eave)
+    return {b.wall_material: walls, b.roof_material: roof}
 
-    # walls: each ring (holes included) cut where the roof folds, one quad per edge
+
+def _uv(p: F64, axes: tuple[F64, F64, F64]) -> F64:
+    """Points in the footprint rectangle's own axes (from its centre)."""
+    centre, u, v = axes
+    d = p - centre
+    out: F64 = np.stack([d @ u, d @ v], axis=-1)
+    return out
+
+
+def _walls(
+    xy: Polygon, planes: F64, axes: tuple[F64, F64, F64], eave: float, bottom: float
+) -> Geometry:
+    """The walls from ``bottom`` up to the roof: each ring (holes included) cut where the roof
+    folds, one quad per edge."""
+    centre, u, v = axes
     wpos, wnrm, wuv, wtri = [], [], [], []
     count = 0
     rings = [np.asarray(xy.exterior.coords)[:-1]] + [
@@ -227,7 +242,7 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
     ]
     for ring in rings:
         ring = _cut_ring(ring, planes, (centre, u, v))
-        top = eave + _roof_z(planes, uv(ring))
+        top = eave + _roof_z(planes, _uv(ring, axes))
         nxt = np.roll(np.arange(len(ring)), -1)
         p0, p1 = ring, ring[nxt]
         edge = p1 - p0
@@ -267,7 +282,7 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
         base_i = count + 4 * np.arange(m)[:, None]
         wtri.append((base_i + np.array([[0, 1, 2], [0, 2, 3]]).reshape(1, 6)).reshape(-1, 3))
         count += 4 * m
-    walls = (
+    return (
         _geometry(
             np.concatenate(wpos), np.concatenate(wnrm), np.concatenate(wtri), np.concatenate(wuv)
         )
@@ -275,7 +290,13 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
         else Geometry.join([])
     )
 
-    # roof: each plane over the part of the footprint where it is the lowest
+
+def _roof(
+    xy: Polygon, planes: F64, axes: tuple[F64, F64, F64], half: tuple[float, float], eave: float
+) -> Geometry:
+    """The roof: each plane over the part of the footprint where it is the lowest."""
+    centre, u, v = axes
+    a, bb = half
     rect = np.array(
         [
             centre + sa * (a * 1.01 + 0.01) * u + sb * (bb * 1.01 + 0.01) * v
@@ -309,7 +330,7 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
         if not len(t):
             continue
         flat = t.reshape(-1, 2)
-        z = eave + _roof_z(planes, uv(flat))
+        z = eave + _roof_z(planes, _uv(flat, axes))
         gu, gv = planes[k, 1], planes[k, 2]
         grad = gu * u + gv * v
         n = np.array([-grad[0], -grad[1], 1.0])
@@ -321,7 +342,7 @@ def building_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
                 np.arange(len(flat)).reshape(-1, 3),
             )
         )
-    return {b.wall_material: walls, b.roof_material: Geometry.join(parts)}
+    return Geometry.join(parts)
 
 
 def box_mesh(b: Building, xy: Polygon, base: float) -> dict[str, Geometry]:
