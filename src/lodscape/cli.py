@@ -15,7 +15,7 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, NamedTuple
 
 import numpy as np
 import typer
@@ -755,14 +755,12 @@ def render(
     inputs = {"SOURCE": source, "--camera": camera_file, **terrain.inputs()}
     _outputs_apart({"-o": output, "--depth": depth}, inputs)
     pose = _pose(lon, lat, alt, pitch is not None or roll is not None, camera_file)
-    look = (heading, _or(pitch, -30.0), _or(roll, 0.0))
+    aim = _Aim(camera_file, pose, (heading, _or(pitch, -30.0), _or(roll, 0.0)), w, h, fov)
     if globe:
-        _render_globe_view(
-            source, output, depth, quiet, terrain, camera_file, pose, look, w, h, fov
-        )
+        _render_globe_view(source, output, depth, quiet, terrain, aim)
         return
     with terrain.open(source, terrain.options()) as scene:
-        camera = _scene_camera(scene, camera_file, pose, look, w, h, fov)
+        camera = _scene_camera(scene, aim)
         _render(scene, camera, output, depth, quiet)
 
 
@@ -803,17 +801,23 @@ def _dataset_alone(
     return poses, dataset
 
 
-def _scene_camera(
-    scene: Scene,
-    camera_file: Path | None,
-    pose: tuple[float, float, float] | None,
-    look: tuple[float, float, float],
-    w: int,
-    h: int,
-    fov: float,
-) -> Camera:
-    """``render``'s camera: from the camera file, at POSE (lon, lat, alt) looking as LOOK
-    (heading, pitch, roll) says, or the city's or the overview (its heading, if given)."""
+class _Aim(NamedTuple):
+    """Where ``render`` looks from: a camera file, or POSE (lon, lat, alt) looking as LOOK
+    (heading, pitch, roll) says, or neither (the view is fitted); the picture's size and field
+    of view."""
+
+    camera_file: Path | None
+    pose: tuple[float, float, float] | None
+    look: tuple[float, float, float]
+    w: int
+    h: int
+    fov: float
+
+
+def _scene_camera(scene: Scene, aim: _Aim) -> Camera:
+    """``render``'s camera: from the camera file, at the pose, or the city's or the overview
+    (its heading, if given)."""
+    camera_file, pose, look, w, h, fov = aim
     if camera_file is not None:
         from lodscape.view import load_camera
 
@@ -828,19 +832,11 @@ def _scene_camera(
 
 
 def _render_globe_view(
-    source: str,
-    output: Path,
-    depth: Path | None,
-    quiet: bool,
-    terrain: TerrainFlags,
-    camera_file: Path | None,
-    pose: tuple[float, float, float] | None,
-    look: tuple[float, float, float],
-    w: int,
-    h: int,
-    fov: float,
+    source: str, output: Path, depth: Path | None, quiet: bool, terrain: TerrainFlags, aim: _Aim
 ) -> None:
-    """``render --globe``: the globe over SOURCE from the camera file, POSE or the default."""
+    """``render --globe``: the globe over SOURCE from the camera file, the pose or the
+    default."""
+    camera_file, pose, look, w, h, fov = aim
     from lodscape.globe import GlobeOptions
 
     try:

@@ -11,10 +11,11 @@ than read back from the depth buffer, whose non-linear 24-bit values lose centim
 from __future__ import annotations
 
 import collections
+import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from types import TracebackType
 from typing import Any, Protocol, TypeVar
@@ -714,18 +715,20 @@ class Renderer:
         fbo: moderngl.Framebuffer,
         labelled: bool,
     ) -> None:
-        if not labelled:
+        with self._labelling() if labelled else contextlib.nullcontext():
             self._draw_resolved(camera, items, resolved, fbo, labelled)
-            return
-        # the label pass: the same tiles by the label variants; the statistics stay the colour
-        # frame's
+
+    @contextlib.contextmanager
+    def _labelling(self) -> Iterator[None]:
+        """The label pass's programs bound; the colour ones again after, the statistics
+        staying the colour frame's."""
         stats = self.last_stats
         main = self._program
         self._bind(self._label_program())
         if self._tess is not None:
             self._tess.use_labels(True, labels.ground_labels(self._classes))
         try:
-            self._draw_resolved(camera, items, resolved, fbo, labelled)
+            yield
         finally:
             self._bind(main)
             if self._tess is not None:
