@@ -648,7 +648,8 @@ class Renderer:
         for under in before:
             under(camera, fbo)
             fbo.use()
-        self._draw_tiles(camera, items, resolved, fbo, labelled)
+        with self._labelling() if labelled else contextlib.nullcontext():
+            self._draw_tiles(camera, items, resolved, fbo, labelled)
         if self.ellipsoid:
             self.draw_ellipsoid(camera, labelled)
         for extra in after:
@@ -705,18 +706,8 @@ class Renderer:
         self._use()
         fbo = self.label_framebuffer if labelled else self.framebuffer
         assert fbo is not None
-        self._draw_tiles(camera, items, self._resolve(items), fbo, labelled)
-
-    def _draw_tiles(
-        self,
-        camera: Camera,
-        items: Sequence[DrawItem],
-        resolved: tuple[list[_Tile | _GpuTile], list[moderngl.Texture]],
-        fbo: moderngl.Framebuffer,
-        labelled: bool,
-    ) -> None:
         with self._labelling() if labelled else contextlib.nullcontext():
-            self._draw_resolved(camera, items, resolved, fbo, labelled)
+            self._draw_tiles(camera, items, self._resolve(items), fbo, labelled)
 
     @contextlib.contextmanager
     def _labelling(self) -> Iterator[None]:
@@ -738,7 +729,7 @@ class Renderer:
             self._label_vaos.clear()
             self.last_stats = stats
 
-    def _draw_resolved(
+    def _draw_tiles(
         self,
         camera: Camera,
         items: Sequence[DrawItem],
