@@ -352,6 +352,7 @@ opened = time.perf_counter() - t
 t = time.perf_counter()
 rgb, depth = scene.render(scene.overview_camera(320, 200))
 src = scene.source.source
+src = getattr(src, "source", src)  # the raster under its fill
 print(json.dumps({
     "peak_mb": hwm(),
     "open_s": opened,

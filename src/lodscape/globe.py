@@ -129,7 +129,7 @@ class Globe:
     def drain(self) -> list[NDArray[np.uint8]]:
         """The pictures ``render_behind`` has not returned yet, oldest first."""
         target = self.renderer
-        return [] if target is None else list(target.drain())
+        return [] if target is None else list(target.target.drain())
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -154,14 +154,15 @@ class Globe:
             loop = self._own_loop(camera)
             loop.stages = stages
             target = loop.target.renderer  # type: ignore[attr-defined]
-            if ring != target.ring and target.pending:
+            frames = target.target
+            if ring != frames.ring and frames.pending:
                 raise RuntimeError("pictures left in the read ring: take them with drain() first")
-            target.ring, target.read_depth = ring, depth
+            frames.ring, frames.read_depth = ring, depth
             rgb, dist = loop.run(camera, blocking=not self.streaming, background=background)
             stats = loop.last
         assert stats is not None
         self._stats = stats
-        self._covered = target.covered if self._draws_tiles else 0
+        self._covered = target.target.covered if self._draws_tiles else 0
         globe = stats.section("globe")
         sel = self._globe.selection
         self.last = {

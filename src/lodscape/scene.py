@@ -273,7 +273,7 @@ class Scene:
         """The pictures ``render_behind`` has not returned yet, oldest first."""
         if self._renderer is None:
             return []
-        return self._renderer.drain()
+        return self._renderer.target.drain()
 
     def _render(
         self,
@@ -289,9 +289,10 @@ class Scene:
         if self._renderer is None:
             self.prepare(camera)  # a camera under the ground is refused before any GL
         renderer = self._renderer_for(camera)
-        if ring != renderer.ring and renderer.pending:
+        frames = renderer.target
+        if ring != frames.ring and frames.pending:
             raise RuntimeError("pictures left in the read ring: take them with drain() first")
-        renderer.ring, renderer.read_depth = ring, depth
+        frames.ring, frames.read_depth = ring, depth
         loop = self._loop_for(renderer)
         loop.stages = [*before, *self._stages(renderer)]
         loader = loop.loader
@@ -468,7 +469,7 @@ class Scene:
 
     def use_context(self, ctx: Any) -> None:
         """Draw in ``ctx`` (a window's OpenGL context) from the next frame on; frames then stay
-        in ``renderer.framebuffer`` instead of coming back as arrays."""
+        in ``renderer.target.framebuffer`` instead of coming back as arrays."""
         if self._renderer is not None:
             raise RuntimeError("use_context before the first frame")
         self._ctx = ctx

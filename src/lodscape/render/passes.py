@@ -85,19 +85,15 @@ class RendererTarget:
         self.labelled = labelled
 
     def begin(self, camera: Camera, *, background: Rgb | None = None) -> moderngl.Framebuffer:
-        return self.renderer.begin(camera, background=background, labelled=self.labelled)
+        return self.renderer.target.begin(camera, background=background, labelled=self.labelled)
 
     def end(self, camera: Camera) -> tuple[NDArray[Any], NDArray[np.float32]]:
-        return self.renderer.end(camera, self.labelled)
+        return self.renderer.target.end(camera, self.labelled)
 
     @property
     def fbo(self) -> moderngl.Framebuffer:
         """The framebuffer being drawn."""
-        r = self.renderer
-        got = r.label_framebuffer if self.labelled else r.framebuffer
-        if got is None:
-            raise RuntimeError("no frame begun")
-        return got
+        return self.renderer.target.fbo(self.labelled)
 
 
 class TerrainPass:
@@ -190,7 +186,7 @@ class GlobeImageryPass:
         if target.labelled or not draws.layers:
             return
         r = target.renderer
-        colour, dist = r.attachments
+        colour, dist = r.target.attachments
         self.globe.draw_imagery(draws.camera, draws.layers, colour, dist, r.texture)
         target.fbo.use()
 

@@ -10,7 +10,6 @@ than read back from the depth buffer, whose non-linear 24-bit values lose centim
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import math
 import threading
@@ -36,6 +35,7 @@ from lodscape.render import labels
 from lodscape.render._context import create_context, is_software, make_current
 from lodscape.render._depth import with_log_depth
 from lodscape.render._shaders import shader
+from lodscape.render.target import FrameTarget, _rgb
 from lodscape.render.tess_pass import LAYER_UNIT, MAX_OVERLAYS, TessTerrain, bind_layers
 from lodscape.terrain.heightmap import height_tile
 from lodscape.terrain.mesh import TileMesh, grid_indices
@@ -131,17 +131,6 @@ class _GpuTile:
     triangles: int
 
 
-@dataclass(eq=False)
-class _Target:
-    size: tuple[int, int]
-    color: moderngl.Renderbuffer
-    dist: moderngl.Renderbuffer | moderngl.Texture
-    depth: moderngl.Renderbuffer
-    fbo: moderngl.Framebuffer
-    #: The colour attachment alone (what a window's framebuffer can be copied from).
-    colour_fbo: moderngl.Framebuffer | None = None
-
-
 class Renderer:
     """Owns the GL objects of the tiles uploaded to it and draws any subset of them per frame.
 
@@ -176,7 +165,6 @@ class Renderer:
         self.ctx: moderngl.Context = create_context() if ctx is None else ctx
         self._thread = threading.get_ident()
         self._closed = False
-        self.background = _rgb(background)
         self.last_stats = DrawStats()
         self._live = 0
         self._tiles: dict[int, _Tile] = {}
@@ -228,9 +216,16 @@ class Renderer:
         # cost of a frame and takes minutes at a grazing view over a magnified texture: off there
         cap = 1.0 if is_software(self.ctx) else float(self.ctx.max_anisotropy)
         self._anisotropy = max(1.0, min(cap, float(anisotropy)))
-        self._target: _Target | None = None
-        self._target_for(width, height)
-        self._labels_target: _Target | None = None
+        #: Where frames are drawn and how they come back (``render.target``).
+        self.target = FrameTarget(
+            self.ctx,
+            self._track,
+            self._free,
+            self._use,
+            background=_rgb(background),
+            log_depth=log_depth,
+        )
+        self.target._target_for(width, height)
         #: The land-cover classes the ground textures hold (the label pass maps them).
         self._classes: tuple[str, ...] | None = None
         if ground == "landcover":
@@ -239,7 +234,10 @@ class Renderer:
             self._classes = CLASSES
         #: "gpu": tiles are height textures tessellated in hardware (``render.tess_pass``).
         self.terrain_mode = terrain_mode
-        self._init_read_back()
+        #: Draw the terrain's triangles as lines (the viewer's wireframe key).
+        self.wireframe = False
+        #: Tint each tile by its level (the viewer's LOD colouring key).
+        self.lod_colours = False
         #: Imagery textures go to the GPU block-compressed (BC1 RGB, BC3 RGBA; compressed on
         #: the workers in ``prepare``) where the context takes S3TC; asked for where it does
         #: not, textures stay uncompressed and ``compress_note`` says why.
@@ -249,27 +247,6 @@ class Renderer:
         if terrain_mode == "gpu":
             self._tess = TessTerrain(self.ctx, fragment)
             self._tess.px_per_segment = float(tess_px)
-
-    def _init_read_back(self) -> None:
-        """How frames come back, and the viewer's switches."""
-        #: False: ``draw`` leaves the picture in ``framebuffer`` and returns empty arrays.
-        self.read_back = True
-        #: False: ``draw`` reads the picture only, and returns an empty (0, 0) distance.
-        self.read_depth = True
-        #: N > 0: the picture is read into a ring of N pixel-pack buffers, and ``draw`` returns
-        #: the one read N - 1 frames before (empty until then; ``drain`` gives the rest), so
-        #: the GL may copy frame N while the next renders (paper 001's triple buffering).
-        self.ring = 0
-        self._ring: collections.deque[tuple[moderngl.Buffer, int, int]] = collections.deque()
-        self._ring_free: list[tuple[moderngl.Buffer, int]] = []
-        #: Log-depth frames: pixels of the last picture read back that the terrain and the
-        #: city drew (the globe's have alpha 0); through the read ring, of the picture that
-        #: came back.
-        self.covered = 0
-        #: Draw the terrain's triangles as lines (the viewer's wireframe key).
-        self.wireframe = False
-        #: Tint each tile by its level (the viewer's LOD colouring key).
-        self.lod_colours = False
 
     def _ground_materials(self) -> moderngl.TextureArray:
         """The land-cover classes' materials, one mipmapped layer each, on unit 4."""
@@ -301,33 +278,18 @@ class Renderer:
         )
 
     @property
-    def framebuffer(self) -> moderngl.Framebuffer | None:
-        """The last frame's colour + distance target."""
-        return None if self._target is None else self._target.fbo
+    def read_back(self) -> bool:
+        """False: frames stay in the target (a window shows it); nothing comes back."""
+        return self.target.read_back
 
-    @property
-    def label_framebuffer(self) -> moderngl.Framebuffer | None:
-        """The label pass's target (normals and labels, distance), once it was begun."""
-        return None if self._labels_target is None else self._labels_target.fbo
+    @read_back.setter
+    def read_back(self, on: bool) -> None:
+        self.target.read_back = on
 
     @property
     def colour_framebuffer(self) -> moderngl.Framebuffer | None:
         """The last frame's colour alone, as a framebuffer a window's can be copied from."""
-        t = self._target
-        if t is None:
-            return None
-        if t.colour_fbo is None:
-            t.colour_fbo = self._track(self.ctx.framebuffer([t.color]))
-        return t.colour_fbo
-
-    @property
-    def attachments(self) -> tuple[moderngl.Renderbuffer, moderngl.Texture]:
-        """The colour attachment and the distance texture of the frame being drawn (what a
-        pass drawn before the terrain works with)."""
-        t = self._target
-        if t is None or not isinstance(t.dist, moderngl.Texture):
-            raise RuntimeError("no frame target yet")
-        return t.color, t.dist
+        return self.target.colour_framebuffer
 
     @property
     def anisotropy(self) -> float:
@@ -538,13 +500,12 @@ class Renderer:
         *,
         background: Rgb | None = None,
         after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]] = (),
-        before: Sequence[Callable[[Camera, moderngl.Framebuffer], None]] = (),
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """Render ``items`` from ``camera``: RGB (H, W, 3) uint8, row 0 at the top, and view
         distance (H, W) float32 in metres along the view axis, +inf where nothing was drawn.
-        ``before`` passes (the globe) draw into the cleared framebuffer first, ``after``
-        passes (the city) once the terrain is in: one target, one depth test."""
-        return self._draw(camera, items, background, after, labelled=False, before=before)
+        ``after`` passes (the city) draw into the same framebuffer once the terrain is in
+        (``lodscape.frame.FrameLoop`` draws a frame's passes through ``target`` instead)."""
+        return self._draw(camera, items, background, after, labelled=False)
 
     def draw_labels(
         self,
@@ -557,7 +518,7 @@ class Renderer:
         float32 of the view-space normal facing the camera (x right, y up, z backwards) and
         the semantic label (``render.labels``; 0 where nothing was drawn), and the distance.
         The draw statistics stay the colour frame's."""
-        if self.ring:
+        if self.target.ring:
             raise RuntimeError("draw_labels reads back at once: no read ring")
         return self._draw(camera, items, None, after, labelled=True)  # type: ignore[return-value]
 
@@ -639,15 +600,11 @@ class Renderer:
         after: Sequence[Callable[[Camera, moderngl.Framebuffer], None]],
         *,
         labelled: bool,
-        before: Sequence[Callable[[Camera, moderngl.Framebuffer], None]] = (),
     ) -> tuple[NDArray[Any], NDArray[np.float32]]:
         self._use()
         # resolve every key before touching GL state, so a bad frame changes nothing
         resolved = self._resolve(items)
-        fbo = self.begin(camera, background=background, labelled=labelled)
-        for under in before:
-            under(camera, fbo)
-            fbo.use()
+        fbo = self.target.begin(camera, background=background, labelled=labelled)
         with self._labelling() if labelled else contextlib.nullcontext():
             self._draw_tiles(camera, items, resolved, fbo, labelled)
         if self.ellipsoid:
@@ -655,7 +612,7 @@ class Renderer:
         for extra in after:
             extra(camera, fbo)
             fbo.use()
-        return self.end(camera, labelled)
+        return self.target.end(camera, labelled)
 
     def _resolve(
         self, items: Sequence[DrawItem]
@@ -675,37 +632,10 @@ class Renderer:
             textures.append(texture[0])
         return tiles, textures
 
-    def begin(
-        self, camera: Camera, *, background: Rgb | None = None, labelled: bool = False
-    ) -> moderngl.Framebuffer:
-        """Start a frame of ``camera``'s size: the target cleared to ``background`` (the
-        renderer's own when None), its distance to +inf; the target's framebuffer, bound."""
-        self._use()
-        if labelled:
-            fbo = self._label_target_for(camera.width, camera.height)
-            bg: tuple[float, float, float, float] = (0.0, 0.0, 0.0, float(labels.SKY))
-        else:
-            fbo = self._target_for(camera.width, camera.height).fbo
-            # a frame with the globe marks the terrain scene's pixels by their alpha (1)
-            alpha = 0.0 if self.log_depth else 1.0
-            bg = (*(self.background if background is None else _rgb(background)), alpha)
-        fbo.use()
-        # glClear writes one value to every colour attachment: mask each in turn instead
-        # (the stubs type color_mask for one attachment; moderngl takes one mask per attachment)
-        fbo.color_mask = (_ALL, _NONE)  # type: ignore[assignment]
-        fbo.clear(*bg, depth=1.0)
-        fbo.color_mask = (_NONE, _ALL)  # type: ignore[assignment]
-        fbo.clear(float("inf"), 0.0, 0.0, 0.0)
-        fbo.color_mask = (_ALL, _ALL)  # type: ignore[assignment]
-        if not labelled:
-            self.last_stats = DrawStats()
-        return fbo
-
     def draw_tiles(self, camera: Camera, items: Sequence[DrawItem], labelled: bool = False) -> None:
         """The terrain pass: ``items`` into the frame ``begin`` started."""
         self._use()
-        fbo = self.label_framebuffer if labelled else self.framebuffer
-        assert fbo is not None
+        fbo = self.target.fbo(labelled)
         with self._labelling() if labelled else contextlib.nullcontext():
             self._draw_tiles(camera, items, self._resolve(items), fbo, labelled)
 
@@ -831,8 +761,7 @@ class Renderer:
         depth buffer is still clear (the depth test runs before its shader, so the pixels the
         terrain covers cost nothing), no depth written (the city's passes then draw as over
         the sky); its distance in the distance attachment."""
-        fbo = self.label_framebuffer if labelled else self.framebuffer
-        assert fbo is not None
+        fbo = self.target.fbo(labelled)
         fbo.use()
         ctx = self.ctx
         ctx.wireframe = False
@@ -927,87 +856,6 @@ class Renderer:
             out.append((self._clear if entry is None else entry[0], window))
         return out
 
-    def end(
-        self, camera: Camera, labelled: bool = False
-    ) -> tuple[NDArray[Any], NDArray[np.float32]]:
-        """End the frame: its picture and distance read back (once; into the read ring when
-        ``ring``; not at all when ``read_back`` is off, a window showing the target)."""
-        self._use()
-        fbo = self.label_framebuffer if labelled else self.framebuffer
-        assert fbo is not None
-        self.ctx.wireframe = False
-        h, w = camera.height, camera.width
-        if labelled:
-            got = np.frombuffer(fbo.read(components=4, attachment=0, dtype="f4"), np.float32)
-            dist = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32)
-            return (
-                np.ascontiguousarray(got.reshape(h, w, 4)[::-1]),
-                np.ascontiguousarray(dist.reshape(h, w)[::-1]),
-            )
-        if not self.read_back:
-            # a window shows the framebuffer itself (``framebuffer``): nothing comes back
-            return np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
-
-        no_depth = np.zeros((0, 0), np.float32)
-        if self.ring > 0:
-            self._ring.append((self._pack(fbo, w, h), w, h))
-            late = self.drain(keep=self.ring - 1)
-            return (late[0] if late else np.zeros((0, 0, 3), np.uint8)), no_depth
-        # GL rows go bottom-up: flip so row 0 is the top of the picture
-        if self.log_depth:
-            # the same read with the alpha: the pixels the terrain scene drew, globe aside
-            rgba = np.frombuffer(fbo.read(components=4, attachment=0, alignment=1), np.uint8)
-            rgba = rgba.reshape(h, w, 4)[::-1]
-            self.covered = int(np.count_nonzero(rgba[..., 3] > 127))
-            rgb = np.ascontiguousarray(rgba[..., :3])
-        else:
-            rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
-            rgb = np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1])
-        if not self.read_depth:
-            return rgb, no_depth
-        dist = np.frombuffer(
-            fbo.read(components=1, attachment=1, alignment=1, dtype="f4"), np.float32
-        )
-        return rgb, np.ascontiguousarray(dist.reshape(h, w)[::-1])
-
-    @property
-    def pending(self) -> int:
-        """Pictures in the read ring not yet returned."""
-        return len(self._ring)
-
-    def drain(self, keep: int = 0) -> list[NDArray[np.uint8]]:
-        """The pictures still in the read ring, oldest first, leaving the newest ``keep``."""
-        out = []
-        n = self._components
-        while len(self._ring) > keep:
-            buf, w, h = self._ring.popleft()
-            got = np.frombuffer(buf.read(), np.uint8).reshape(h, w, n)[::-1]
-            if n == 4:  # the terrain scene's pixels of the picture that comes back
-                self.covered = int(np.count_nonzero(got[..., 3] > 127))
-            out.append(np.ascontiguousarray(got[..., :3]))
-            self._ring_free.append((buf, w * h * n))
-        return out
-
-    @property
-    def _components(self) -> int:
-        """Read-backs take the alpha too in log-depth frames (it marks the terrain's pixels)."""
-        return 4 if self.log_depth else 3
-
-    def _pack(self, fbo: moderngl.Framebuffer, w: int, h: int) -> moderngl.Buffer:
-        """Start reading the picture into a pixel-pack buffer (the GL copies asynchronously)."""
-        size = w * h * self._components
-        for buf, n in [e for e in self._ring_free if e[1] != size]:
-            self._ring_free.remove((buf, n))
-            self._free(buf)
-        if self._ring_free:
-            buf, _ = self._ring_free.pop()
-        else:
-            buf = self._track(self.ctx.buffer(reserve=size))
-        fbo.read_into(buf, components=self._components, attachment=0, alignment=1)
-        return buf
-
-    # --- lifetime ---------------------------------------------------------------------------
-
     def close(self) -> None:
         """Release every GL object, and the context when this renderer created it."""
         if self._closed:
@@ -1015,14 +863,7 @@ class Renderer:
         self._use()
         for key in [*self._tiles, *self._textures, *self._gpu_tiles]:
             self.release(key)
-        for target in (self._target, self._labels_target):
-            if target is not None:
-                self._free_target(target)
-        self._target = self._labels_target = None
-        for buf in [b for b, _, _ in self._ring] + [b for b, _ in self._ring_free]:
-            self._free(buf)
-        self._ring.clear()
-        self._ring_free.clear()
+        self.target.close()
         if self._tess is not None:
             self._tess.close()
             self._tess = None
@@ -1087,47 +928,6 @@ class Renderer:
             entry = (self._track(self.ctx.buffer(grid_indices(segments))), 0)
         self._indices[segments] = (entry[0], entry[1] + 1)
         return entry[0]
-
-    def _target_for(self, width: int, height: int) -> _Target:
-        target = self._target
-        if target is not None and target.size == (width, height):
-            return target
-        if target is not None:
-            self._free_target(target)
-        size = (width, height)
-        color = self._track(self.ctx.renderbuffer(size, 4))
-        # a texture: a pass drawn after another may read the distances it left (the globe's
-        # imagery reads the globe's)
-        dist = self._track(self.ctx.texture(size, 1, dtype="f4"))
-        dist.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        depth = self._track(self.ctx.depth_renderbuffer(size))
-        fbo = self._track(self.ctx.framebuffer([color, dist], depth))
-        self._target = _Target(size, color, dist, depth, fbo)
-        return self._target
-
-    def _label_target_for(self, width: int, height: int) -> moderngl.Framebuffer:
-        """The label pass's target: RGBA32F (normal, label), the distance, a depth buffer."""
-        got = self._labels_target
-        if got is not None and got.size == (width, height):
-            return got.fbo
-        if got is not None:
-            self._free_target(got)
-        size = (width, height)
-        color = self._track(self.ctx.renderbuffer(size, 4, dtype="f4"))
-        dist = self._track(self.ctx.renderbuffer(size, 1, dtype="f4"))
-        depth = self._track(self.ctx.depth_renderbuffer(size))
-        fbo = self._track(self.ctx.framebuffer([color, dist], depth))
-        self._labels_target = _Target(size, color, dist, depth, fbo)
-        return fbo
-
-    def _free_target(self, target: _Target) -> None:
-        # moderngl re-binds its idea of the bound framebuffer after creating or reading objects;
-        # left pointing at a deleted name that is GL_INVALID_OPERATION, so bind name 0 first
-        self.ctx.detect_framebuffer(0).use()
-        if target.colour_fbo is not None:
-            self._free(target.colour_fbo)
-        for obj in (target.fbo, target.color, target.dist, target.depth):
-            self._free(obj)
 
 
 def wound_up(
@@ -1210,10 +1010,3 @@ def _view_offset(
     """View-space position of a tile centre: R·(centre − camera), in float64."""
     result: NDArray[np.float64] = rot @ (center - camera.position)
     return result
-
-
-def _rgb(colour: Sequence[float]) -> Rgb:
-    values = tuple(float(c) for c in colour)
-    if len(values) != 3:
-        raise ValueError(f"expected an RGB colour of three numbers 0..1, got {colour!r}")
-    return values[0], values[1], values[2]
