@@ -17,9 +17,12 @@ Three workloads, through the public API only (so an older lodscape runs them too
 
 Counted: calls to the selection on the frame's thread per frame (the prefetch's predicted
 selections run on workers and are counted apart), and the frame's CPU time: selection and
-loading (``select_ms + load_ms``) for the views, ``frame_cpu_ms`` for the flight. Medians.
+loading (``select_ms + load_ms``) for the views, ``frame_cpu_ms`` for the flight. Medians; with
+``--rounds`` the two commits run in turn and each ratio is the median over the rounds, with
+its range.
 
-    python bench/bench_frame.py [--before 54794d2] [--work DIR] [--seconds 10] [--repeat 7]
+    python bench/bench_frame.py [--before REV] [--rounds 3] [--only globe] [--work DIR]
+        [--seconds 10] [--repeat 7]
 """
 
 from __future__ import annotations
@@ -208,6 +211,40 @@ def _report(label: str, r: dict[str, Any]) -> None:
         )
 
 
+def _before(rev: str, tmp: Path, work: Path, args: argparse.Namespace) -> Any:
+    """A function that measures commit ``rev`` in a subprocess over the same data."""
+    tree = tmp / "before"
+    subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), rev],
+        check=True,
+        capture_output=True,
+    )
+
+    def run() -> dict[str, Any]:
+        env = {**os.environ, "PYTHONPATH": str(tree / "src")}
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--json"]
+        cmd += ["--work", str(work), "--seconds", str(args.seconds)]
+        cmd += ["--repeat", str(args.repeat)]
+        cmd += ["--only", args.only] if args.only else []
+        done = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
+        out: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
+        return out
+
+    def remove() -> None:
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False
+        )
+
+    run.remove = remove  # type: ignore[attr-defined]
+    return run
+
+
+def _ratios(label: str, pairs: list[tuple[float, float]]) -> str:
+    """before / now per round: the median and the range over the rounds."""
+    r = [b / max(n, 1e-9) for b, n in pairs]
+    return f"  {label:<20} ×{statistics.median(r):.2f} [{min(r):.2f}, {max(r):.2f}]"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--before", default=None, help="a commit to measure in the same run")
@@ -215,52 +252,50 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--only", choices=["globe"], default=None, help="one workload")
+    ap.add_argument("--rounds", type=int, default=1, help="alternate the commits this often")
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         dem, tileset = dataset(work, 2049)
-        now = measure(dem, tileset, args.seconds, args.repeat, args.only)
         if args.json:
-            print(json.dumps(now))
+            print(json.dumps(measure(dem, tileset, args.seconds, args.repeat, args.only)))
             return
-        _report("this checkout", now)
-        if args.before is None:
-            return
-        tree = Path(tmp) / "before"
-        subprocess.run(
-            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), args.before],
-            check=True,
-            capture_output=True,
-        )
+        before = None if args.before is None else _before(args.before, Path(tmp), work, args)
+        nows, befores = [], []
         try:
-            env = {**os.environ, "PYTHONPATH": str(tree / "src")}
-            cmd = [sys.executable, str(Path(__file__).resolve()), "--json"]
-            cmd += ["--work", str(work), "--seconds", str(args.seconds)]
-            cmd += ["--repeat", str(args.repeat)]
-            cmd += ["--only", args.only] if args.only else []
-            run = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
-            before = json.loads(run.stdout.strip().splitlines()[-1])
+            for r in range(args.rounds):  # this checkout and the other, in turn
+                nows.append(measure(dem, tileset, args.seconds, args.repeat, args.only))
+                _report(f"this checkout, round {r + 1}", nows[-1])
+                if before is not None:
+                    befores.append(before())
+                    _report(f"before ({args.before}), round {r + 1}", befores[-1])
         finally:
-            subprocess.run(
-                ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False
-            )
-        _report(f"before ({args.before})", before)
-        if "flight" in now:
-            print("ratios, before / now (CPU per frame):")
-            for name, v in now["views"].items():
-                b = before["views"][name]
-                print(f"  view {name:<11} ×{b['cpu_ms'] / max(v['cpu_ms'], 1e-9):.2f}")
-            ratio = before["flight"]["cpu_ms"] / now["flight"]["cpu_ms"]
-            print(f"  flight           ×{ratio:.2f}")
-        print("ratios, before / now (globe frame, wall and CPU):")
-        for name, v in now["globe"].items():
-            b = before["globe"][name]
-            print(
-                f"  globe {name:<13} ×{b['frame_ms'] / max(v['frame_ms'], 1e-9):.2f} wall  "
-                f"×{b['cpu_ms'] / max(v['cpu_ms'], 1e-9):.2f} CPU"
-            )
+            if before is not None:
+                before.remove()
+        if not befores:
+            return
+        print(f"ratios, before / now: median [range] over {args.rounds} round(s)")
+        if "flight" in nows[0]:
+            for name in nows[0]["views"]:
+                pairs = [
+                    (b["views"][name]["cpu_ms"], n["views"][name]["cpu_ms"])
+                    for n, b in zip(nows, befores, strict=True)
+                ]
+                print(_ratios(f"view {name} CPU", pairs))
+            pairs = [
+                (b["flight"]["cpu_ms"], n["flight"]["cpu_ms"])
+                for n, b in zip(nows, befores, strict=True)
+            ]
+            print(_ratios("flight CPU", pairs))
+        for name in nows[0]["globe"]:
+            for key in ("frame_ms", "cpu_ms"):
+                pairs = [
+                    (b["globe"][name][key], n["globe"][name][key])
+                    for n, b in zip(nows, befores, strict=True)
+                ]
+                print(_ratios(f"globe {name} {key.split('_')[0]}", pairs))
 
 
 if __name__ == "__main__":
