@@ -44,6 +44,7 @@ def test_exported_members_resolve() -> None:
         "widget",
         "frame",
         "picture",
+        "options",
         "annotations",
     }
 

@@ -29,6 +29,7 @@ LAYERS: dict[str, set[str]] = {
 APP = {
     "scene",
     "picture",
+    "options",
     "_watch",
     "sources",
     "globe",

@@ -13,7 +13,7 @@ its imagery layers.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,6 +32,15 @@ from lodscape.frame.globe import (
 from lodscape.lod.camera import Camera
 from lodscape.lod.globe import GlobeMesh, Selection
 
+if TYPE_CHECKING:
+    import moderngl
+
+    from lodscape.imagery.layers import ImageryLayer
+    from lodscape.render.globe_pass import GlobePass
+    from lodscape.scene import Scene
+    from lodscape.stream import StreamOptions
+    from lodscape.stream.streamer import Clock
+
 __all__ = ["SKY_HIGH", "SKY_LOW", "Globe", "GlobeOptions", "background_at"]
 
 F64 = NDArray[np.float64]
@@ -44,17 +53,17 @@ class Globe:
     terrain's) streamed over all of it. Frames stream on ``clock`` with ``stream`` options
     (None: the terrain's when it streams, else one-shot frames that load what they draw)."""
 
-    terrain: Any = None
+    terrain: Scene | None = None
     options: GlobeOptions = field(default_factory=GlobeOptions)
     last: dict[str, Any] = field(default_factory=dict)
-    layers: list[Any] | None = None
-    clock: Any = None
-    stream: Any = None
+    layers: list[ImageryLayer] | None = None
+    clock: Clock | None = None
+    stream: StreamOptions | None = None
     #: The frames' context (the globe's own unless a window's), the globe's pass in it, and
     #: the loop of a globe without terrain tiles.
-    _ctx: Any = None
+    _ctx: moderngl.Context | None = None
     _owns_ctx: bool = False
-    _pass: Any = None
+    _pass: GlobePass | None = None
     _loop: FrameLoop | None = None
     _stats: FrameStats | None = None
     _covered: int = 0
@@ -108,6 +117,11 @@ class Globe:
     def _draws_tiles(self) -> bool:
         return self._globe.tiles
 
+    @property
+    def _joined(self) -> Scene | None:
+        """The terrain scene whose frames the globe joins (its tiles drawn); None: alone."""
+        return self.terrain if self._globe.tiles else None
+
     # --- frames -----------------------------------------------------------------------------
 
     def render(
@@ -144,12 +158,13 @@ class Globe:
         self._globe.camera(camera)  # a camera under the ground is refused before any GL
         stages = self._stages()
         background = background_at(self.options, camera.alt)
-        if self._draws_tiles:
-            rgb, dist, _ = self.terrain._render(
+        joined = self._joined
+        if joined is not None:
+            rgb, dist, _ = joined._render(
                 camera, depth=depth, ring=ring, before=stages, background=background
             )
-            stats = self.terrain.last
-            target = self.terrain.renderer
+            stats = joined.last
+            target = joined.renderer
         else:
             loop = self._own_loop(camera)
             loop.stages = stages
@@ -162,7 +177,8 @@ class Globe:
             stats = loop.last
         assert stats is not None
         self._stats = stats
-        self._covered = target.target.covered if self._draws_tiles else 0
+        assert target is not None
+        self._covered = target.target.covered if joined is not None else 0
         globe = stats.section("globe")
         sel = self._globe.selection
         self.last = {
@@ -197,7 +213,8 @@ class Globe:
         from lodscape.render._context import create_context
         from lodscape.render.globe_pass import GlobePass
 
-        if self._draws_tiles and self.terrain.renderer is not None:
+        joined = self._joined
+        if joined is not None and joined.renderer is not None:
             raise LodscapeError(
                 "the terrain of a globe draws in the globe's frames: make the Globe before "
                 "the terrain's first frame"
@@ -205,8 +222,8 @@ class Globe:
         if self._ctx is None:
             self._ctx = create_context()
             self._owns_ctx = True
-        if self._draws_tiles:
-            self.terrain.join_globe(self._ctx)
+        if joined is not None:
+            joined.join_globe(self._ctx)
         self._pass = GlobePass(self._ctx, self.base_image())
         # the drape, and where the terrain's tiles are drawn, what the globe only fills
         if self.terrain is not None and (self.options.imagery or self._draws_tiles):
@@ -286,8 +303,9 @@ class Globe:
     @property
     def renderer(self) -> Any:
         """The renderer whose target the frames are drawn in (None before the first)."""
-        if self._draws_tiles:
-            return self.terrain.renderer
+        joined = self._joined
+        if joined is not None:
+            return joined.renderer
         return None if self._loop is None else self._loop.target.renderer  # type: ignore[attr-defined]
 
     @property
