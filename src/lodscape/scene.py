@@ -1,11 +1,14 @@
-"""A Scene: a height source, its tile tree and imagery, and a renderer, frame after frame.
+"""A Scene: the facade over a terrain's frame loop (``lodscape.frame``): its options, its
+cameras, and what a frame gives back (a picture, a dataset's capture, the viewer's and the
+widget's hooks).
 
     scene = lodscape.open("dem.tif")
     rgb, depth = scene.render(lodscape.Camera(lon, lat, alt, heading=30, pitch=-20))
 
-Each frame selects tiles (pure), meshes the missing ones on worker threads, uploads them on the
-calling thread (which owns the GL context), draws, and evicts what the byte budget cannot keep,
-never a tile drawn in the last frame.
+Each frame plans its layers (the terrain's tiles, the ellipsoid, the city; a globe's facets
+and imagery when it joins), meshes the missing tiles on worker threads, uploads them on the
+calling thread (which owns the GL context), draws the passes into one target, and evicts what
+the byte budget cannot keep, never a tile drawn in the last frame.
 """
 
 from __future__ import annotations
