@@ -1142,7 +1142,7 @@ def info(
 
     with open_scene(source, z_units=z_units) as scene:
         for label, text in describe(scene.provider):
-            typer.echo(f"{label:>14}: {text}")
+            typer.echo(f"{label:>14}: {text}" if label else f"{'':>14}  {text}")
 
 
 class _TileRate:

@@ -34,6 +34,8 @@ from lodscape.store.tileset import (
     lonlat_bounds,
 )
 from lodscape.terrain.greedy import MESHERS
+from lodscape.terrain.paths import absolute
+from lodscape.terrain.paths import provenance as provenance_of
 from lodscape.terrain.points import POINT_SUFFIXES, grid_points, read_points, write_grid
 from lodscape.terrain.pyramid import LevelSpan, level_range, level_span
 from lodscape.terrain.rtin import Rtin
@@ -238,7 +240,7 @@ def _prepare(
         height_range = _height_range(source)
         imagery_zmax = _imagery_zmax(options.imagery, span.texture_zmax)
         job = Job(
-            inputs=tuple(os.path.abspath(p) for p in rasters),
+            inputs=tuple(absolute(p) for p in rasters),
             allow_mixed_crs=options.allow_mixed_crs,
             tile_size=options.tile_size,
             error_texels=options.error_texels,
@@ -246,7 +248,7 @@ def _prepare(
             height_range=height_range,
             resolution=source.resolution_merc,
             zmax=span.zmax,
-            imagery=tuple(os.path.abspath(p) for p in options.imagery),
+            imagery=tuple(absolute(p) for p in options.imagery),
             imagery_zmax=imagery_zmax,
             fill=options.fill,
             sea_level=options.sea_level,
@@ -479,15 +481,18 @@ def _manifest(
     height_range: tuple[float, float],
     imagery_zmax: int,
 ) -> dict[str, object]:
-    provenance = []
-    for p in inputs:
-        st = os.stat(p)
-        provenance.append(
-            {"path": os.path.abspath(p), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns}
+    provenance = [provenance_of(os.fspath(p)) for p in inputs]
+    remote = [p["path"] for p in provenance if p.get("remote")]
+    if remote:
+        # a URL's size and time would cost a request each (and a server may not say them)
+        warn_stderr(
+            f"{remote[0]}{f' (+{len(remote) - 1} more)' if len(remote) > 1 else ''}: a remote "
+            "input: its size and time are not recorded, so a resumed build cannot tell whether "
+            "it changed"
         )
     opts = asdict(options)
     opts.pop("batch")
-    opts["imagery"] = [os.path.abspath(p) for p in options.imagery]
+    opts["imagery"] = [absolute(p) for p in options.imagery]
     return {
         "schema": SCHEMA_VERSION,
         "tile_size": options.tile_size,
@@ -512,7 +517,7 @@ def _manifest(
         "options": opts,
         # metres per height unit of the rasters not in metres (converted when read)
         "z_factors": {
-            os.path.abspath(r.path): r.z_factor for r in rasters_of(source) if r.z_factor != 1.0
+            absolute(r.path): r.z_factor for r in rasters_of(source) if r.z_factor != 1.0
         },
         # the share of the rasters' pixels in voids inside the data (what interpolate fills)
         "void_share": round(pixel_share(source, lambda r: r.void_share), 6),

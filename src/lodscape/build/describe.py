@@ -18,7 +18,8 @@ __all__ = ["describe"]
 
 
 def describe(provider: Any) -> Iterator[tuple[str, str]]:
-    """(label, text) lines describing ``provider``: a raster's resolution and nodata, or a
+    """(label, text) lines describing ``provider`` (an empty label: the line goes on the one
+    before): a raster's resolution and nodata, or a
     tileset's size, build options, fill, voids and inputs; then each stored level's tiles and
     errors (a tileset's against its build's budget)."""
     imagery_zmax = provider.texture_levels[0]
@@ -73,7 +74,8 @@ def describe(provider: Any) -> Iterator[tuple[str, str]]:
             what = "filled from their rims" if fill == "interpolate" else f"given {fill}"
             yield ("voids", f"{100.0 * voids:.2f} % of the raster inside the data, {what}")
         for p in manifest["provenance"]:
-            yield ("input", f"{p['path']} ({p['bytes']:,d} bytes)")
+            held = "remote" if p.get("bytes") is None else f"{p['bytes']:,d} bytes"
+            yield ("input", f"{p['path']} ({held})")
     stored = [lv for lv in tree.levels if hasattr(lv, "exists")]
     if len(stored) < len(tree.levels):
         # a procedural planet's, or a large DEM's made as views reach it: nothing read here
@@ -110,6 +112,6 @@ def describe(provider: Any) -> Iterator[tuple[str, str]]:
         if grid <= res / 2.0:
             yield (
                 "",
-                "  as expected: the finest grid is twice as fine as the data, and "
+                "as expected: the finest grid is twice as fine as the data, and "
                 "what is left is the data's own relief between its samples",
             )
