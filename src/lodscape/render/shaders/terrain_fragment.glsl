@@ -41,19 +41,10 @@ void main() {
     if (texelFetch(u_tex, texel, 0).a < 0.5) discard;
 #endif
 #ifdef LABELS
-#ifdef HEIGHT_NORMALS
-    f_color = labelled(v_normal, v_view, u_class_label[0]);
+    if (drawn_apart(u_class_label[0])) return;
 #else
-    f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[0]);
+    if (drawn_apart(0.0)) return;
 #endif
-    f_dist = v_dist;
-    return;
-#endif
-    if (underside(v_view)) {
-        f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
-        f_dist = v_dist;
-        return;
-    }
     vec3 c = texture(u_tex, v_uv).rgb;
 #if LAYERS > 0
     if (u_layers > 0) c = over(c, u_layer0, u_layer_uv[0]);

@@ -21,19 +21,10 @@ void main() {
     int here = cls(ivec2(floor(v_uv * vec2(size))), size);
     if (here == 255) discard;
 #ifdef LABELS
-#ifdef HEIGHT_NORMALS
-    f_color = labelled(v_normal, v_view, u_class_label[here]);
+    if (drawn_apart(u_class_label[here])) return;
 #else
-    f_color = labelled(cross(dFdx(v_view), dFdy(v_view)), v_view, u_class_label[here]);
+    if (drawn_apart(0.0)) return;
 #endif
-    f_dist = v_dist;
-    return;
-#endif
-    if (underside(v_view)) {
-        f_color = vec4(mix(UNDERSIDE, u_tint.rgb, u_tint.a), 1.0);
-        f_dist = v_dist;
-        return;
-    }
     // near ground repeats every 8 m, far ground every 64 m: sharp close up, no shimmer afar
     float far = smoothstep(200.0, 1500.0, v_dist);
     vec2 st = v_uv * vec2(size) - 0.5;
