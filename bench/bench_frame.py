@@ -153,6 +153,7 @@ def measure(
 
     if only == "globe":
         return {"lodscape": lodscape.__file__, "globe": measure_globe(dem, repeat)}
+    views_only = only == "views"
 
     with contextlib.suppress(ImportError):
         import lodscape.lod.view
@@ -161,8 +162,11 @@ def measure(
     with lodscape.open(dem, SceneOptions(anisotropy=1.0)) as scene:
         for name, cam in spine_views(scene, 1280, 720).items():
             scene.render(cam)  # loads
-            sels, cpu, total, thread = [], [], [], []
+            sels, cpu, total, thread, fit = [], [], [], [], []
             for _ in range(repeat):
+                t = time.perf_counter()
+                scene.prepare(cam)  # the camera fitted to the ground under it
+                fit.append((time.perf_counter() - t) * 1e3)
                 before = counter.main
                 t, c = time.perf_counter(), time.thread_time()
                 scene.render(cam)
@@ -176,7 +180,10 @@ def measure(
                 "cpu_ms": statistics.median(cpu),
                 "frame_ms": statistics.median(total),
                 "thread_ms": statistics.median(thread),
+                "fit_ms": statistics.median(fit),
             }
+    if views_only:
+        return out
     cams = cameras(dem, seconds)
     opts = SceneOptions(gpu_budget_mb=BUDGET_MB, anisotropy=1.0, stream=StreamOptions())
     main0, work0 = counter.main, counter.workers
@@ -200,7 +207,7 @@ def _report(label: str, r: dict[str, Any]) -> None:
         print(
             f"  view {name:<11} selections/frame {v['selections']:.0f}  "
             f"CPU {v['cpu_ms']:6.2f} ms  whole frame {v['frame_ms']:6.1f} ms  frame's thread "
-            f"{v['thread_ms']:6.1f} ms"
+            f"{v['thread_ms']:6.1f} ms  camera fit {v['fit_ms']:5.2f} ms"
         )
     f = r.get("flight")
     if f is not None:
@@ -209,7 +216,7 @@ def _report(label: str, r: dict[str, Any]) -> None:
             f"predictions/frame {f['predictions_per_frame']:.2f}  CPU median {f['cpu_ms']:.2f} "
             f"ms  fallbacks > 1 level: {f['fallback_gt_1']}"
         )
-    for name, v in r["globe"].items():
+    for name, v in r.get("globe", {}).items():
         print(
             f"  globe {name:<13} read-backs/frame {v['reads']:.0f}  uploads/frame "
             f"{v['writes']:.0f}  frame {v['frame_ms']:6.1f} ms {v['range_ms']}  "
@@ -257,7 +264,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=None, help="keep the DEM and tileset here")
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--repeat", type=int, default=7)
-    ap.add_argument("--only", choices=["globe"], default=None, help="one workload")
+    ap.add_argument("--only", choices=["views", "globe"], default=None, help="one workload")
     ap.add_argument("--rounds", type=int, default=1, help="alternate the commits this often")
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -283,31 +290,23 @@ def main() -> None:
         if not befores:
             return
         print(f"ratios, before / now: median [range] over {args.rounds} round(s)")
+
+        def pairs(*path: str) -> list[tuple[float, float]]:
+            def at(r: dict[str, Any]) -> float:
+                for k in path:
+                    r = r[k]
+                return float(r)  # type: ignore[arg-type]
+
+            return [(at(b), at(n)) for n, b in zip(nows, befores, strict=True)]
+
+        for name in nows[0].get("views", {}):
+            for key in ("cpu_ms", "frame_ms", "thread_ms"):
+                print(_ratios(f"view {name} {key.split('_')[0]}", pairs("views", name, key)))
         if "flight" in nows[0]:
-            for name in nows[0]["views"]:
-                pairs = [
-                    (b["views"][name]["cpu_ms"], n["views"][name]["cpu_ms"])
-                    for n, b in zip(nows, befores, strict=True)
-                ]
-                print(_ratios(f"view {name} CPU", pairs))
-                for key in ("frame_ms", "thread_ms"):
-                    pairs = [
-                        (b["views"][name][key], n["views"][name][key])
-                        for n, b in zip(nows, befores, strict=True)
-                    ]
-                    print(_ratios(f"view {name} {key.split('_')[0]}", pairs))
-            pairs = [
-                (b["flight"]["cpu_ms"], n["flight"]["cpu_ms"])
-                for n, b in zip(nows, befores, strict=True)
-            ]
-            print(_ratios("flight CPU", pairs))
-        for name in nows[0]["globe"]:
+            print(_ratios("flight CPU", pairs("flight", "cpu_ms")))
+        for name in nows[0].get("globe", {}):
             for key in ("frame_ms", "cpu_ms"):
-                pairs = [
-                    (b["globe"][name][key], n["globe"][name][key])
-                    for n, b in zip(nows, befores, strict=True)
-                ]
-                print(_ratios(f"globe {name} {key.split('_')[0]}", pairs))
+                print(_ratios(f"globe {name} {key.split('_')[0]}", pairs("globe", name, key)))
 
 
 if __name__ == "__main__":

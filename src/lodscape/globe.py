@@ -114,10 +114,6 @@ class Globe:
         return image
 
     @property
-    def _draws_tiles(self) -> bool:
-        return self._globe.tiles
-
-    @property
     def _joined(self) -> Scene | None:
         """The terrain scene whose frames the globe joins (its tiles drawn); None: alone."""
         return self.terrain if self._globe.tiles else None
@@ -199,7 +195,7 @@ class Globe:
         from lodscape.render.passes import GlobeFacetPass, GlobeImageryPass
 
         globe = self._pass_for()
-        globe.behind_region = self._draws_tiles and globe.region is not None
+        globe.behind_region = self._joined is not None and globe.region is not None
         stages: list[tuple[Layer, Pass]] = [(self._globe, GlobeFacetPass(globe))]
         if self._imagery is not None:
             stages.append((self._imagery, GlobeImageryPass(globe)))
@@ -226,7 +222,7 @@ class Globe:
             joined.join_globe(self._ctx)
         self._pass = GlobePass(self._ctx, self.base_image())
         # the drape, and where the terrain's tiles are drawn, what the globe only fills
-        if self.terrain is not None and (self.options.imagery or self._draws_tiles):
+        if self.terrain is not None and (self.options.imagery or self._joined is not None):
             from lodscape.imagery.globe import regional_image
 
             region = regional_image(self.terrain.provider)

@@ -93,6 +93,8 @@ class Scene:
         self.city: Any = None
         self.city_options: Any = None
         self._city_pass: Any = None
+        #: The frame loop's pass over it (made again with it).
+        self._city_draw: Any = None
         #: The last frame's camera, its clip distances fitted (what ``capture`` reports).
         self._drawn: Camera | None = None
         self.last: FrameStats | None = None
@@ -376,7 +378,9 @@ class Scene:
                 buffers=self.city_options.buffers,
                 log_depth=renderer.log_depth,
             )
-        return CityDrawPass(self._city_pass, lambda: self.city_options)
+        if self._city_draw is None or self._city_draw.city is not self._city_pass:
+            self._city_draw = CityDrawPass(self._city_pass, lambda: self.city_options)
+        return self._city_draw
 
     def _renderer_for(self, camera: Camera) -> Renderer:
         if self._renderer is None:

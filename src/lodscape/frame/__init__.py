@@ -244,12 +244,10 @@ class FrameLoop:
         *,
         blocking: bool,
         background: Rgb | None = None,
-        draw: bool = True,
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """One frame of ``camera``: plan, load (``blocking``: everything the plans require;
         else what came since the last frame, never waiting but for the roots), plan again
-        while a layer learnt, draw the passes in order, read back, and keep what was drawn.
-        ``draw`` False: everything but the passes and the read-back (empty arrays)."""
+        while a layer learnt, draw the passes in order, read back, and keep what was drawn."""
         loader = self.loader
         t0 = time.perf_counter()
         if not blocking:
@@ -272,12 +270,10 @@ class FrameLoop:
         t2 = time.perf_counter()
         self.report = report
         draws = self.draws = [layer.draws(report, loader) for layer in layers]
-        rgb, dist = np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
-        if draw:
-            self.target.begin(camera, background=background)
-            for (_, each), what in zip(self.stages, draws, strict=True):
-                each.draw(what, self.target)
-            rgb, dist = self.target.end(camera)
+        self.target.begin(camera, background=background)
+        for (_, each), what in zip(self.stages, draws, strict=True):
+            each.draw(what, self.target)
+        rgb, dist = self.target.end(camera)
         t4 = time.perf_counter()
         # what the layers drew in place of what had not come stays too
         loader.finish(self._merge(camera, plans))

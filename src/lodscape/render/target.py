@@ -16,18 +16,20 @@ from numpy.typing import NDArray
 from lodscape.lod.camera import Camera
 from lodscape.render import labels
 
-__all__ = ["FrameTarget"]
+__all__ = ["FrameTarget", "GLObject", "as_rgb"]
 
 Rgb = tuple[float, float, float]
 _ALL = (True, True, True, True)
 _NONE = (False, False, False, False)
 
 
-class _GLObject(Protocol):
+class GLObject(Protocol):
+    """What a renderer frees: any moderngl object."""
+
     def release(self) -> None: ...
 
 
-_T = TypeVar("_T", bound=_GLObject)
+_T = TypeVar("_T", bound=GLObject)
 
 
 class _Track(Protocol):
@@ -56,7 +58,7 @@ class FrameTarget:
         self,
         ctx: moderngl.Context,
         track: _Track,
-        free: Callable[[_GLObject], None],
+        free: Callable[[GLObject], None],
         use: Callable[[], None],
         *,
         background: Rgb,
@@ -136,7 +138,7 @@ class FrameTarget:
             fbo = self._target_for(camera.width, camera.height).fbo
             # a frame with the globe marks the terrain scene's pixels by their alpha (1)
             alpha = 0.0 if self.log_depth else 1.0
-            bg = (*(self.background if background is None else _rgb(background)), alpha)
+            bg = (*(self.background if background is None else as_rgb(background)), alpha)
         fbo.use()
         # glClear writes one value to every colour attachment: mask each in turn instead
         # (the stubs type color_mask for one attachment; moderngl takes one mask per attachment)
@@ -280,7 +282,8 @@ class FrameTarget:
         self._ring_free.clear()
 
 
-def _rgb(colour: Any) -> Rgb:
+def as_rgb(colour: Any) -> Rgb:
+    """A colour as three floats 0..1; a ValueError for anything else."""
     values = tuple(float(c) for c in colour)
     if len(values) != 3:
         raise ValueError(f"expected an RGB colour of three numbers 0..1, got {colour!r}")

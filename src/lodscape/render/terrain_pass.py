@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from types import TracebackType
-from typing import Any, Protocol, TypeVar
+from typing import Any, TypeVar
 
 import moderngl
 import numpy as np
@@ -35,7 +35,7 @@ from lodscape.render import labels
 from lodscape.render._context import create_context, is_software, make_current
 from lodscape.render._depth import with_log_depth
 from lodscape.render._shaders import shader
-from lodscape.render.target import FrameTarget, _rgb
+from lodscape.render.target import FrameTarget, GLObject, as_rgb
 from lodscape.render.tess_pass import LAYER_UNIT, MAX_OVERLAYS, TessTerrain, bind_layers
 from lodscape.terrain.heightmap import height_tile
 from lodscape.terrain.mesh import TileMesh, grid_indices
@@ -45,11 +45,7 @@ __all__ = ["DrawItem", "DrawStats", "Renderer"]
 Rgb = tuple[float, float, float]
 
 
-class _GLObject(Protocol):
-    def release(self) -> None: ...
-
-
-_T = TypeVar("_T", bound=_GLObject)
+_T = TypeVar("_T", bound=GLObject)
 
 #: The terrain's underside, shared by both ground shaders: seen from below (the surface's
 #: normal, turned to the outside, faces away from the eye; past the data's edge or a hole's rim)
@@ -222,7 +218,7 @@ class Renderer:
             self._track,
             self._free,
             self._use,
-            background=_rgb(background),
+            background=as_rgb(background),
             log_depth=log_depth,
         )
         self.target._target_for(width, height)
@@ -912,7 +908,7 @@ class Renderer:
         self._live += 1
         return obj
 
-    def _free(self, obj: _GLObject) -> None:
+    def _free(self, obj: GLObject) -> None:
         obj.release()
         self._live -= 1
 
