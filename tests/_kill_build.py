@@ -2,17 +2,18 @@
 
     python _kill_build.py PHASE PIDS_FILE -- BUILD ARGS...
 
-PHASE: ``plan`` (the plan committed, no tile made), ``level:Z`` (the first committed batch
-ends at the first tile of level Z), ``spawn`` (the first task handed to a process pool, its
-workers still starting), ``fold`` (the build marked complete, its log not yet folded),
-``never``. Before the kill, the build's descendants are written to PIDS_FILE, one
-pid a line, for the test to see that none outlives it.
+PHASE: ``plan`` (the first row of blocks planned, no tile made), ``level:Z`` (just after the
+first block holding a tile of level Z is merged into the file), ``spawn`` (the first task
+handed to a process pool, its workers still starting), ``fold`` (the build marked complete,
+its log not yet folded), ``never``. Before the kill, the build's descendants are written to
+PIDS_FILE, one pid a line, for the test to see that none outlives it.
 """
 
 from __future__ import annotations
 
 import os
 import signal
+import sqlite3
 import sys
 import time
 from pathlib import Path
@@ -48,26 +49,28 @@ def main() -> None:
     argv = sys.argv[sys.argv.index("--") + 1 :]
     writer = tileset.TilesetWriter
     if phase == "plan":
-        plan = writer.plan
+        planned = writer.blocks_done
 
-        def planned(self: tileset.TilesetWriter, tiles: object) -> None:
-            plan(self, tiles)  # type: ignore[arg-type]
+        def first_row(self: tileset.TilesetWriter, z: int, y: int) -> set[int]:
+            planned(self, z, y)
             _die(pids_file)
+            return set()
 
-        writer.plan = planned  # type: ignore[method-assign]
+        writer.blocks_done = first_row  # type: ignore[method-assign]
     elif phase.startswith("level:"):
         z = int(phase.split(":")[1])
-        write = writer.write
+        merge = writer.merge
 
-        def written(self: tileset.TilesetWriter, records: list[tileset.TileRecord]) -> None:
-            at = [i for i, r in enumerate(records) if r.z == z]
-            if not at:
-                write(self, records)
-                return
-            write(self, records[: at[0] + 1])
-            _die(pids_file)
+        def merged(self: tileset.TilesetWriter, shard: Path, block: tuple[int, int, int]) -> int:
+            with sqlite3.connect(f"file:{shard}?mode=ro", uri=True) as db:
+                has = db.execute("SELECT 1 FROM plan WHERE z = ? LIMIT 1", (z,)).fetchone()
+            db.close()
+            n = merge(self, shard, block)
+            if has:
+                _die(pids_file)
+            return n
 
-        writer.write = written  # type: ignore[method-assign]
+        writer.merge = merged  # type: ignore[method-assign]
     elif phase == "fold":
         fold = tileset.fold_wal
 

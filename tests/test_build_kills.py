@@ -3,6 +3,7 @@ for row, and leaves no process of its own behind: threads, processes and a Dask 
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import subprocess
 import sys
@@ -20,8 +21,14 @@ TABLES = {
     "plan": "z, x, y",
     "terrain": "z, x, y",
     "tiles": "zoom_level, tile_column, tile_row",
+    "blocks": "z, x, y",
     "metadata": "name",
 }
+
+
+def _with(folder: str) -> str:
+    """PYTHONPATH with ``folder`` first."""
+    return os.pathsep.join([folder, *filter(None, [os.environ.get("PYTHONPATH")])])
 
 
 @pytest.fixture(scope="module")
@@ -45,12 +52,16 @@ def _rows(path: Path) -> dict[str, list[tuple[object, ...]]]:
         }
 
 
-def _build(phase: str, dem: str, out: Path, pids: Path, flags: list[str]) -> int:
+def _build(
+    phase: str, dem: str, out: Path, pids: Path, flags: list[str], env: dict[str, str] | None = None
+) -> int:
     argv = ["build", dem, "-o", str(out), "-q", *flags]
     cmd = [sys.executable, str(HERE / "_kill_build.py"), phase, str(pids), "--", *argv]
     # output to a file, not a pipe: an orphaned worker holding a pipe would hang the run
     with open(out.with_suffix(".log"), "ab") as log:
-        return subprocess.run(cmd, stdout=log, stderr=log, timeout=300).returncode
+        return subprocess.run(
+            cmd, stdout=log, stderr=log, timeout=300, env={**os.environ, **(env or {})}
+        ).returncode
 
 
 def _alive(pid: int) -> bool:
@@ -130,3 +141,26 @@ def test_a_build_killed_while_its_workers_start_leaves_none(
 ) -> None:
     """Killed before its workers have even imported lodscape: they end as soon as they can."""
     _kill_and_resume("spawn", ["--workers", "2"], dem, tmp_path, unkilled)
+
+
+@pytest.mark.parametrize("flags", [["--workers", "2"], ["--scheduler", "local", "--workers", "2"]])
+def test_a_build_whose_worker_is_killed_says_so_and_resumes_to_the_same_rows(
+    flags: list[str], dem: str, tmp_path: Path, unkilled: dict[str, list[tuple[object, ...]]]
+) -> None:
+    """A worker SIGKILLed as it finishes a block of the coarsest band (the build itself lives
+    on): one line that says a worker died, and the same build run again ends with the rows
+    an unkilled build makes."""
+    out, pids = tmp_path / "site.lods", tmp_path / "pids"
+    env = {
+        "PYTHONPATH": os.pathsep.join(
+            [str(HERE / "_worker_kill"), os.environ.get("PYTHONPATH", "")]
+        ),
+        "LODSCAPE_TEST_KILL_WORKER_AT": str(_levels(unkilled)[0]),
+    }
+    assert _build("never", dem, out, pids, flags, env) == 2
+    log = out.with_suffix(".log").read_text()
+    assert "a build worker died" in log, log[-2000:]
+    assert _build("never", dem, out, pids, flags) == 0
+    got = _rows(out)
+    for table in TABLES:
+        assert got[table] == unkilled[table], f"{table} differs after a worker was killed"

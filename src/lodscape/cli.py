@@ -1245,6 +1245,14 @@ def build(
             "refinement: fewer triangles for the same error, slower to build)."
         ),
     ] = "rtin",
+    shards: Annotated[
+        str | None,
+        typer.Option(
+            help="The folder the workers write their blocks to before they are merged into "
+            "OUTPUT (default: OUTPUT.shards beside it). On a cluster, a folder every worker and "
+            "this machine reach (a shared disk). Removed when the build has finished.",
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Build a tileset from INPUTS once, to render, fly or serve it anywhere. Run it again after
@@ -1271,7 +1279,9 @@ def build(
     executor = executor_for(workers, scheduler)
     try:
         with _TileRate(quiet) as progress:
-            report = build_tileset(inputs, output, options, executor=executor, progress=progress)
+            report = build_tileset(
+                inputs, output, options, executor=executor, progress=progress, shards=shards
+            )
     finally:
         executor.close()
     if not quiet:

@@ -2,17 +2,22 @@
 
     report = lodscape.build.build(["dem.tif"], "site.lods")
 
-The coordinator plans every tile, hands them to an executor (threads, processes or Dask) and is
-the only writer: finished tiles go into the file a batch per transaction, so a build killed at
-any moment resumes where it stopped. Which executor ran a build never changes its tiles.
+The coordinator plans the tree a row of blocks at a time (``build.blocks``: the tiles under one
+root over four levels), finest band first, and hands each block to an executor (threads,
+processes or Dask). A block's finest tiles are read from the data, every coarser tile is made
+from its four children, so no task reads more than its finest tiles' pixels. Workers write
+their blocks to shards; the coordinator merges each finished shard into the file in one
+transaction, so a build killed at any moment, coordinator or worker, resumes where it stopped.
+Which executor ran a build never changes its tiles.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -20,16 +25,22 @@ from typing import Any
 import numpy as np
 from pyproj import CRS
 
+from lodscape.build.blocks import (
+    Band,
+    Block,
+    bands,
+    clear_shards,
+    make_block,
+    plan_blocks,
+    shard_path,
+)
 from lodscape.build.executors import BuildExecutor, executor_for
-from lodscape.build.tiles import Job, level_budget, make_tiles
+from lodscape.build.tiles import Job
 from lodscape.errors import SourceError
-from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, bounds_array
+from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox
 from lodscape.imagery.layers import warn_stderr
 from lodscape.store.tileset import (
     SCHEMA_VERSION,
-    TIN_GRID,
-    TileRecord,
-    TilesetError,
     TilesetWriter,
     lonlat_bounds,
 )
@@ -37,7 +48,7 @@ from lodscape.terrain.greedy import MESHERS
 from lodscape.terrain.paths import absolute
 from lodscape.terrain.paths import provenance as provenance_of
 from lodscape.terrain.points import POINT_SUFFIXES, grid_points, read_points, write_grid
-from lodscape.terrain.pyramid import LevelSpan, level_range, level_span
+from lodscape.terrain.pyramid import LevelSpan, level_span
 from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import (
     FilledSource,
@@ -54,8 +65,6 @@ from lodscape.terrain.source import (
 __all__ = ["BuildOptions", "BuildReport", "build", "executor_for"]
 
 Progress = Callable[[int, int], None]
-#: Tiles per task.
-_CHUNK = 8
 
 
 @dataclass(frozen=True)
@@ -138,70 +147,74 @@ def build(
     *,
     executor: BuildExecutor | None = None,
     progress: Progress | None = None,
+    shards: str | os.PathLike[str] | None = None,
 ) -> BuildReport:
-    """Build (or finish building) the tileset ``output`` from rasters and/or point files."""
+    """Build (or finish building) the tileset ``output`` from rasters and/or point files.
+
+    The workers write each block to ``shards`` (a folder every worker and this process can
+    reach; default: ``OUTPUT.shards`` beside the output), which this process merges into the
+    one file and removes at the end."""
     options = options or BuildOptions()
     out = Path(output)
     t0 = time.perf_counter()
-    job, plan, manifest, span, imagery_zmax = _prepare(inputs, out, options)
-    resolution = job.resolution
-    writer = TilesetWriter(out, manifest)
+    job, manifest, span, imagery_zmax, source = _prepare(inputs, out, options)
+    writer: TilesetWriter | None = None
+    folder = Path(shards) if shards is not None else out.with_name(out.name + ".shards")
     own = executor is None
     ok = False
+    made = 0
+    label = executor.label if executor is not None else "none"
     try:
-        # a tileset left by a build that resumed before this was fixed holds imagery where its
-        # refinement levels' terrain should be: those tiles are made again
-        writer.replan_stray_imagery(imagery_zmax)
-        writer.plan(plan)
-        # the plan's own levels first: deeper pending tiles are a killed run's refinement,
-        # made level by level below once their parents are known
-        planned_zmax = max(span.zmax, imagery_zmax)
-        pending = [t for t in writer.pending() if t[0] <= planned_zmax]
-        done, total = writer.counts()
-        if progress is not None:
-            progress(done, total)
-        if pending:
-            # one numba compile here, not one per worker thread racing for it
-            Rtin(np.zeros((3, 3)))
-            if options.mesher == "greedy":
-                _compile_tin_error()
-            executor = executor or executor_for()
-        label = executor.label if executor is not None else "none"
-        made = len(pending)
-        done = _run(executor, job, pending, writer, options.batch, progress, done, total)
-        zmax = span.zmax
-        if imagery_zmax <= span.zmax:
-            zmax, more, executor = _deepen(
-                writer, job, resolution, executor, options, progress, zmax
-            )
-            made += more
-            label = executor.label if executor is not None else label
-            _, total = writer.counts()
-        span = replace(span, zmax=zmax)
-        left = writer.pending()
-        if left:
-            # never say complete over a hole: a tile planned and not made is a bug to report
-            z, x, y = left[0]
-            raise TilesetError(
-                f"{out}: {len(left)} planned tiles were not made (first {z}/{x}/{y}); "
-                "the file is kept to resume: run the same build again"
-            )
+        writer = TilesetWriter(out, manifest)
+        if not writer.resumed:
+            clear_shards(folder)  # what another build of this name left
+        folder.mkdir(parents=True, exist_ok=True)
+        run = _Run(writer, job, str(folder), progress)
+        # the terrain's finest level made honest (refined where a tile misses its budget)
+        # where no imagery goes below it
+        deepen = imagery_zmax <= span.zmax
+        finer: Band | None = None
+        for band in bands(max(span.zmax, imagery_zmax), span.zmin):
+            todo = run.pending(source, band, finer)
+            finer = band
+            first = next(todo, None)
+            if first is None:
+                continue
+            if executor is None:
+                # one numba compile here, not one per worker thread racing for it
+                _compile(options.mesher)
+                executor = executor_for()
+                label = executor.label
+            tasks = itertools.chain([first], todo)
+            args = ((job, b, str(folder), deepen) for b in tasks)
+            for z, x, y, _ in executor.imap(make_block, args):
+                run.merge((z, x, y))
+        made = run.made
+        zmax = max(writer.finest(), span.zmax)
         writer.finish(_mbtiles(manifest, out), zmax=zmax)
+        span = replace(span, zmax=zmax)
         ok = True
+        clear_shards(folder)
     finally:
+        source.close()
         if own and executor is not None:
             executor.close()
-        writer.close()
-        if not ok and not writer.resumed and _bad_input():
+        resumed = writer is not None and writer.resumed
+        if writer is not None:
+            writer.close()
+        if not ok and not resumed and _bad_input():
             # an input that fails midway cannot be resumed from (fixing it changes it): leave
             # nothing behind; an interruption or a full disk keeps the file to resume
             for suffix in ("", "-wal", "-shm"):
                 Path(str(out) + suffix).unlink(missing_ok=True)
+            clear_shards(folder)
+    assert writer is not None
+    total, _ = _counts(out)
     return BuildReport(
         out,
         total,
         made,
-        writer.resumed,
+        resumed,
         time.perf_counter() - t0,
         label,
         (span.zmin, span.texture_zmax, span.zmax),
@@ -209,11 +222,85 @@ def build(
     )
 
 
+def _counts(path: Path) -> tuple[int, int]:
+    import sqlite3
+    from contextlib import closing
+
+    with closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
+        (tiles,) = db.execute("SELECT COUNT(*) FROM plan").fetchone()
+        (blocks_,) = db.execute("SELECT COUNT(*) FROM blocks").fetchone()
+    return int(tiles), int(blocks_)
+
+
+class _Run:
+    """The coordinator's side of a build: which blocks are left, merging finished shards into
+    the file, and the progress it reports (tiles made of those expected: the blocks known so
+    far at the tiles a block has held on average)."""
+
+    def __init__(
+        self, writer: TilesetWriter, job: Job, folder: str, progress: Progress | None
+    ) -> None:
+        self.writer, self.job, self.folder, self.progress = writer, job, folder, progress
+        self.done, _ = writer.counts()
+        self.made = 0
+        self.blocks = 0
+        self.known = 0
+
+    def pending(self, source: HeightSource, band: Band, finer: Band | None) -> Iterator[Block]:
+        """The band's blocks still to make, planned a row at a time (``finer``: the band whose
+        roots its finest tiles are made from); a block whose shard is whole (its worker
+        finished, this process did not merge it) is merged, not made, and one the coarse
+        overview finds without data is recorded and skipped."""
+        for row in plan_blocks(source, band):
+            if not row:
+                continue
+            done = self.writer.blocks_done(band.root, row[0].y)
+            empty = [b.key for b in row if b.empty and b.x not in done]
+            if empty:
+                self.writer.skip(empty)
+            for b in row:
+                if b.x in done or b.empty:
+                    continue
+                if finer is not None:
+                    d = band.leaf + 1 - band.root
+                    made = self.writer.blocks_made(
+                        finer.root, b.x << d, (b.x + 1) << d, b.y << d, (b.y + 1) << d
+                    )
+                    b = replace(b, below=frozenset(made))
+                self.known += 1
+                self._report()
+                if shard_path(self.folder, *b.key).exists():
+                    self.merge(b.key)
+                    continue
+                yield b
+
+    def merge(self, key: tuple[int, int, int]) -> None:
+        n = self.writer.merge(shard_path(self.folder, *key), key)
+        self.done += n
+        self.made += n
+        self.blocks += 1
+        self._report()
+
+    def _report(self) -> None:
+        if self.progress is None:
+            return
+        mean = self.made / self.blocks if self.blocks else 1.0
+        waiting = max(self.known - self.blocks, 0)
+        self.progress(self.done, self.done + round(waiting * mean))
+
+
+def _compile(mesher: str) -> None:
+    """The numba kernels compiled once, before worker threads race for them."""
+    Rtin(np.zeros((3, 3)))
+    if mesher == "greedy":
+        _compile_tin_error()
+
+
 def _prepare(
     inputs: Sequence[str | os.PathLike[str]], out: Path, options: BuildOptions
-) -> tuple[Job, list[tuple[int, int, int]], dict[str, Any], LevelSpan, int]:
-    """The inputs opened once (their notes said): the tile task's job, the plan, the
-    manifest, the levels and the finest imagery level."""
+) -> tuple[Job, dict[str, Any], LevelSpan, int, HeightSource]:
+    """The inputs opened once (their notes said): the tile task's job, the manifest, the
+    levels, the finest imagery level and the source (open: the blocks are planned over it)."""
     rasters = _rasters(inputs, out, options)
     raw = open_rasters(
         rasters,
@@ -257,86 +344,11 @@ def _prepare(
             mesher=options.mesher,
             z_units=options.z_units,
         )
-        plan = _plan(source, span.zmin, max(span.zmax, imagery_zmax))
         manifest = _manifest(source, options, inputs, span, height_range, imagery_zmax)
-    finally:
+    except BaseException:
         source.close()
-    return job, plan, manifest, span, imagery_zmax
-
-
-def _deepen(
-    writer: TilesetWriter,
-    job: Job,
-    resolution: float,
-    executor: BuildExecutor | None,
-    options: BuildOptions,
-    progress: Progress | None,
-    zmax: int,
-) -> tuple[int, int, BuildExecutor | None]:
-    """The finest level made honest: where a tile misses its budget its children are built, a
-    level at a time, until none does or the grid is twice as fine as the data. Returns the
-    finest level, the tiles made, and the executor (made here if none was)."""
-    made = 0
-    while zmax < MAX_ZOOM and 2.0 * ORIGIN / (1 << zmax) / TIN_GRID > resolution / 2.0:
-        over = _over_budget(writer, job, zmax)
-        if not over:
-            break
-        writer.plan(over)
-        pending = [t for t in writer.pending() if t[0] <= zmax + 1]
-        done, total = writer.counts()
-        made += len(pending)
-        if pending:
-            executor = executor or executor_for()
-        finer = replace(job, zmax=zmax + 1)
-        _run(executor, finer, pending, writer, options.batch, progress, done, total)
-        zmax += 1
-    return zmax, made, executor
-
-
-def _run(
-    executor: BuildExecutor | None,
-    job: Job,
-    pending: list[tuple[int, int, int]],
-    writer: TilesetWriter,
-    size: int,
-    progress: Progress | None,
-    done: int,
-    total: int,
-) -> int:
-    """Make the pending tiles on the executor, written a batch per transaction; returns the
-    tiles done."""
-    if executor is None or not pending:
-        return done
-    batch: list[TileRecord] = []
-    last = time.monotonic()
-    # a few neighbouring tiles per task: a task's overhead (a Dask round trip, above all) is
-    # then small against its work
-    chunks = ((job, pending[i : i + _CHUNK]) for i in range(0, len(pending), _CHUNK))
-    for records in executor.imap(make_tiles, chunks):
-        batch.extend(records)
-        if len(batch) >= size or time.monotonic() - last > 2.0:
-            writer.write(batch)
-            done += len(batch)
-            batch, last = [], time.monotonic()
-            if progress is not None:
-                progress(done, total)
-    if batch:
-        writer.write(batch)
-        done += len(batch)
-        if progress is not None:
-            progress(done, total)
-    return done
-
-
-def _over_budget(writer: TilesetWriter, job: Job, z: int) -> list[tuple[int, int, int]]:
-    """The children of the level-z tiles whose measured error exceeds their budget."""
-    rows = writer.db.execute("SELECT x, y, error FROM terrain WHERE z = ?", (z,)).fetchall()
-    x, y, error = np.array(rows, np.float64).reshape(-1, 3).T
-    over = error > level_budget(job.error_texels, job.tile_size, z, y) * (1.0 + 1e-9)
-    x, y = x[over].astype(np.int64), y[over].astype(np.int64)
-    kx = (2 * x[:, None] + np.array([0, 1, 0, 1])).ravel()
-    ky = (2 * y[:, None] + np.array([0, 0, 1, 1])).ravel()
-    return [(z + 1, int(a), int(b)) for a, b in zip(kx, ky, strict=True)]
+        raise
+    return job, manifest, span, imagery_zmax, source
 
 
 def _imagery_zmax(imagery: Sequence[str], texture_zmax: int) -> int:
@@ -433,27 +445,6 @@ def _check_resolution(source: HeightSource, tile_size: int) -> None:
             f"a tileset of {tile_size}-texel tiles ends at level {limit} ({finest:.3g} m): "
             f"resample the DEM to {finest:.3g} m or coarser (e.g. gdalwarp -tr)"
         )
-
-
-def _plan(source: HeightSource, zmin: int, zmax: int) -> list[tuple[int, int, int]]:
-    """Every tile of levels zmin..zmax that touches the data's footprint: a 5×5 lattice over the
-    tile, and the tile's point nearest the footprint's centre (a footprint smaller than the
-    lattice's spacing falls between its points)."""
-    out: list[tuple[int, int, int]] = []
-    f = np.linspace(0.0, 1.0, 5)
-    b = source.bounds_merc
-    cx, cy = (b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0
-    for z in range(zmin, zmax + 1):
-        x0, y0, nx, ny = level_range(source.bounds_merc, z)
-        yy, xx = np.mgrid[y0 : y0 + ny, x0 : x0 + nx]
-        x, y = xx.ravel(), yy.ravel()
-        left, bottom, right, top = bounds_array(z, x, y)
-        px = left[:, None, None] + f[None, None, :] * (right - left)[:, None, None]
-        py = bottom[:, None, None] + f[None, :, None] * (top - bottom)[:, None, None]
-        hit = source.covers(*np.broadcast_arrays(px, py)).reshape(x.size, -1).any(axis=1)
-        hit |= source.covers(np.clip(cx, left, right), np.clip(cy, bottom, top))
-        out.extend(zip([z] * int(hit.sum()), x[hit].tolist(), y[hit].tolist(), strict=True))
-    return out
 
 
 def _compile_tin_error() -> None:

@@ -18,6 +18,7 @@ from concurrent.futures import (
     ThreadPoolExecutor,
     wait,
 )
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol, TypeVar
 
 from lodscape.errors import LodscapeError
@@ -25,6 +26,11 @@ from lodscape.errors import LodscapeError
 __all__ = ["BuildExecutor", "DaskExecutor", "PoolExecutor", "executor_for"]
 
 R = TypeVar("R")
+
+_WORKER_DIED = (
+    "a build worker died (killed, or out of memory); what the others finished is kept: run "
+    "the same build again to resume"
+)
 
 
 class BuildExecutor(Protocol):
@@ -70,7 +76,11 @@ class PoolExecutor:
                     return
                 done, running = wait(running, return_when=FIRST_COMPLETED)
                 for f in done:
-                    yield f.result()
+                    try:
+                        result = f.result()
+                    except BrokenProcessPool:
+                        raise LodscapeError(_WORKER_DIED) from None
+                    yield result
         finally:
             for f in running:
                 f.cancel()
@@ -130,14 +140,18 @@ class DaskExecutor:
         self.label = f"dask {address or 'LocalCluster'} ×{self.workers}"
 
     def imap(self, fn: Callable[..., R], args: Iterable[tuple[Any, ...]]) -> Iterator[R]:
-        from distributed import as_completed
+        from distributed import KilledWorker, as_completed
 
         todo = iter(args)
         limit = 8 * self.workers
         first = [self.client.submit(fn, *a, pure=False) for a in itertools.islice(todo, limit)]
         queue = as_completed(first)
         for future in queue:
-            yield future.result()
+            try:
+                result = future.result()
+            except KilledWorker:
+                raise LodscapeError(_WORKER_DIED) from None
+            yield result
             nxt = next(todo, None)
             if nxt is not None:
                 queue.add(self.client.submit(fn, *nxt, pure=False))

@@ -9,7 +9,8 @@ import gzip
 import io
 import math
 import threading
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numba
@@ -20,14 +21,24 @@ from lodscape.geo.frames import WGS84_A, geodetic_to_ecef
 from lodscape.geo.tiles import ORIGIN, Bbox, Tile, bounds, merc_to_lonlat, xy_bounds
 from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError
-from lodscape.store.quantized_mesh import QUANTIZED_MAX, encode, quantize
+from lodscape.store.quantized_mesh import QUANTIZED_MAX, decode, encode, quantize
 from lodscape.store.tileset import TIN_GRID, TileRecord
 from lodscape.terrain.greedy import barycentric, greedy_mesh, tin_sample_error
 from lodscape.terrain.mesh import grid_coordinates
 from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
 
-__all__ = ["Job", "level_budget", "make_tile", "make_tiles", "tile_budget"]
+__all__ = [
+    "Job",
+    "Made",
+    "level_budget",
+    "made_from_children",
+    "made_from_data",
+    "made_without_data",
+    "make_tile",
+    "make_tiles",
+    "tile_budget",
+]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -151,21 +162,79 @@ def _texture(job: Job, src: HeightSource, z: int, x: int, y: int) -> bytes:
     return _png(rgba)
 
 
+@dataclass(frozen=True)
+class Made:
+    """A finished tile as the level above is made from it: its record, and which points of its
+    grid stand on data (None: all of them)."""
+
+    record: TileRecord
+    valid: NDArray[np.bool_] | None = None
+
+
 def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
+    """Tile z/x/y from the data: its heights sampled, its error measured on every pixel."""
+    return made_from_data(job, z, x, y).record
+
+
+def made_from_data(job: Job, z: int, x: int, y: int) -> Made:
+    """``make_tile``, with the grid's validity the level above needs."""
     src = _source(job)
     if z > job.zmax:
         if z > job.imagery_zmax:
             # a tile of a finer level than the job knows: its terrain is due, not its imagery
             raise ValueError(f"tile {z}/{x}/{y} is below both the job's terrain and imagery")
         # below the terrain's finest level: the imagery alone
-        return TileRecord(z, x, y, imagery=_texture(job, src, z, x, y))
-    t = Tile(x, y, z)
+        return Made(TileRecord(z, x, y, imagery=_texture(job, src, z, x, y)))
     xs, ys = grid_coordinates(z, x, y, TIN_GRID)
     side = xs[-1] - xs[0]
     heights, valid = src.sample_grid(xs, ys, side / TIN_GRID)
+    step = side / TIN_GRID
+    box = xy_bounds(Tile(x, y, z))
+
+    def measured(error_at: _ErrorAt, cells: NDArray[np.bool_] | None) -> float:
+        # every pixel of the data in the tile
+        error = 0.0
+        for pxm, pym, ph in src.pixels_in(box):
+            if cells is not None:
+                ci = np.clip(np.floor((pxm - xs[0]) / step).astype(np.int64), 0, TIN_GRID - 1)
+                ri = np.clip(np.floor((ys[0] - pym) / step).astype(np.int64), 0, TIN_GRID - 1)
+                inside = cells[ri, ci]
+                pxm, pym, ph = pxm[inside], pym[inside], ph[inside]
+            plon, plat = merc_to_lonlat(pxm, pym)
+            error = max(error, error_at(plon, plat, ph.astype(np.float64)))
+        return error
+
+    record = _surface_tile(job, z, x, y, heights, valid, measured)
+    if record is None:
+        return Made(TileRecord(z, x, y), valid)
+    imagery = None
+    if z <= max(job.texture_zmax, job.imagery_zmax):
+        imagery = _texture(job, src, z, x, y)
+    return Made(replace(record, imagery=imagery), None if valid.all() else valid)
+
+
+#: ``error_at(lon, lat, h)``: the largest |mesh − h| over points (degrees, metres).
+_ErrorAt = Callable[[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]], float]
+
+
+def _surface_tile(
+    job: Job,
+    z: int,
+    x: int,
+    y: int,
+    heights: NDArray[np.float32],
+    valid: NDArray[np.bool_],
+    measured: Callable[[_ErrorAt, NDArray[np.bool_] | None], float],
+) -> TileRecord | None:
+    """A tile's mesh of its grid ``heights`` within its level's budget, encoded, with the error
+    ``measured`` gives (against the data's pixels, or the children's surfaces); None where a
+    tile with holes has nothing to draw."""
+    t = Tile(x, y, z)
+    xs, ys = grid_coordinates(z, x, y, TIN_GRID)
+    side = xs[-1] - xs[0]
     holes = job.fill == "none"
     if not valid.any() and holes:
-        return TileRecord(z, x, y)
+        return None
     budget = tile_budget(job, z, y)
     if holes and not valid.all():
         # a triangle that holds data and no data has a huge error: it splits down to the grid,
@@ -174,7 +243,7 @@ def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
         rtin, verts, tris = _mesh(job, np.where(valid, heights, heights + _RIM), budget)
         keep = valid[verts[:, 1], verts[:, 0]][tris].all(axis=1)
         if not keep.any():
-            return TileRecord(z, x, y)
+            return None
         used = np.unique(tris[keep])
         renumber = np.full(len(verts), -1, np.int64)
         renumber[used] = np.arange(used.size)
@@ -194,35 +263,271 @@ def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
     # stored gzipped, as Cesium's servers keep them (and serve them: Content-Encoding: gzip);
     # mtime 0 so the same tile is the same bytes
     stored = gzip.compress(data, compresslevel=6, mtime=0)
-    # the error of what is stored (quantized positions and heights) against every data sample
+    # the error of what is stored (quantized positions and heights)
     hmin, hmax = float(vh.min()), float(vh.max())
     qlon = _dequantize(quantize(lon_col, b.left, b.right), b.left, b.right)
     qlat = _dequantize(quantize(lat_row, b.bottom, b.top), b.bottom, b.top)
     qh = _dequantize(quantize(heights.astype(np.float64), hmin, hmax), hmin, hmax)
-    error = 0.0
+
+    def error_at(
+        plon: NDArray[np.float64], plat: NDArray[np.float64], ph: NDArray[np.float64]
+    ) -> float:
+        if plon.size == 0:
+            return 0.0
+        if rtin is not None:
+            return float(_sample_error(rtin.errors, budget, qlon, qlat, qh, plon, plat, ph))
+        return float(tin_sample_error(tris, verts, qlon, qlat, qh, plon, plat, ph))
+
     # where the data ends the mesh ends (none) or drops to the fill (a wall) within the grid
     # cell that straddles the edge: samples in such cells are not the surface's to match
     cells = None
     if job.fill != "nearest" and not valid.all():
         cells = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
-    step = side / TIN_GRID
-    for pxm, pym, ph in src.pixels_in(xy_bounds(t)):
-        if cells is not None:
-            ci = np.clip(np.floor((pxm - xs[0]) / step).astype(np.int64), 0, TIN_GRID - 1)
-            ri = np.clip(np.floor((ys[0] - pym) / step).astype(np.int64), 0, TIN_GRID - 1)
-            inside = cells[ri, ci]
-            pxm, pym, ph = pxm[inside], pym[inside], ph[inside]
-        plon, plat = merc_to_lonlat(pxm, pym)
-        if rtin is not None:
-            found = _sample_error(rtin.errors, budget, qlon, qlat, qh, plon, plat, ph)
-        else:
-            found = tin_sample_error(tris, verts, qlon, qlat, qh, plon, plat, ph)
-        error = max(error, found)
-    error += _sag(tris, verts, side, b)
+    error = measured(error_at, cells) + _sag(tris, verts, side, b)
+    return TileRecord(z, x, y, error, hmin, hmax, stored)
+
+
+def made_from_children(job: Job, z: int, x: int, y: int, children: Sequence[Made]) -> Made:
+    """Tile z/x/y from its four children (west-north, east-north, west-south, east-south) as
+    stored: its grid is their surfaces' heights at its points, and its error bound is its
+    mesh's largest distance to their surfaces (at every point and cell centre of their grids,
+    where the two piecewise-linear surfaces differ most) plus their own recorded errors. No
+    pixel of the data is read, so a coarse tile costs what a fine one does."""
+    n = TIN_GRID
+    heights = np.zeros((2 * n + 1, 2 * n + 1), np.float32)
+    valid = np.zeros((2 * n + 1, 2 * n + 1), bool)
+    points: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] = []
+    errors: list[float] = []
+    for i, child in enumerate(children):
+        dx, dy = i & 1, i >> 1
+        r = child.record
+        if r.error is None:
+            continue
+        errors.append(r.error)
+        cz, cx, cy = z + 1, 2 * x + dx, 2 * y + dy
+        at, hit, centre, centre_hit = _surface_of(cz, cx, cy, r.terrain)
+        ok = hit if child.valid is None else hit & child.valid
+        rows, cols = slice(dy * n, dy * n + n + 1), slice(dx * n, dx * n + n + 1)
+        heights[rows, cols] = np.where(hit, at, heights[rows, cols])
+        valid[rows, cols] |= ok
+        # the points the parent is measured at: the child's grid points and cell centres with
+        # data (a centre where all four corners have it)
+        cells = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1] & ok[1:, 1:] & centre_hit
+        xs, ys = grid_coordinates(cz, cx, cy, n)
+        mx, my = (xs[:-1] + xs[1:]) / 2.0, (ys[:-1] + ys[1:]) / 2.0
+        gx, gy = np.meshgrid(xs, ys)
+        cxm, cym = np.meshgrid(mx, my)
+        px = np.concatenate([gx[ok], cxm[cells]])
+        py = np.concatenate([gy[ok], cym[cells]])
+        ph = np.concatenate([at[ok], centre[cells]]).astype(np.float64)
+        points.append((px, py, ph))
+    grid, gvalid = heights[::2, ::2].copy(), valid[::2, ::2].copy()
+    xs, ys = grid_coordinates(z, x, y, n)
+    step = (xs[-1] - xs[0]) / n
+
+    def measured(error_at: _ErrorAt, cells: NDArray[np.bool_] | None) -> float:
+        # each child's points against its own recorded error
+        error = 0.0
+        for (qx, qy, qh), own in zip(points, errors, strict=True):
+            if cells is not None:
+                ci = np.clip(np.floor((qx - xs[0]) / step).astype(np.int64), 0, n - 1)
+                ri = np.clip(np.floor((ys[0] - qy) / step).astype(np.int64), 0, n - 1)
+                inside = cells[ri, ci]
+                qx, qy, qh = qx[inside], qy[inside], qh[inside]
+            plon, plat = merc_to_lonlat(qx, qy)
+            error = max(error, error_at(plon, plat, qh) + own)
+        return error
+
+    record = _surface_tile(job, z, x, y, grid, gvalid, measured)
+    finest = max(job.texture_zmax, job.imagery_zmax)
+    imagery = None
+    if z < finest:
+        imagery = _downsample([c.record.imagery for c in children], job.tile_size)
+    elif z == finest:
+        # the finest imagery level: its texels about as fine as the data's pixels
+        imagery = _texture(job, _source(job), z, x, y)
+    if record is None:
+        return Made(TileRecord(z, x, y, imagery=imagery), gvalid)
+    return Made(replace(record, imagery=imagery), None if gvalid.all() else gvalid)
+
+
+def made_without_data(job: Job, z: int, x: int, y: int) -> Made:
+    """Tile z/x/y where there is no data: the fill's surface and tint, no pixel read (a child
+    outside the data's footprint, or a block the plan found empty)."""
+    src = _Unread(_source(job))
+    xs, ys = grid_coordinates(z, x, y, TIN_GRID)
+    gx, gy = np.meshgrid(xs, ys)
+    heights, valid = src.sample_nodata(gx, gy)
+    record = _surface_tile(job, z, x, y, heights, valid, lambda _e, _c: 0.0)
     imagery = None
     if z <= max(job.texture_zmax, job.imagery_zmax):
-        imagery = _texture(job, src, z, x, y)
-    return TileRecord(z, x, y, error, hmin, hmax, stored, imagery)
+        imagery = _texture(job, src, z, x, y)  # type: ignore[arg-type]
+    if record is None:
+        return Made(TileRecord(z, x, y, imagery=imagery), valid)
+    return Made(replace(record, imagery=imagery), valid)
+
+
+class _Unread:
+    """A source's view that never reads a pixel: every point is without data (its fill)."""
+
+    def __init__(self, source: HeightSource) -> None:
+        self.source = source
+        self.name = source.name
+        self.crs_wkt = source.crs_wkt
+        self.bounds_merc = source.bounds_merc
+        self.resolution_merc = source.resolution_merc
+
+    def sample_nodata(
+        self, xm: NDArray[np.float64], ym: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        out: tuple[NDArray[np.float32], NDArray[np.bool_]]
+        out = self.source.sample_nodata(xm, ym)  # type: ignore[attr-defined]
+        return out
+
+    def sample(
+        self, xm: NDArray[np.float64], ym: NDArray[np.float64], spacing: float
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        return self.sample_nodata(xm, ym)
+
+    def read(
+        self, bounds: Bbox, shape: tuple[int, int]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        rows, cols = shape
+        left, bottom, right, top = (float(v) for v in bounds)
+        xv = left + np.arange(cols) * (right - left) / (cols - 1)
+        yv = top - np.arange(rows) * (top - bottom) / (rows - 1)
+        xv[-1], yv[-1] = right, bottom
+        return self.sample_nodata(*np.meshgrid(xv, yv))
+
+    def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]:
+        return self.source.covers(xm, ym)
+
+
+def _surface_of(
+    z: int, x: int, y: int, stored: bytes
+) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32], NDArray[np.bool_]]:
+    """A stored tile's surface at its (TIN_GRID + 1)² grid points and its TIN_GRID² cell
+    centres, as a client draws it (quantized positions and heights), and where it has one."""
+    qm = decode(gzip.decompress(stored))
+    b = bounds(Tile(x, y, z))
+    xs, ys = grid_coordinates(z, x, y, TIN_GRID)
+    lon_col, _ = merc_to_lonlat(xs, np.zeros_like(xs))
+    _, lat_row = merc_to_lonlat(np.zeros_like(ys), ys)
+    lon_col[0], lon_col[-1], lat_row[0], lat_row[-1] = b.left, b.right, b.top, b.bottom
+    gu = quantize(lon_col, b.left, b.right).astype(np.float64)
+    gv = quantize(lat_row, b.bottom, b.top).astype(np.float64)
+    _, _, vh = qm.positions(b.left, b.bottom, b.right, b.top)
+    vu, vv = qm.u.astype(np.float64), qm.v.astype(np.float64)
+    # every vertex sits on a grid point: its column and row
+    col = np.searchsorted(gu, vu)
+    row = (gv.size - 1) - np.searchsorted(gv[::-1], vv)
+    if not (
+        np.array_equal(gu[np.clip(col, 0, gu.size - 1)], vu)
+        and np.array_equal(gv[np.clip(row, 0, gv.size - 1)], vv)
+    ):
+        raise ValueError(f"tile {z}/{x}/{y}: a vertex off its grid")
+    n = TIN_GRID
+    at = np.zeros((n + 1, n + 1), np.float64)
+    hit = np.zeros((n + 1, n + 1), bool)
+    centre = np.zeros((n, n), np.float64)
+    centre_hit = np.zeros((n, n), bool)
+    _rasterize(
+        qm.triangles.astype(np.int64),
+        col.astype(np.int64),
+        row.astype(np.int64),
+        vu,
+        vv,
+        vh,
+        gu,
+        gv,
+        at,
+        hit,
+        centre,
+        centre_hit,
+    )
+    return at.astype(np.float32), hit, centre.astype(np.float32), centre_hit
+
+
+@numba.njit(cache=True, nogil=True)  # type: ignore[misc]
+def _rasterize(
+    tris: NDArray[np.int64],
+    col: NDArray[np.int64],
+    row: NDArray[np.int64],
+    vu: NDArray[np.float64],
+    vv: NDArray[np.float64],
+    vh: NDArray[np.float64],
+    gu: NDArray[np.float64],
+    gv: NDArray[np.float64],
+    at: NDArray[np.float64],
+    hit: NDArray[np.bool_],
+    centre: NDArray[np.float64],
+    centre_hit: NDArray[np.bool_],
+) -> None:
+    """The mesh's heights at the grid points and cell centres its triangles cover (each
+    triangle's box of the grid, by barycentric weights in the quantized u, v)."""
+    eps = -1e-9
+    for t in range(tris.shape[0]):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        c0 = min(col[a], col[b], col[c])
+        c1 = max(col[a], col[b], col[c])
+        r0 = min(row[a], row[b], row[c])
+        r1 = max(row[a], row[b], row[c])
+        for r in range(r0, r1 + 1):
+            for k in range(c0, c1 + 1):
+                for mid in range(2):
+                    if mid == 1 and (r == r1 or k == c1):
+                        continue
+                    if mid == 0:
+                        if hit[r, k]:
+                            continue
+                        pu, pv = gu[k], gv[r]
+                    else:
+                        if centre_hit[r, k]:
+                            continue
+                        pu, pv = 0.5 * (gu[k] + gu[k + 1]), 0.5 * (gv[r] + gv[r + 1])
+                    ok, w0, w1 = barycentric(vu[a], vv[a], vu[b], vv[b], vu[c], vv[c], pu, pv)
+                    if not ok:
+                        continue
+                    w2 = 1.0 - w0 - w1
+                    if w0 < eps or w1 < eps or w2 < eps:
+                        continue
+                    v = w0 * vh[a] + w1 * vh[b] + w2 * vh[c]
+                    if mid == 0:
+                        at[r, k] = v
+                        hit[r, k] = True
+                    else:
+                        centre[r, k] = v
+                        centre_hit[r, k] = True
+
+
+def _downsample(images: Sequence[bytes | None], size: int) -> bytes | None:
+    """A parent's PNG from its four children's (west-north, east-north, west-south,
+    east-south): each texel the alpha-weighted mean of the four beneath it."""
+    if all(i is None for i in images):
+        return None
+    from PIL import Image
+
+    big = np.zeros((2 * size, 2 * size, 4), np.float64)
+    for i, data in enumerate(images):
+        if data is None:
+            continue
+        img = np.asarray(Image.open(io.BytesIO(data)).convert("RGBA"), np.float64)
+        if img.shape[:2] != (size, size):
+            raise ValueError(f"a child's imagery is {img.shape[1]}×{img.shape[0]}, not {size}")
+        dx, dy = i & 1, i >> 1
+        big[dy * size : (dy + 1) * size, dx * size : (dx + 1) * size] = img
+    a = big[..., 3:4] / 255.0
+    pm = big[..., :3] * a
+
+    def quad(v: NDArray[np.float64]) -> NDArray[np.float64]:
+        out: NDArray[np.float64] = v[0::2, 0::2] + v[1::2, 0::2] + v[0::2, 1::2] + v[1::2, 1::2]
+        return out
+
+    asum = quad(a)
+    rgb = np.where(asum > 0.0, quad(pm) / np.maximum(asum, 1e-12), 0.0)
+    alpha = asum / 4.0 * 255.0
+    out = np.dstack([rgb, alpha])
+    return _png(np.floor(np.clip(out, 0.0, 255.0) + 0.5).astype(np.uint8))
 
 
 def _mesh(

@@ -24,7 +24,7 @@ import math
 import os
 import sqlite3
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -83,7 +83,21 @@ CREATE TABLE IF NOT EXISTS terrain (
 CREATE TABLE IF NOT EXISTS plan (
     z INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL, done INTEGER NOT NULL DEFAULT 0,
     PRIMARY KEY (z, x, y)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS blocks (
+    z INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL, tiles INTEGER NOT NULL,
+    PRIMARY KEY (z, x, y)) WITHOUT ROWID;
 """
+
+#: The tables a build's shard holds: the tileset's own, and the surfaces of the tiles the next
+#: band is made from (which of their grid points stand on data; NULL: all).
+SHARD_SCHEMA = (
+    _SCHEMA
+    + """
+CREATE TABLE IF NOT EXISTS surface (
+    z INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL, valid BLOB,
+    PRIMARY KEY (z, x, y)) WITHOUT ROWID;
+"""
+)
 
 
 @dataclass(frozen=True)
@@ -138,6 +152,9 @@ class TilesetWriter:
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=NORMAL")
             self.db.executescript(_SCHEMA)
+            # tiles an earlier lodscape planned and did not make (it planned every tile ahead;
+            # this one records only what it has made)
+            self.db.execute("DELETE FROM plan WHERE done = 0")
             if old is None:
                 self._set_manifest({**manifest, "complete": False})
         except sqlite3.Error as exc:
@@ -155,59 +172,53 @@ class TilesetWriter:
             raise TilesetError(f"{self.path}: cannot write ({exc})") from None
         self.resumed = old is not None
 
-    # --- plan ----------------------------------------------------------------------------
+    # --- blocks --------------------------------------------------------------------------
 
-    def plan(self, tiles: Iterable[tuple[int, int, int]]) -> None:
-        """Record every tile the build will make (tiles already planned are kept)."""
-        with self._transaction():
-            self.db.executemany(
-                "INSERT OR IGNORE INTO plan (z, x, y, done) VALUES (?, ?, ?, 0)", tiles
-            )
+    def blocks_done(self, z: int, y: int) -> set[int]:
+        """The columns of the blocks rooted in row y of level z that are in the file."""
+        rows = self.db.execute("SELECT x FROM blocks WHERE z = ? AND y = ?", (z, y))
+        return {int(x) for (x,) in rows}
 
-    def pending(self) -> list[tuple[int, int, int]]:
-        rows = self.db.execute("SELECT z, x, y FROM plan WHERE done = 0 ORDER BY z, y, x")
-        return [(int(z), int(x), int(y)) for z, x, y in rows]
-
-    def replan_stray_imagery(self, imagery_zmax: int) -> int:
-        """Mark for making again the planned tiles below ``imagery_zmax`` that hold imagery
-        (made as imagery alone where their terrain was due) and drop that imagery; returns how
-        many."""
+    def blocks_made(self, z: int, x0: int, x1: int, y0: int, y1: int) -> set[tuple[int, int]]:
+        """The roots (x, y) of level z within x0 <= x < x1, y0 <= y < y1 of the blocks made
+        (those found empty are not)."""
         rows = self.db.execute(
-            "SELECT zoom_level, tile_column, tile_row FROM tiles WHERE zoom_level > ?",
-            (imagery_zmax,),
-        ).fetchall()
-        if not rows:
-            return 0
-        tiles = [(z, x, (1 << z) - 1 - r) for z, x, r in rows]
-        with self._transaction():
-            self.db.execute("DELETE FROM tiles WHERE zoom_level > ?", (imagery_zmax,))
-            self.db.executemany("UPDATE plan SET done = 0 WHERE z = ? AND x = ? AND y = ?", tiles)
-        return len(rows)
+            "SELECT x, y FROM blocks WHERE z = ? AND x >= ? AND x < ? AND y >= ? AND y < ? "
+            "AND tiles > 0",
+            (z, x0, x1, y0, y1),
+        )
+        return {(int(x), int(y)) for x, y in rows}
 
     def counts(self) -> tuple[int, int]:
-        """(tiles done, tiles planned)."""
-        done, total = self.db.execute("SELECT SUM(done), COUNT(*) FROM plan").fetchone()
-        return int(done or 0), int(total or 0)
+        """(tiles made, blocks done)."""
+        tiles = self.db.execute("SELECT COUNT(*) FROM plan").fetchone()[0]
+        blocks = self.db.execute("SELECT COUNT(*) FROM blocks").fetchone()[0]
+        return int(tiles or 0), int(blocks or 0)
 
-    # --- tiles ---------------------------------------------------------------------------
+    def merge(self, shard: Path, block: tuple[int, int, int]) -> int:
+        """Copy a finished block's shard into the file and record the block done, all or
+        nothing (SQLite copies the rows; none passes through Python); returns its tiles."""
+        self.db.execute("ATTACH DATABASE ? AS shard", (f"file:{shard}?mode=ro",))
+        try:
+            with self._transaction():
+                self.db.execute("INSERT OR REPLACE INTO terrain SELECT * FROM shard.terrain")
+                self.db.execute("INSERT OR REPLACE INTO tiles SELECT * FROM shard.tiles")
+                self.db.execute("INSERT OR REPLACE INTO plan SELECT z, x, y, 1 FROM shard.plan")
+                (n,) = self.db.execute("SELECT COUNT(*) FROM shard.plan").fetchone()
+                self.db.execute("INSERT OR REPLACE INTO blocks VALUES (?, ?, ?, ?)", (*block, n))
+        finally:
+            self.db.execute("DETACH DATABASE shard")
+        return int(n)
 
-    def write(self, records: Sequence[TileRecord]) -> None:
-        """Store a batch of finished tiles and mark them done, all or nothing."""
+    def skip(self, blocks: Sequence[tuple[int, int, int]]) -> None:
+        """Record blocks with nothing to make (no data, and holes where there is none)."""
         with self._transaction():
-            for r in records:
-                if r.error is not None:
-                    self.db.execute(
-                        "INSERT OR REPLACE INTO terrain VALUES (?, ?, ?, ?, ?, ?, ?)",
-                        (r.z, r.x, r.y, r.error, r.min_h, r.max_h, r.terrain),
-                    )
-                if r.imagery is not None:
-                    self.db.execute(
-                        "INSERT OR REPLACE INTO tiles VALUES (?, ?, ?, ?)",
-                        (r.z, r.x, (1 << r.z) - 1 - r.y, r.imagery),
-                    )
-                self.db.execute(
-                    "UPDATE plan SET done = 1 WHERE z = ? AND x = ? AND y = ?", (r.z, r.x, r.y)
-                )
+            self.db.executemany("INSERT OR REPLACE INTO blocks VALUES (?, ?, ?, 0)", blocks)
+
+    def finest(self) -> int:
+        """The finest level the file holds terrain at."""
+        (z,) = self.db.execute("SELECT MAX(z) FROM terrain").fetchone()
+        return -1 if z is None else int(z)
 
     def finish(self, mbtiles: dict[str, str], zmax: int | None = None) -> None:
         """Mark the build complete, with its MBTiles metadata (and its finest level, where the
@@ -370,16 +381,16 @@ class TilesetProvider:
                 f"{SCHEMA_VERSION} this lodscape reads"
             )
         if not self.manifest.get("complete"):
-            done, total = db.execute("SELECT SUM(done), COUNT(*) FROM plan").fetchone()
+            (done,) = db.execute("SELECT COUNT(*) FROM plan").fetchone()
             self.close()
             if being_written(self.path):
                 raise TilesetError(
-                    f"{self.name}: a build is writing it now ({int(done or 0)} of "
-                    f"{int(total or 0)} tiles made); open it when the build has finished"
+                    f"{self.name}: a build is writing it now ({int(done or 0)} tiles made); "
+                    "open it when the build has finished"
                 )
             raise TilesetError(
-                f"{self.name}: its build stopped at {int(done or 0)} of {int(total or 0)} "
-                "tiles; run the same lodscape build again to finish it"
+                f"{self.name}: its build stopped at {int(done or 0)} tiles made; run the same "
+                "lodscape build again to finish it"
             )
         self.tree = read_tree(db, self.manifest)
         b = self.manifest["bounds_merc"]

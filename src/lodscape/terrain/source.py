@@ -519,6 +519,7 @@ class _GridSource:
         self._coarse_level = _Level(m, ch, cw, float(f), float(f), None)
         self._voids: tuple[NDArray[np.float64], B] | None = None
         self._seas: dict[float, B] = {}
+        self._near: B | None = None
 
     def _stated_range(self) -> tuple[float, float] | None:
         """The band's minimum and maximum as its metadata states them (GDAL's statistics), in
@@ -792,6 +793,39 @@ class _GridSource:
             inside = (xm >= box.left) & (xm <= box.right) & (ym >= box.bottom) & (ym <= box.top)
             if inside.any():
                 yield xm[inside], ym[inside], v[inside]
+
+    def sample_nodata(
+        self, xm: ArrayLike, ym: ArrayLike
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """What ``sample`` gives at points where there is no data, without reading a pixel:
+        the coarse hole-filled overview's heights, and no point valid."""
+        xb, yb = np.broadcast_arrays(
+            np.asarray(xm, dtype=np.float64), np.asarray(ym, dtype=np.float64)
+        )
+        col, row, _ = self._pixel_coords(xb.ravel(), yb.ravel())
+        h = self._fill(col, row).astype(np.float32).reshape(xb.shape)
+        return h, np.zeros(xb.shape, dtype=bool)
+
+    def has_data(self, left: ArrayLike, bottom: ArrayLike, right: ArrayLike, top: ArrayLike) -> B:
+        """Which EPSG:3857 boxes may hold a valid pixel, from the coarse overview made on
+        opening (no pixel read): a lattice finer than its cells over each box, on those cells
+        grown by one (so a box is said empty only where no cell near it has data)."""
+        lo, bo, ri, to = (
+            np.atleast_1d(np.asarray(v, np.float64)) for v in (left, bottom, right, top)
+        )
+        near = self._near
+        if near is None:
+            near = self._near = binary_dilation(self._count > 0.0, np.ones((3, 3), bool))
+        cell = self.resolution_merc * float(1 << self._m)
+        extent = float(np.max(np.maximum(ri - lo, to - bo), initial=0.0))
+        n = int(min(max(9, math.ceil(2.0 * extent / cell) + 1), 129))
+        f = np.linspace(0.0, 1.0, n)
+        px = lo[:, None, None] + f[None, None, :] * (ri - lo)[:, None, None]
+        py = bo[:, None, None] + f[None, :, None] * (to - bo)[:, None, None]
+        pxb, pyb = np.broadcast_arrays(px, py)
+        _, _, _, on, i, j = self._coarse_cells(pxb, pyb, near.shape)
+        out: B = np.asarray((on & near[i, j]).reshape(lo.size, -1).any(axis=1))
+        return out
 
     def covers(self, xm: ArrayLike, ym: ArrayLike) -> NDArray[np.bool_]:
         """Which EPSG:3857 points (broadcast together) fall on the raster, nodata holes included."""
@@ -1183,6 +1217,21 @@ class MosaicSource:
             out = out | s.covers(xm, ym)
         return out
 
+    def sample_nodata(
+        self, xm: ArrayLike, ym: ArrayLike
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """What ``sample`` gives where no source has data (the finest one's fill), unread."""
+        return self.sources[0].sample_nodata(xm, ym)  # type: ignore[attr-defined, no-any-return]
+
+    def has_data(self, left: ArrayLike, bottom: ArrayLike, right: ArrayLike, top: ArrayLike) -> B:
+        """Which boxes any source may hold a valid pixel in (``_GridSource.has_data``)."""
+        out: B | None = None
+        for s in self.sources:
+            got = s.has_data(left, bottom, right, top)  # type: ignore[attr-defined]
+            out = got if out is None else out | got
+        assert out is not None
+        return out
+
     def sea_at(self, xm: ArrayLike, ym: ArrayLike, level: float) -> B:
         """Points in the sea any source stores as exactly ``level``."""
         xb, yb = np.broadcast_arrays(np.asarray(xm, np.float64), np.asarray(ym, np.float64))
@@ -1307,6 +1356,17 @@ class FilledSource:
     def covers(self, xm: NDArray[np.float64], ym: NDArray[np.float64]) -> NDArray[np.bool_]:
         return self.source.covers(xm, ym)
 
+    def sample_nodata(
+        self, xm: NDArray[np.float64], ym: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """``sample`` where there is no data (the fill's heights, none valid), no pixel read."""
+
+        def points() -> tuple[F64, F64]:
+            xb, yb = np.broadcast_arrays(np.asarray(xm, np.float64), np.asarray(ym, np.float64))
+            return xb, yb
+
+        return self._filled(self.source.sample_nodata(xm, ym), points)  # type: ignore[attr-defined]
+
     def pixels_in(self, box: Bbox) -> Iterator[tuple[F64, F64, F64]]:
         return self.source.pixels_in(box)
 
@@ -1316,7 +1376,7 @@ class FilledSource:
     #: What a raster source knows beyond its heights, asked for where it is there (the sea
     #: stored as its level, the data's range, its shares of data and voids): forwarded; no
     #: other name is.
-    FORWARDED = frozenset({"sea_at", "data_range", "valid_share", "void_share"})
+    FORWARDED = frozenset({"sea_at", "data_range", "valid_share", "void_share", "has_data"})
 
     def __getattr__(self, name: str) -> Any:
         if name in FilledSource.FORWARDED and "source" in self.__dict__:
