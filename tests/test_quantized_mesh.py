@@ -181,3 +181,20 @@ def test_gzipped_tiles_decode_and_broken_gzip_fails_cleanly() -> None:
     assert np.array_equal(plain.h, zipped.h)
     with pytest.raises(QuantizedMeshError, match="gzip"):
         decode(gzip.compress(data)[:40])
+
+
+def test_a_plain_tile_that_starts_like_gzip_still_decodes() -> None:
+    """The header's first bytes are the centre's lowest: one plain tile in 65,536 starts with
+    gzip's magic (1f 8b). It decodes as the plain tile it is; a broken gzipped tile still
+    raises in one line."""
+    import gzip
+
+    from lodscape.store.quantized_mesh import QuantizedMeshError, decode, encode
+
+    lon, lat, h = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 2.0])
+    data = bytearray(encode(lon, lat, h, np.array([[0, 1, 2]], np.int32), (0.0, 0.0, 1.0, 1.0)))
+    data[0:2] = b"\x1f\x8b"
+    assert decode(bytes(data)).vertex_count == 3
+    broken = gzip.compress(bytes(data))[:40]
+    with pytest.raises(QuantizedMeshError, match="does not inflate"):
+        decode(broken)

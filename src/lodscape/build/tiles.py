@@ -408,7 +408,7 @@ def _surface_of(
 ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32], NDArray[np.bool_]]:
     """A stored tile's surface at its (TIN_GRID + 1)² grid points and its TIN_GRID² cell
     centres, as a client draws it (quantized positions and heights), and where it has one."""
-    qm = decode(gzip.decompress(stored))
+    qm = decode(stored)
     b = bounds(Tile(x, y, z))
     xs, ys = grid_coordinates(z, x, y, TIN_GRID)
     lon_col, _ = merc_to_lonlat(xs, np.zeros_like(xs))

@@ -270,7 +270,19 @@ def ungzip(data: bytes) -> bytes:
 def decode(data: bytes) -> QuantizedMesh:
     """Read one tile's bytes, gzipped or not; anything malformed raises QuantizedMeshError in
     one line."""
-    data = ungzip(data)
+    try:
+        plain = ungzip(data)
+    except QuantizedMeshError as gzipped:
+        # a plain tile whose header starts with gzip's two magic bytes (its centre's lowest
+        # bytes: one tile in 65,536) is read as it is
+        try:
+            return _decode_plain(data)
+        except QuantizedMeshError:
+            raise gzipped from None
+    return _decode_plain(plain)
+
+
+def _decode_plain(data: bytes) -> QuantizedMesh:
     buf = memoryview(data)
     try:
         head = _HEADER.unpack_from(buf, 0)
