@@ -13,6 +13,7 @@ import pytest
 
 from _synthetic import fbm_heights, run_cli, sky_share, write_dem
 from lodscape.cli import main
+from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import decode
 
 pytestmark = pytest.mark.gl
@@ -193,3 +194,35 @@ def test_names_with_uri_characters(
         ).fetchone()
     assert source.fetch(z, x, (1 << z) - 1 - row)[:8] == b"\x89PNG\r\n\x1a\n"
     source.close()
+
+
+def test_an_export_on_workers_writes_the_same_folder(
+    built: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``export --cesium`` on processes writes the same files, byte for byte, as in one
+    process; chunks of columns, several per level (made small here to have many)."""
+    from lodscape.build.executors import PoolExecutor
+    from lodscape.store import export
+
+    serial, parallel = tmp_path / "one", tmp_path / "many"
+    code, _, err = _run(["export", str(built), "--cesium", str(serial)], capsys)
+    assert code == 0, err
+    monkeypatch.setattr(export, "_CHUNK", 3)
+    with closing(connect_readonly(built)) as db:
+        chunks = list(export._chunks(db))
+    assert len(chunks) > 6
+    pool = PoolExecutor(2, processes=False)
+    try:
+        export.export_cesium(built, parallel, pool)
+    finally:
+        pool.close()
+
+    def files(root: Path) -> dict[str, bytes]:
+        return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+    assert files(serial) == files(parallel)
+    code, _, err = _run(
+        ["export", str(built), "--cesium", str(tmp_path / "w"), "--workers", "2"], capsys
+    )
+    assert code == 0, err
+    assert files(tmp_path / "w") == files(serial)

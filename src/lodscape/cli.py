@@ -1311,6 +1311,17 @@ def export(
             help="PMTiles v3 archive to write the terrain into, as Terrarium PNG tiles.",
         ),
     ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(help="Write the --cesium folder's tiles in this many processes."),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            help="Write the --cesium folder's tiles on a Dask cluster (tcp://host:8786, or "
+            "'local'): its workers must reach the folder."
+        ),
+    ] = None,
 ) -> None:
     """Write a tileset as files clients stream: with --cesium a folder (layer.json,
     {z}/{x}/{y}.terrain, the imagery as imagery/{z}/{x}/{y}.png with its TileJSON, a stored
@@ -1321,7 +1332,16 @@ def export(
     if cesium is not None:
         from lodscape.store.export import export_cesium
 
-        n = export_cesium(tileset, cesium)
+        executor = None
+        if workers is not None or scheduler is not None:
+            from lodscape.build import executor_for
+
+            executor = executor_for(workers, scheduler)
+        try:
+            n = export_cesium(tileset, cesium, executor)
+        finally:
+            if executor is not None:
+                executor.close()
         city = " and 3dtiles/" if (cesium / "3dtiles").exists() else ""
         typer.echo(f"wrote {n} terrain tiles, layer.json, imagery.json{city} to {cesium}")
     if pmtiles is not None or terrarium is not None:

@@ -18,8 +18,9 @@ import os
 import shutil
 import sqlite3
 from collections import defaultdict
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -32,16 +33,35 @@ from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
 from lodscape.terrain.mesh import grid_coordinates, grid_indices
 
 __all__ = [
+    "Mapper",
     "cesium_layer",
     "city_3dtiles",
     "ellipsoid_tile",
     "export_cesium",
     "imagery_tilejson",
+    "write_chunk",
 ]
 
 
-def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str]) -> int:
-    """Write ``tileset`` into ``folder`` (new, or empty); returns the terrain tiles written."""
+class Mapper(Protocol):
+    """What runs an export's chunks: ``imap(fn, args)`` yields ``fn(*a)`` for every ``a`` as
+    they finish (a build's executor: threads, processes or a Dask cluster)."""
+
+    def imap(self, fn: Callable[..., Any], args: Iterable[tuple[Any, ...]]) -> Iterator[Any]: ...
+
+
+#: Tiles per chunk of a parallel export.
+_CHUNK = 2048
+
+
+def export_cesium(
+    tileset: str | os.PathLike[str],
+    folder: str | os.PathLike[str],
+    executor: Mapper | None = None,
+) -> int:
+    """Write ``tileset`` into ``folder`` (new, or empty); returns the terrain tiles written.
+    With an ``executor``, its workers write the tiles, a chunk of columns each (the folder's
+    parent must be one they reach)."""
     target = Path(folder)
     if target.exists() and (not target.is_dir() or any(target.iterdir())):
         raise TilesetError(f"{target}: exists and is not an empty folder")
@@ -55,20 +75,16 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
     shutil.rmtree(tmp, ignore_errors=True)
     db = connect_readonly(tileset)
     try:
-        count = 0
-        for z, x, y, data in db.execute("SELECT z, x, y, data FROM terrain"):
-            tms = (1 << z) - 1 - y
-            # plain bytes: a static server need not add Content-Encoding headers
-            _write(tmp / str(z) / str(x) / f"{tms}.terrain", ungzip(bytes(data)))
-            count += 1
+        if executor is None:
+            count = write_chunk(str(tileset), str(tmp), "terrain", -1, 0, 0)
+            write_chunk(str(tileset), str(tmp), "tiles", -1, 0, 0)
+        else:
+            args = [(str(tileset), str(tmp), *c) for c in _chunks(db)]
+            count = sum(executor.imap(write_chunk, args))
         layer, flat = cesium_layer(db, manifest, Path(tileset).stem)
         for (z, x, tms), data in flat.items():
             _write(tmp / str(z) / str(x) / f"{tms}.terrain", data)
             count += 1
-        for z, x, row, data in db.execute(
-            "SELECT zoom_level, tile_column, tile_row, tile_data FROM tiles"
-        ):
-            _write(tmp / "imagery" / str(z) / str(x) / f"{(1 << z) - 1 - row}.png", bytes(data))
         (tmp / "layer.json").write_text(json.dumps(layer, indent=1))
         tilejson = imagery_tilejson(db, Path(tileset).stem, "imagery/{z}/{x}/{y}.png")
         (tmp / "imagery.json").write_text(json.dumps(tilejson, indent=1))
@@ -90,6 +106,57 @@ def export_cesium(tileset: str | os.PathLike[str], folder: str | os.PathLike[str
     finally:
         db.close()
         shutil.rmtree(tmp, ignore_errors=True)
+    return count
+
+
+def _chunks(db: sqlite3.Connection) -> Iterator[tuple[str, int, int, int]]:
+    """The tiles of both tables in chunks of whole columns, about _CHUNK tiles each: (table,
+    level, first column, column after the last)."""
+    for table, z_col, x_col in (("terrain", "z", "x"), ("tiles", "zoom_level", "tile_column")):
+        rows = db.execute(
+            f"SELECT {z_col}, {x_col}, COUNT(*) FROM {table} GROUP BY {z_col}, {x_col} "
+            f"ORDER BY {z_col}, {x_col}"
+        )
+        start: tuple[int, int] | None = None
+        last = (0, 0)
+        n = 0
+        for z, x, count in rows:
+            if start is not None and (z != start[0] or n >= _CHUNK):
+                yield table, start[0], start[1], last[1] + 1
+                start, n = None, 0
+            if start is None:
+                start = (z, x)
+            last = (z, x)
+            n += count
+        if start is not None:
+            yield table, start[0], start[1], last[1] + 1
+
+
+def write_chunk(tileset: str, folder: str, table: str, z: int, x0: int, x1: int) -> int:
+    """Write the tiles of ``table`` of level z, columns x0 <= x < x1 (z < 0: every tile) into
+    the export's ``folder``; returns how many."""
+    tmp = Path(folder)
+    where, params = ("", ()) if z < 0 else (" WHERE {z} = ? AND {x} >= ? AND {x} < ?", (z, x0, x1))
+    db = connect_readonly(tileset)
+    count = 0
+    try:
+        if table == "terrain":
+            query = "SELECT z, x, y, data FROM terrain" + where.format(z="z", x="x")
+            for tz, tx, ty, data in db.execute(query, params):
+                tms = (1 << tz) - 1 - ty
+                # plain bytes: a static server need not add Content-Encoding headers
+                _write(tmp / str(tz) / str(tx) / f"{tms}.terrain", ungzip(bytes(data)))
+                count += 1
+        else:
+            query = "SELECT zoom_level, tile_column, tile_row, tile_data FROM tiles" + where.format(
+                z="zoom_level", x="tile_column"
+            )
+            for tz, tx, row, data in db.execute(query, params):
+                _write(
+                    tmp / "imagery" / str(tz) / str(tx) / f"{(1 << tz) - 1 - row}.png", bytes(data)
+                )
+    finally:
+        db.close()
     return count
 
 
