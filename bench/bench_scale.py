@@ -13,7 +13,9 @@ nodata (a sea with a coastline, which the plan skips). Each run is a fresh proce
   build's own: its CPU per tile, its peak RSS and each worker's, the wall time and the speed-up
   from one worker to two;
 - with ``--before REV``, the same Dask runs of that commit's build (its own worktree), where
-  the mosaic is small enough for it (``--before-max`` samples a side).
+  the mosaic is small enough for it (``--before-max`` samples a side), and what each
+  tileset's recorded errors cost a renderer: the triangles and tiles the spine's four views
+  draw at 1280×720, each tileset drawn by its own commit.
 
 Every build must give the same rows as the threads build (checked). Medians over ``--rounds``
 where more than one.
@@ -175,6 +177,23 @@ def _instrument() -> dict[str, Any]:
     return {"pixels": pixels, "block_s": block_s, "plan_s": plan_s}
 
 
+def views(path: str) -> None:
+    """The spine's four views of a tileset at 1280×720: triangles and tiles drawn (how the
+    recorded errors drive the selection); prints JSON."""
+    import lodscape
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from _synthetic import spine_views
+
+    out = {}
+    with lodscape.open(path) as scene:
+        for name, cam in spine_views(scene, 1280, 720).items():
+            scene.render(cam)
+            st = scene.frame_stats()
+            out[name] = [int(st.get("triangles", 0)), int(st.get("tiles", 0))]
+    print(json.dumps(out))
+
+
 def one(args: argparse.Namespace) -> None:
     """A single build in this process; prints its figures as JSON."""
     import lodscape.build as build_module
@@ -311,6 +330,16 @@ def run(
     return figures
 
 
+def run_views(python_path: Path, tileset: Path) -> dict[str, Any]:
+    cmd = [sys.executable, __file__, "--one", "views", "--dem", str(tileset)]
+    env = {**os.environ, "PYTHONPATH": str(python_path)}
+    got = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
+    if got.returncode != 0:
+        raise SystemExit(f"views of {tileset.name} failed:\n{got.stderr[-3000:]}")
+    out: dict[str, Any] = json.loads(got.stdout.strip().splitlines()[-1])
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", default="2049,4097")
@@ -323,6 +352,9 @@ def main() -> None:
     ap.add_argument("--out", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--scheduler", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.one == "views":
+        views(args.dem)
+        return
     if args.one:
         args.mode = args.one
         one(args)
@@ -360,6 +392,14 @@ def main() -> None:
                     bname = f"before {name}"
                     res[bname] = run(before, "dask", dem, work / "before.lods", cluster.address)
                     print(f"{bname}: {json.dumps(res[bname])}", flush=True)
+                    if workers == 1:
+                        # what each tileset's recorded errors cost a renderer
+                        for who, path, code in (
+                            ("now", work / "threads.lods", here),
+                            ("before", work / "before.lods", before),
+                        ):
+                            res[f"views {who}"] = run_views(code, path)
+                            print(f"views {who}: {json.dumps(res[f'views {who}'])}", flush=True)
             finally:
                 cluster.close()
         d1, d2 = res["dask ×1"], res["dask ×2"]

@@ -210,11 +210,16 @@ class _Shard:
             )
         self.db.execute("INSERT OR REPLACE INTO plan VALUES (?, ?, ?, 1)", (r.z, r.x, r.y))
         if surface:
-            valid = None
+            valid = errors = grid = None
             if made.valid is not None:
                 valid = zlib.compress(np.packbits(made.valid.ravel()).tobytes())
+            if made.errors is not None:
+                errors = zlib.compress(made.errors.astype("<f4").tobytes())
+            if made.grid is not None:
+                grid = zlib.compress(made.grid.astype("<f4").tobytes())
             self.db.execute(
-                "INSERT OR REPLACE INTO surface VALUES (?, ?, ?, ?)", (r.z, r.x, r.y, valid)
+                "INSERT OR REPLACE INTO surface VALUES (?, ?, ?, ?, ?, ?)",
+                (r.z, r.x, r.y, valid, errors, grid),
             )
         self.tiles += 1
 
@@ -249,7 +254,7 @@ def read_root(folder: str, z: int, x: int, y: int) -> Made | None:
             (z, x, (1 << z) - 1 - y),
         ).fetchone()
         s = db.execute(
-            "SELECT valid FROM surface WHERE z = ? AND x = ? AND y = ?", (z, x, y)
+            "SELECT valid, errors, grid FROM surface WHERE z = ? AND x = ? AND y = ?", (z, x, y)
         ).fetchone()
     db.close()
     imagery = None if i is None else bytes(i[0])
@@ -257,12 +262,18 @@ def read_root(folder: str, z: int, x: int, y: int) -> Made | None:
         record = TileRecord(z, x, y, imagery=imagery)
     else:
         record = TileRecord(z, x, y, float(t[0]), float(t[1]), float(t[2]), bytes(t[3]), imagery)
-    valid = None
+    valid = errors = grid = None
+    if s is not None and s[2] is not None:
+        points = np.frombuffer(zlib.decompress(s[2]), "<f4")
+        grid = points.astype(np.float32).reshape(TIN_GRID + 1, TIN_GRID + 1)
     if s is not None and s[0] is not None:
         n = (TIN_GRID + 1) ** 2
         bits = np.unpackbits(np.frombuffer(zlib.decompress(s[0]), np.uint8))[:n]
         valid = bits.astype(bool).reshape(TIN_GRID + 1, TIN_GRID + 1)
-    return Made(record, valid)
+    if s is not None and s[1] is not None:
+        cells = np.frombuffer(zlib.decompress(s[1]), "<f4")
+        errors = cells.astype(np.float32).reshape(TIN_GRID, TIN_GRID)
+    return Made(record, valid, errors, grid)
 
 
 def make_block(job: Job, block: Block, folder: str, deepen: bool) -> tuple[int, int, int, int]:

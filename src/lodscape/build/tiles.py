@@ -23,7 +23,7 @@ from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, decode, encode, quantize
 from lodscape.store.tileset import TIN_GRID, TileRecord
-from lodscape.terrain.greedy import barycentric, greedy_mesh, tin_sample_error
+from lodscape.terrain.greedy import barycentric, greedy_mesh, tin_sample_errors
 from lodscape.terrain.mesh import grid_coordinates
 from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
@@ -162,6 +162,13 @@ def _texture(job: Job, src: HeightSource, z: int, x: int, y: int) -> bytes:
     return _png(rgba)
 
 
+#: Levels above the finest whose tiles' errors are measured on the data's pixels (4^k times
+#: a finest tile's), not bounded from their children's: the bound adds up level by level (its
+#: children's errors and its distance to their surfaces, where the two partly cancel), so it
+#: starts from measured errors a few levels up.
+EXACT_LEVELS = 2
+
+
 @dataclass(frozen=True)
 class Made:
     """A finished tile as the level above is made from it: its record, and which points of its
@@ -169,6 +176,12 @@ class Made:
 
     record: TileRecord
     valid: NDArray[np.bool_] | None = None
+    #: (TIN_GRID, TIN_GRID) bound of its mesh's error in each grid cell, metres (None: 0),
+    #: so a parent adds each child's error where it is, not its worst everywhere.
+    errors: NDArray[np.float32] | None = None
+    #: (TIN_GRID + 1)² heights its mesh was cut from (None: none kept): the data's samples,
+    #: or its children's, smoothed.
+    grid: NDArray[np.float32] | None = None
 
 
 def make_tile(job: Job, z: int, x: int, y: int) -> TileRecord:
@@ -188,33 +201,44 @@ def made_from_data(job: Job, z: int, x: int, y: int) -> Made:
     xs, ys = grid_coordinates(z, x, y, TIN_GRID)
     side = xs[-1] - xs[0]
     heights, valid = src.sample_grid(xs, ys, side / TIN_GRID)
-    step = side / TIN_GRID
-    box = xy_bounds(Tile(x, y, z))
-
-    def measured(error_at: _ErrorAt, cells: NDArray[np.bool_] | None) -> float:
-        # every pixel of the data in the tile
-        error = 0.0
-        for pxm, pym, ph in src.pixels_in(box):
-            if cells is not None:
-                ci = np.clip(np.floor((pxm - xs[0]) / step).astype(np.int64), 0, TIN_GRID - 1)
-                ri = np.clip(np.floor((ys[0] - pym) / step).astype(np.int64), 0, TIN_GRID - 1)
-                inside = cells[ri, ci]
-                pxm, pym, ph = pxm[inside], pym[inside], ph[inside]
-            plon, plat = merc_to_lonlat(pxm, pym)
-            error = max(error, error_at(plon, plat, ph.astype(np.float64)))
-        return error
-
-    record = _surface_tile(job, z, x, y, heights, valid, measured)
-    if record is None:
+    got = _surface_tile(job, z, x, y, heights, valid, _on_pixels(src, z, x, y))
+    if got is None:
         return Made(TileRecord(z, x, y), valid)
+    record, emap = got
     imagery = None
     if z <= max(job.texture_zmax, job.imagery_zmax):
         imagery = _texture(job, src, z, x, y)
-    return Made(replace(record, imagery=imagery), None if valid.all() else valid)
+    return Made(replace(record, imagery=imagery), None if valid.all() else valid, emap, heights)
 
 
-#: ``error_at(lon, lat, h)``: the largest |mesh − h| over points (degrees, metres).
-_ErrorAt = Callable[[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]], float]
+def _on_pixels(src: HeightSource, z: int, x: int, y: int) -> _Measured:
+    """A tile's error measured on every pixel of the data in it, each in its grid cell."""
+    xs, ys = grid_coordinates(z, x, y, TIN_GRID)
+    step = (xs[-1] - xs[0]) / TIN_GRID
+    box = xy_bounds(Tile(x, y, z))
+
+    def measured(error_at: _ErrorAt, cells: NDArray[np.bool_] | None) -> NDArray[np.float64]:
+        emap = np.zeros((TIN_GRID, TIN_GRID))
+        for pxm, pym, ph in src.pixels_in(box):
+            ci = np.clip(np.floor((pxm - xs[0]) / step).astype(np.int64), 0, TIN_GRID - 1)
+            ri = np.clip(np.floor((ys[0] - pym) / step).astype(np.int64), 0, TIN_GRID - 1)
+            if cells is not None:
+                inside = cells[ri, ci]
+                pxm, pym, ph, ci, ri = pxm[inside], pym[inside], ph[inside], ci[inside], ri[inside]
+            plon, plat = merc_to_lonlat(pxm, pym)
+            np.maximum.at(emap, (ri, ci), error_at(plon, plat, ph.astype(np.float64)))
+        return emap
+
+    return measured
+
+
+#: ``error_at(lon, lat, h)``: each point's |mesh − h| (degrees, metres; 0: in no triangle).
+_ErrorAt = Callable[
+    [NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]
+]
+#: ``measured(error_at, cells)``: the (TIN_GRID, TIN_GRID) error bound per grid cell, cells
+#: not in ``cells`` (where the data ends) left at 0.
+_Measured = Callable[[_ErrorAt, NDArray[np.bool_] | None], NDArray[np.float64]]
 
 
 def _surface_tile(
@@ -224,8 +248,8 @@ def _surface_tile(
     y: int,
     heights: NDArray[np.float32],
     valid: NDArray[np.bool_],
-    measured: Callable[[_ErrorAt, NDArray[np.bool_] | None], float],
-) -> TileRecord | None:
+    measured: _Measured,
+) -> tuple[TileRecord, NDArray[np.float32]] | None:
     """A tile's mesh of its grid ``heights`` within its level's budget, encoded, with the error
     ``measured`` gives (against the data's pixels, or the children's surfaces); None where a
     tile with holes has nothing to draw."""
@@ -271,20 +295,24 @@ def _surface_tile(
 
     def error_at(
         plon: NDArray[np.float64], plat: NDArray[np.float64], ph: NDArray[np.float64]
-    ) -> float:
+    ) -> NDArray[np.float64]:
+        out = np.zeros(plon.size)
         if plon.size == 0:
-            return 0.0
+            return out
         if rtin is not None:
-            return float(_sample_error(rtin.errors, budget, qlon, qlat, qh, plon, plat, ph))
-        return float(tin_sample_error(tris, verts, qlon, qlat, qh, plon, plat, ph))
+            _sample_errors(rtin.errors, budget, qlon, qlat, qh, plon, plat, ph, out)
+        else:
+            tin_sample_errors(tris, verts, qlon, qlat, qh, plon, plat, ph, out)
+        return out
 
     # where the data ends the mesh ends (none) or drops to the fill (a wall) within the grid
     # cell that straddles the edge: samples in such cells are not the surface's to match
     cells = None
     if job.fill != "nearest" and not valid.all():
         cells = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
-    error = measured(error_at, cells) + _sag(tris, verts, side, b)
-    return TileRecord(z, x, y, error, hmin, hmax, stored)
+    emap = measured(error_at, cells)
+    error = float(emap.max()) + _sag(tris, verts, side, b)
+    return TileRecord(z, x, y, error, hmin, hmax, stored), emap.astype(np.float32)
 
 
 def made_from_children(job: Job, z: int, x: int, y: int, children: Sequence[Made]) -> Made:
@@ -296,22 +324,22 @@ def made_from_children(job: Job, z: int, x: int, y: int, children: Sequence[Made
     n = TIN_GRID
     heights = np.zeros((2 * n + 1, 2 * n + 1), np.float32)
     valid = np.zeros((2 * n + 1, 2 * n + 1), bool)
-    points: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] = []
-    errors: list[float] = []
+    # per child: its grid points and cell centres with data (EPSG:3857 x, y and the child's
+    # height there, and which they are) and its own error bound per cell
+    points: list[tuple[Any, ...]] = []
     for i, child in enumerate(children):
         dx, dy = i & 1, i >> 1
         r = child.record
         if r.error is None:
             continue
-        errors.append(r.error)
         cz, cx, cy = z + 1, 2 * x + dx, 2 * y + dy
         at, hit, centre, centre_hit = _surface_of(cz, cx, cy, r.terrain)
         ok = hit if child.valid is None else hit & child.valid
         rows, cols = slice(dy * n, dy * n + n + 1), slice(dx * n, dx * n + n + 1)
-        heights[rows, cols] = np.where(hit, at, heights[rows, cols])
+        own_grid = at if child.grid is None else np.where(hit, child.grid, at)
+        heights[rows, cols] = np.where(hit, own_grid, heights[rows, cols])
         valid[rows, cols] |= ok
-        # the points the parent is measured at: the child's grid points and cell centres with
-        # data (a centre where all four corners have it)
+        # a centre where all four corners have data
         cells = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1] & ok[1:, 1:] & centre_hit
         xs, ys = grid_coordinates(cz, cx, cy, n)
         mx, my = (xs[:-1] + xs[1:]) / 2.0, (ys[:-1] + ys[1:]) / 2.0
@@ -320,25 +348,39 @@ def made_from_children(job: Job, z: int, x: int, y: int, children: Sequence[Made
         px = np.concatenate([gx[ok], cxm[cells]])
         py = np.concatenate([gy[ok], cym[cells]])
         ph = np.concatenate([at[ok], centre[cells]]).astype(np.float64)
-        points.append((px, py, ph))
-    grid, gvalid = heights[::2, ::2].copy(), valid[::2, ::2].copy()
-    xs, ys = grid_coordinates(z, x, y, n)
-    step = (xs[-1] - xs[0]) / n
+        own = np.zeros((n, n)) if child.errors is None else child.errors.astype(np.float64)
+        points.append((dx, dy, ok, cells, px, py, ph, own))
+    grid, gvalid = _halve_grid(heights, valid), valid[::2, ::2].copy()
 
-    def measured(error_at: _ErrorAt, cells: NDArray[np.bool_] | None) -> float:
-        # each child's points against its own recorded error
-        error = 0.0
-        for (qx, qy, qh), own in zip(points, errors, strict=True):
-            if cells is not None:
-                ci = np.clip(np.floor((qx - xs[0]) / step).astype(np.int64), 0, n - 1)
-                ri = np.clip(np.floor((ys[0] - qy) / step).astype(np.int64), 0, n - 1)
-                inside = cells[ri, ci]
-                qx, qy, qh = qx[inside], qy[inside], qh[inside]
-            plon, plat = merc_to_lonlat(qx, qy)
-            error = max(error, error_at(plon, plat, qh) + own)
-        return error
+    def measured(error_at: _ErrorAt, cells: NDArray[np.bool_] | None) -> NDArray[np.float64]:
+        # where the two piecewise-linear surfaces differ most within a child's grid cell is at
+        # its corners or its centre (every edge of either mesh runs along the grid or its
+        # diagonals); a pixel there is within that of the child's surface, which is within the
+        # child's own bound for the cell of the data
+        fine = np.zeros((2 * n, 2 * n))
+        for dx, dy, ok, inner, px, py, ph, own in points:
+            plon, plat = merc_to_lonlat(px, py)
+            d = error_at(plon, plat, ph)
+            corner = np.zeros((n + 1, n + 1))
+            mid = np.zeros((n, n))
+            corner[ok] = d[: int(ok.sum())]
+            mid[inner] = d[int(ok.sum()) :]
+            apart = np.maximum.reduce(
+                [corner[:-1, :-1], corner[:-1, 1:], corner[1:, :-1], corner[1:, 1:], mid]
+            )
+            fine[dy * n : dy * n + n, dx * n : dx * n + n] = apart + own
+        emap: NDArray[np.float64] = np.maximum.reduce(
+            [fine[0::2, 0::2], fine[1::2, 0::2], fine[0::2, 1::2], fine[1::2, 1::2]]
+        )
+        if cells is not None:
+            emap[~cells] = 0.0
+        return emap
 
-    record = _surface_tile(job, z, x, y, grid, gvalid, measured)
+    if job.zmax - z <= EXACT_LEVELS:
+        # near the finest level, the data's pixels under the tile are few enough to measure on
+        got = _surface_tile(job, z, x, y, grid, gvalid, _on_pixels(_source(job), z, x, y))
+    else:
+        got = _surface_tile(job, z, x, y, grid, gvalid, measured)
     finest = max(job.texture_zmax, job.imagery_zmax)
     imagery = None
     if z < finest:
@@ -346,9 +388,44 @@ def made_from_children(job: Job, z: int, x: int, y: int, children: Sequence[Made
     elif z == finest:
         # the finest imagery level: its texels about as fine as the data's pixels
         imagery = _texture(job, _source(job), z, x, y)
-    if record is None:
+    if got is None:
         return Made(TileRecord(z, x, y, imagery=imagery), gvalid)
-    return Made(replace(record, imagery=imagery), None if gvalid.all() else gvalid)
+    record, emap = got
+    return Made(replace(record, imagery=imagery), None if gvalid.all() else gvalid, emap, grid)
+
+
+def _halve_grid(fine: NDArray[np.float32], valid: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """A (2n + 1)² grid of heights to (n + 1)²: each point the [1 2 1]² mean of the points
+    with data around it (as a coarser level's samples are means of the data's pixels), along
+    the edges the [1 2 1] mean of the edge's own points (which the neighbouring tile has
+    too, so both give the edge the same heights), the corners as they are."""
+    w = valid.astype(np.float64)
+    v = np.where(valid, fine, 0.0).astype(np.float64)
+
+    def smooth(a: NDArray[np.float64], axis: int) -> NDArray[np.float64]:
+        out = 2.0 * a
+        if axis == 0:
+            out[1:-1] += a[:-2] + a[2:]
+        else:
+            out[:, 1:-1] += a[:, :-2] + a[:, 2:]
+        return out
+
+    # the interior: separable in both directions
+    sw, sv = smooth(smooth(w, 0), 1), smooth(smooth(v, 0), 1)
+    # the edges: along themselves only
+    for axis, index in ((1, 0), (1, -1), (0, 0), (0, -1)):
+        line_w = smooth(w, axis)
+        line_v = smooth(v, axis)
+        if axis == 1:
+            sw[index, :], sv[index, :] = line_w[index, :], line_v[index, :]
+        else:
+            sw[:, index], sv[:, index] = line_w[:, index], line_v[:, index]
+    for i in (0, -1):
+        for j in (0, -1):
+            sw[i, j], sv[i, j] = w[i, j], v[i, j]
+    mean = np.where(sw > 0.0, sv / np.maximum(sw, 1e-12), fine)
+    out: NDArray[np.float32] = mean[::2, ::2].astype(np.float32)
+    return out
 
 
 def made_without_data(job: Job, z: int, x: int, y: int) -> Made:
@@ -358,13 +435,13 @@ def made_without_data(job: Job, z: int, x: int, y: int) -> Made:
     xs, ys = grid_coordinates(z, x, y, TIN_GRID)
     gx, gy = np.meshgrid(xs, ys)
     heights, valid = src.sample_nodata(gx, gy)
-    record = _surface_tile(job, z, x, y, heights, valid, lambda _e, _c: 0.0)
+    got = _surface_tile(job, z, x, y, heights, valid, lambda _e, _c: np.zeros((1, 1)))
     imagery = None
     if z <= max(job.texture_zmax, job.imagery_zmax):
         imagery = _texture(job, src, z, x, y)  # type: ignore[arg-type]
-    if record is None:
+    if got is None:
         return Made(TileRecord(z, x, y, imagery=imagery), valid)
-    return Made(replace(record, imagery=imagery), valid)
+    return Made(replace(got[0], imagery=imagery), valid)
 
 
 class _Unread:
@@ -569,9 +646,27 @@ def _sample_error(
     plat: NDArray[np.float64],
     ph: NDArray[np.float64],
 ) -> float:
+    """``_sample_errors``' largest."""
+    out = np.zeros(plon.size)
+    return _sample_errors(err, budget, lon, lat, h, plon, plat, ph, out)
+
+
+@numba.njit(cache=True, nogil=True)  # type: ignore[misc]
+def _sample_errors(
+    err: NDArray[np.float64],
+    budget: float,
+    lon: NDArray[np.float64],
+    lat: NDArray[np.float64],
+    h: NDArray[np.float64],
+    plon: NDArray[np.float64],
+    plat: NDArray[np.float64],
+    ph: NDArray[np.float64],
+    out: NDArray[np.float64],
+) -> float:
     """The largest |mesh − sample| over the samples: each point is located by descending the
     RTIN exactly as its mesh was cut (the same split test), in the tile's lon/lat, where the
-    format interpolates; grid vertex (col, row) sits at (lon[col], lat[row]), height h[row, col]."""
+    format interpolates; grid vertex (col, row) sits at (lon[col], lat[row]), height h[row, col];
+    each point's |mesh − sample| is written to ``out`` (0: in no triangle)."""
     last = lon.size - 1
     worst = 0.0
     for k in range(plon.size):
@@ -599,6 +694,7 @@ def _sample_error(
             continue
         v = w0 * h[ay, ax] + w1 * h[by, bx] + (1.0 - w0 - w1) * h[cy, cx]
         e = abs(v - ph[k])
+        out[k] = e
         if e > worst:
             worst = e
     return worst

@@ -88,14 +88,15 @@ CREATE TABLE IF NOT EXISTS blocks (
     PRIMARY KEY (z, x, y)) WITHOUT ROWID;
 """
 
-#: The tables a build's shard holds: the tileset's own, and the surfaces of the tiles the next
-#: band is made from (which of their grid points stand on data; NULL: all).
+#: The tables a build's shard holds: the tileset's own, and what the next band needs of the
+#: tiles it is made from: which of their grid points stand on data (NULL: all), their error
+#: bound per grid cell and the heights their meshes were cut from (float32; NULL: none).
 SHARD_SCHEMA = (
     _SCHEMA
     + """
 CREATE TABLE IF NOT EXISTS surface (
-    z INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL, valid BLOB,
-    PRIMARY KEY (z, x, y)) WITHOUT ROWID;
+    z INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL, valid BLOB, errors BLOB,
+    grid BLOB, PRIMARY KEY (z, x, y)) WITHOUT ROWID;
 """
 )
 

@@ -18,7 +18,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["MESHERS", "barycentric", "greedy_mesh", "tin_sample_error"]
+__all__ = ["MESHERS", "barycentric", "greedy_mesh", "tin_sample_error", "tin_sample_errors"]
 
 #: The meshers a tileset build can use.
 MESHERS = ("rtin", "greedy")
@@ -61,6 +61,24 @@ def tin_sample_error(
     triangle, interpolated in lon/lat as the quantized-mesh format does: grid vertex (col, row)
     sits at (lon[col], lat[row]) (lon rising, lat falling), height h[row, col]. Each sample is
     looked for among the triangles whose grid box covers its cell."""
+    out = np.zeros(plon.size)
+    return tin_sample_errors(triangles, vertices, lon, lat, h, plon, plat, ph, out)
+
+
+@numba.njit(cache=True, nogil=True)  # type: ignore[misc]
+def tin_sample_errors(
+    triangles: NDArray[np.int32],
+    vertices: NDArray[np.int32],
+    lon: NDArray[np.float64],
+    lat: NDArray[np.float64],
+    h: NDArray[np.float64],
+    plon: NDArray[np.float64],
+    plat: NDArray[np.float64],
+    ph: NDArray[np.float64],
+    out: NDArray[np.float64],
+) -> float:
+    """``tin_sample_error``, with each sample's |mesh − sample| written to ``out`` (0 where it
+    lies in no triangle); returns the largest."""
     ncol = lon.size - 1
     nrow = lat.size - 1
     cells = ncol * nrow
@@ -114,6 +132,7 @@ def tin_sample_error(
         if best < -1e-9:
             continue  # in no triangle: a hole the mesh leaves
         e = abs(value - ph[k])
+        out[k] = e
         if e > worst:
             worst = e
     return worst

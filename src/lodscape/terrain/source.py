@@ -519,7 +519,8 @@ class _GridSource:
         self._coarse_level = _Level(m, ch, cw, float(f), float(f), None)
         self._voids: tuple[NDArray[np.float64], B] | None = None
         self._seas: dict[float, B] = {}
-        self._near: B | None = None
+        #: A summed-area table of the coarse cells with data (``has_data``), made when asked.
+        self._near: NDArray[np.int64] | None = None
 
     def _stated_range(self) -> tuple[float, float] | None:
         """The band's minimum and maximum as its metadata states them (GDAL's statistics), in
@@ -808,23 +809,35 @@ class _GridSource:
 
     def has_data(self, left: ArrayLike, bottom: ArrayLike, right: ArrayLike, top: ArrayLike) -> B:
         """Which EPSG:3857 boxes may hold a valid pixel, from the coarse overview made on
-        opening (no pixel read): a lattice finer than its cells over each box, on those cells
-        grown by one (so a box is said empty only where no cell near it has data)."""
+        opening (no pixel read): each box's extent in the raster's pixels (a 5×5 lattice of it
+        projected, grown by a coarse cell for the edges' curvature) holds a cell with data
+        (a summed-area table of the cells, so a box costs the same whatever its size)."""
         lo, bo, ri, to = (
             np.atleast_1d(np.asarray(v, np.float64)) for v in (left, bottom, right, top)
         )
-        near = self._near
-        if near is None:
-            near = self._near = binary_dilation(self._count > 0.0, np.ones((3, 3), bool))
-        cell = self.resolution_merc * float(1 << self._m)
-        extent = float(np.max(np.maximum(ri - lo, to - bo), initial=0.0))
-        n = int(min(max(9, math.ceil(2.0 * extent / cell) + 1), 129))
-        f = np.linspace(0.0, 1.0, n)
+        table = self._near
+        if table is None:
+            has = (self._count > 0.0).astype(np.int64)
+            table = self._near = np.pad(has.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+        f = np.linspace(0.0, 1.0, 5)
         px = lo[:, None, None] + f[None, None, :] * (ri - lo)[:, None, None]
         py = bo[:, None, None] + f[None, :, None] * (to - bo)[:, None, None]
         pxb, pyb = np.broadcast_arrays(px, py)
-        _, _, _, on, i, j = self._coarse_cells(pxb, pyb, near.shape)
-        out: B = np.asarray((on & near[i, j]).reshape(lo.size, -1).any(axis=1))
+        col, row, _ = self._pixel_coords(pxb.ravel(), pyb.ravel())
+        col, row = col.reshape(lo.size, -1), row.reshape(lo.size, -1)
+        lv = self._coarse_level
+        ch, cw = self._count.shape
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a box wholly off the projection
+            j0 = np.floor(np.nanmin(col, axis=1) / lv.sx) - 1
+            j1 = np.floor(np.nanmax(col, axis=1) / lv.sx) + 2
+            i0 = np.floor(np.nanmin(row, axis=1) / lv.sy) - 1
+            i1 = np.floor(np.nanmax(row, axis=1) / lv.sy) + 2
+        ok = np.isfinite(j0) & np.isfinite(j1) & np.isfinite(i0) & np.isfinite(i1)
+        j0, j1 = (np.clip(np.nan_to_num(v), 0, cw).astype(np.int64) for v in (j0, j1))
+        i0, i1 = (np.clip(np.nan_to_num(v), 0, ch).astype(np.int64) for v in (i0, i1))
+        inside = table[i1, j1] - table[i0, j1] - table[i1, j0] + table[i0, j0]
+        out: B = ok & (j1 > j0) & (i1 > i0) & (inside > 0)
         return out
 
     def covers(self, xm: ArrayLike, ym: ArrayLike) -> NDArray[np.bool_]:
