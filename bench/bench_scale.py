@@ -177,6 +177,15 @@ def _instrument() -> dict[str, Any]:
     return {"pixels": pixels, "block_s": block_s, "plan_s": plan_s}
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (VmHWM: unlike ru_maxrss, not inherited from the
+    process that started it)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return float(line.split()[1]) / 1024.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def views(path: str) -> None:
     """The spine's four views of a tileset at 1280×720: triangles and tiles drawn (how the
     recorded errors drive the selection); prints JSON."""
@@ -219,9 +228,7 @@ def one(args: argparse.Namespace) -> None:
         cpu = time.process_time() - cpu0
         worker_rss: list[float] = []
         if args.mode != "threads":
-            got = executor.client.run(
-                lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-            )
+            got = executor.client.run(peak_rss_mb)
             worker_rss = sorted(float(v) for v in got.values())
         executor.close()
     out: dict[str, Any] = {
@@ -229,7 +236,7 @@ def one(args: argparse.Namespace) -> None:
         "wall_s": wall,
         "client_cpu_s": cpu,
         "client_cpu_ms_per_tile": 1000.0 * cpu / max(report.planned, 1),
-        "client_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "client_rss_mb": peak_rss_mb(),
         "worker_rss_mb": worker_rss,
         "first_tile_s": first[0] if first else None,
     }

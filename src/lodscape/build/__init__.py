@@ -275,7 +275,10 @@ class _Run:
                 yield b
 
     def merge(self, key: tuple[int, int, int]) -> None:
-        n = self.writer.merge(shard_path(self.folder, *key), key)
+        shard = shard_path(self.folder, *key)
+        n = self.writer.merge(shard, key)
+        # in the file now: only its root's own file is kept (for the band above)
+        shard.unlink(missing_ok=True)
         self.done += n
         self.made += n
         self.blocks += 1

@@ -19,7 +19,7 @@ import re
 import sqlite3
 import zlib
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -48,6 +48,7 @@ __all__ = [
     "clear_shards",
     "make_block",
     "plan_blocks",
+    "root_path",
     "shard_path",
     "touching",
 ]
@@ -95,11 +96,16 @@ class Block:
 
 
 def shard_path(folder: str | os.PathLike[str], z: int, x: int, y: int) -> Path:
-    """Where the block rooted at z/x/y is kept until the build has finished."""
+    """Where the block rooted at z/x/y waits to be merged into the tileset (then removed)."""
     return Path(folder) / f"{z}-{x}-{y}.sqlite"
 
 
-_SHARD = re.compile(r"^(\d+-\d+-\d+\.sqlite|\.\d+-\d+-\d+\.sqlite\.\d+\.tmp)$")
+def root_path(folder: str | os.PathLike[str], z: int, x: int, y: int) -> Path:
+    """Where the root of the block z/x/y is kept, for the band above, until the build ends."""
+    return Path(folder) / f"{z}-{x}-{y}.root.sqlite"
+
+
+_SHARD = re.compile(r"^\.?\d+-\d+-\d+(\.root)?\.sqlite(\.\d+\.tmp)?$")
 
 
 def clear_shards(folder: str | os.PathLike[str]) -> None:
@@ -163,12 +169,15 @@ def planned(source: HeightSource, block: Block) -> dict[int, NDArray[np.int64]]:
 
 
 class _Shard:
-    """A block's shard being written: a temporary SQLite file renamed into place when whole."""
+    """A block's shard being written: a temporary SQLite file renamed into place when whole,
+    its root's own file (with what the band above is made from) put in place just before."""
 
     def __init__(self, folder: str, block: Block) -> None:
         self.path = shard_path(folder, *block.key)
+        self.root_path = root_path(folder, *block.key)
         self.tmp = temp_beside(self.path)
         self.tiles = 0
+        self.root: Made | None = None
         with self._writing():
             self.tmp.unlink(missing_ok=True)
             self.db = sqlite3.connect(self.tmp, isolation_level=None)
@@ -192,40 +201,26 @@ class _Shard:
                 why = text
             raise TilesetError(f"{self.path}: cannot write ({why})") from None
 
-    def add(self, made: Made, *, surface: bool = False) -> None:
+    def add(self, made: Made, *, root: bool = False) -> None:
         with self._writing():
-            self._add(made, surface)
-
-    def _add(self, made: Made, surface: bool) -> None:
-        r = made.record
-        if r.error is not None:
-            self.db.execute(
-                "INSERT OR REPLACE INTO terrain VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (r.z, r.x, r.y, r.error, r.min_h, r.max_h, r.terrain),
-            )
-        if r.imagery is not None:
-            self.db.execute(
-                "INSERT OR REPLACE INTO tiles VALUES (?, ?, ?, ?)",
-                (r.z, r.x, (1 << r.z) - 1 - r.y, r.imagery),
-            )
-        self.db.execute("INSERT OR REPLACE INTO plan VALUES (?, ?, ?, 1)", (r.z, r.x, r.y))
-        if surface:
-            valid = errors = grid = None
-            if made.valid is not None:
-                valid = zlib.compress(np.packbits(made.valid.ravel()).tobytes())
-            if made.errors is not None:
-                errors = zlib.compress(made.errors.astype("<f4").tobytes())
-            if made.grid is not None:
-                grid = zlib.compress(made.grid.astype("<f4").tobytes())
-            self.db.execute(
-                "INSERT OR REPLACE INTO surface VALUES (?, ?, ?, ?, ?, ?)",
-                (r.z, r.x, r.y, valid, errors, grid),
-            )
+            _insert(self.db, made, surface=False)
+        if root:
+            self.root = made
         self.tiles += 1
 
     def close(self) -> None:
-        """Commit, sync and rename into place: a shard that exists is whole."""
+        """The root's file, then the shard committed, synced and renamed into place: a shard
+        that exists is whole, and so is its root's file."""
         with self._writing():
+            if self.root is not None:
+                tmp = temp_beside(self.root_path)
+                tmp.unlink(missing_ok=True)
+                with closing(sqlite3.connect(tmp, isolation_level=None)) as db:
+                    db.executescript(SHARD_SCHEMA)
+                    db.execute("BEGIN")
+                    _insert(db, self.root, surface=True)
+                    db.execute("COMMIT")
+                os.replace(tmp, self.root_path)
             self.db.execute("COMMIT")
             self.db.close()
             with open(self.tmp, "rb") as f:
@@ -239,9 +234,37 @@ class _Shard:
         self.tmp.unlink(missing_ok=True)
 
 
+def _insert(db: sqlite3.Connection, made: Made, *, surface: bool) -> None:
+    """A made tile's rows (and, ``surface``, what its parent is made from)."""
+    r = made.record
+    if r.error is not None:
+        db.execute(
+            "INSERT OR REPLACE INTO terrain VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (r.z, r.x, r.y, r.error, r.min_h, r.max_h, r.terrain),
+        )
+    if r.imagery is not None:
+        db.execute(
+            "INSERT OR REPLACE INTO tiles VALUES (?, ?, ?, ?)",
+            (r.z, r.x, (1 << r.z) - 1 - r.y, r.imagery),
+        )
+    db.execute("INSERT OR REPLACE INTO plan VALUES (?, ?, ?, 1)", (r.z, r.x, r.y))
+    if surface:
+        valid = errors = grid = None
+        if made.valid is not None:
+            valid = zlib.compress(np.packbits(made.valid.ravel()).tobytes())
+        if made.errors is not None:
+            errors = zlib.compress(made.errors.astype("<f4").tobytes())
+        if made.grid is not None:
+            grid = zlib.compress(made.grid.astype("<f4").tobytes())
+        db.execute(
+            "INSERT OR REPLACE INTO surface VALUES (?, ?, ?, ?, ?, ?)",
+            (r.z, r.x, r.y, valid, errors, grid),
+        )
+
+
 def read_root(folder: str, z: int, x: int, y: int) -> Made | None:
-    """The root tile of the block z/x/y from its shard (None: no such block)."""
-    path = shard_path(folder, z, x, y)
+    """The root tile of the block z/x/y from its file (None: no such block)."""
+    path = root_path(folder, z, x, y)
     if not path.exists():
         return None
     with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
@@ -308,7 +331,7 @@ def make_block(job: Job, block: Block, folder: str, deepen: bool) -> tuple[int, 
                         kids.append(kid)
                     made = made_from_children(job, z, x, y, kids)
                 here[(x, y)] = made
-                shard.add(made, surface=z == block.z)
+                shard.add(made, root=z == block.z)
             below = here
         shard.close()
     except BaseException:
@@ -333,7 +356,7 @@ def _child(
     made = read_root(folder, z, x, y)
     if made is None and block.below is not None and (x, y) in block.below:
         raise TilesetError(
-            f"{shard_path(folder, z, x, y)}: the block this build made is gone (was the shards "
+            f"{root_path(folder, z, x, y)}: the block this build made is gone (was the shards "
             "folder removed?); remove the tileset and build it again"
         )
     return made
