@@ -132,10 +132,15 @@ def run_cli(argv: list[str], capsys: object) -> tuple[int, str, str]:
 
 
 def fbm_tileset(
-    folder: Path, seed: int, n: int = 513, west: float = 500_000.0, north: float = 4_000_000.0
+    folder: Path,
+    seed: int,
+    n: int = 513,
+    west: float = 500_000.0,
+    north: float = 4_000_000.0,
+    fill: str = "interpolate",
 ) -> Path:
     """A tileset built from an n² fBm DEM (10 m pixels, UTM 17N): what the streaming tests fly."""
-    from lodscape.build import build
+    from lodscape.build import BuildOptions, build
 
     dem = write_dem(
         str(folder / "dem.tif"),
@@ -146,7 +151,7 @@ def fbm_tileset(
         res=10.0,
     )
     out = folder / "site.lods"
-    build([dem], out)
+    build([dem], out, BuildOptions(fill=fill))
     return out
 
 

@@ -325,13 +325,19 @@ class TerrainView:
         area, urgency = radii.rank(centre, sel.dist_near)
         order = np.argsort(urgency, kind="stable")
         out: list[list[int]] = []
+        seen: set[int] = set()
         for a in (0, 1):
             pick = order[area[order] == a]
             keys = np.concatenate(
                 [sel.texture_keys[pick], sel.layer_keys[:, pick].ravel(), sel.keys[pick]]
             )
             keys = keys[keys != NO_TEXTURE]
-            out.append([int(k) for k in keys])
+            # a texture several chunks wear (an ancestor's, below its level) once, in the
+            # nearer area: a key is in one area only
+            _, first = np.unique(keys, return_index=True)
+            ordered = [int(k) for k in keys[np.sort(first)]]
+            out.append([k for k in ordered if k not in seen])
+            seen.update(ordered)
         counts = {"area_memory": int((area == 0).sum()), "area_cache": int((area == 1).sum())}
         return out[0], out[1], counts
 
