@@ -198,3 +198,49 @@ def test_a_plain_tile_that_starts_like_gzip_still_decodes() -> None:
     broken = gzip.compress(bytes(data))[:40]
     with pytest.raises(QuantizedMeshError, match="does not inflate"):
         decode(broken)
+
+
+def _cesium_visible(point: np.ndarray, camera: np.ndarray, min_height: float) -> np.ndarray:
+    """CesiumJS's EllipsoidalOccluder.isScaledSpacePointVisiblePossiblyUnderEllipsoid, for
+    cameras (N, 3) and one scaled-space point, written here from its published algorithm."""
+    from lodscape.geo.frames import WGS84_A, WGS84_B
+
+    s = min_height if min_height < 0.0 and -min_height < WGS84_B else 0.0
+    cv = camera / np.array([WGS84_A + s, WGS84_A + s, WGS84_B + s])
+    vh2 = (cv * cv).sum(axis=1) - 1.0
+    vt = point[None, :] - cv
+    vt_dot_vc = -(vt * cv).sum(axis=1)
+    occluded = np.where(
+        vh2 < 0.0, vt_dot_vc > 0.0, (vt_dot_vc > vh2) & (vt_dot_vc**2 / (vt * vt).sum(axis=1) > vh2)
+    )
+    return np.asarray(~occluded)
+
+
+@pytest.mark.parametrize("depth", [0.0, 40.0, 400.0])
+def test_cesium_sees_a_tile_below_sea_level_wherever_a_vertex_shows(depth: float) -> None:
+    """A tile whose vertices lie ``depth`` metres below the ellipsoid (a sea floor, the Dead
+    Sea): from cameras all around, wherever Cesium's own test (the ellipsoid shrunk by the tile's
+    minimum height) sees one of its vertices, it sees the tile's horizon-occlusion point too."""
+    from lodscape.store.quantized_mesh import decode, encode
+
+    lon, lat, h, tri = _tile_mesh()
+    h = h - h.max() - depth if depth else h
+    west, south, east, north = _rect()
+    qm = decode(encode(lon, lat, h, tri, _rect()))
+    dlon, dlat, dh = qm.positions(west, south, east, north)
+    vertices = geodetic_to_ecef(dlon, dlat, dh).reshape(-1, 3)
+    rng = np.random.default_rng(3)
+    # cameras from 10 m to 2,000 km over points within 30° of the tile
+    clon = (west + east) / 2 + rng.uniform(-30, 30, 4000)
+    clat = np.clip((south + north) / 2 + rng.uniform(-30, 30, 4000), -89, 89)
+    cams = geodetic_to_ecef(clon, clat, 10.0 ** rng.uniform(1, 6.3, 4000)).reshape(-1, 3)
+    from lodscape.geo.frames import WGS84_A, WGS84_B
+
+    s = qm.min_height if qm.min_height < 0 else 0.0
+    scale = np.array([WGS84_A + s, WGS84_A + s, WGS84_B + s])
+    seen = np.zeros(len(cams), bool)
+    for v in vertices[:: max(1, len(vertices) // 200)]:
+        seen |= _cesium_visible(v / scale, cams, qm.min_height)
+    point = _cesium_visible(qm.horizon_occlusion, cams, qm.min_height)
+    assert seen.any()
+    assert not (seen & ~point).any(), int((seen & ~point).sum())

@@ -142,10 +142,14 @@ def _unzigzag(codes: U16) -> U16:
     return out
 
 
-def _horizon_occlusion(ecef: F64, sphere_center: F64) -> F64:
+def _horizon_occlusion(ecef: F64, sphere_center: F64, min_height: float = 0.0) -> F64:
     """Cesium's horizon-culling point (EllipsoidalOccluder): in the ellipsoid's scaled space,
-    along the sphere centre's direction, far enough that every vertex is behind its horizon."""
-    scale = np.array([1.0 / WGS84_A, 1.0 / WGS84_A, 1.0 / WGS84_B])
+    along the sphere centre's direction, far enough that every vertex is behind its horizon.
+    A tile reaching below 0 m (``min_height`` < 0) is tested by Cesium against the ellipsoid
+    shrunk by that much (``isScaledSpacePointVisiblePossiblyUnderEllipsoid``): its point is in
+    that ellipsoid's scaled space."""
+    shrink = min_height if min_height < 0.0 and -min_height < WGS84_B else 0.0
+    scale = np.array([1.0 / (WGS84_A + shrink), 1.0 / (WGS84_A + shrink), 1.0 / (WGS84_B + shrink)])
     direction = sphere_center * scale
     length = float(np.linalg.norm(direction))
     if not length > 1e-9:  # a tile round the whole Earth: no direction to look from
@@ -227,7 +231,8 @@ def encode(
     lo, hi = ecef.min(axis=0), ecef.max(axis=0)
     center = (lo + hi) / 2.0
     radius = float(np.linalg.norm(ecef - center, axis=1).max())
-    occlusion = _horizon_occlusion(ecef, center)
+    # the minimum height as the header stores it (float32): what Cesium shrinks by
+    occlusion = _horizon_occlusion(ecef, center, float(np.float32(hmin)))
 
     out = [
         _HEADER.pack(*center, hmin, hmax, *center, radius, *occlusion),
