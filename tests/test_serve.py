@@ -541,3 +541,30 @@ def test_half_sent_headers_are_cut_off(site: Path) -> None:
                 s.close()
         with httpx.Client(base_url=url) as c:
             assert c.get("/layer.json").status_code == 200
+
+
+def test_the_tilejson_names_the_url_clients_reach_behind_a_proxy(server: str, site: Path) -> None:
+    """Behind an HTTPS proxy the TileJSON's tiles are the proxy's URL (X-Forwarded-Proto and
+    -Host, the first of a list); a header that is not a scheme or a host is ignored; and
+    ``--public-url`` overrides both."""
+    from lodscape.serve import public_base
+
+    with httpx.Client(base_url=server) as c:
+        headers = {"X-Forwarded-Proto": "https, http", "X-Forwarded-Host": "tiles.example.org"}
+        tj = c.get("/imagery.json", headers=headers).json()
+        assert tj["tiles"][0] == "https://tiles.example.org/imagery/{z}/{x}/{y}.png"
+        bad = {"X-Forwarded-Proto": "javascript", "X-Forwarded-Host": "a b/<script>"}
+        tj = c.get("/imagery.json", headers=bad).json()
+        assert tj["tiles"][0].startswith(server.rstrip("/") + "/imagery/")
+    got = public_base("http", "127.0.0.1:8000", {"X-Forwarded-Host": "x.org"}, "https://a.b/t/")
+    assert got == "https://a.b/t"
+    assert public_base("http", "h:1", {"X-Forwarded-Host": "[::1]:8080"}) == "http://[::1]:8080"
+
+
+def test_serve_refuses_a_public_url_that_is_not_one(
+    site: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["serve", str(site), "--public-url", "tiles.example.org"])
+    assert info.value.code == 2
+    assert "--public-url" in capsys.readouterr().err

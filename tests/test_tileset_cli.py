@@ -226,3 +226,21 @@ def test_an_export_on_workers_writes_the_same_folder(
     )
     assert code == 0, err
     assert files(tmp_path / "w") == files(serial)
+
+
+def test_an_export_for_a_known_url_names_its_imagery_absolutely(
+    built: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """MapLibre resolves a TileJSON's relative tile URL against the page, not the TileJSON:
+    with --base-url the exported imagery.json names its tiles absolutely."""
+    folder = tmp_path / "web"
+    argv = ["export", str(built), "--cesium", str(folder), "--base-url", "https://cdn.example/t/"]
+    code, _, err = _run(argv, capsys)
+    assert code == 0, err
+    tj = json.loads((folder / "imagery.json").read_text())
+    assert tj["tiles"] == ["https://cdn.example/t/imagery/{z}/{x}/{y}.png"]
+    code, _, err = _run(
+        ["export", str(built), "--cesium", str(tmp_path / "w2"), "--base-url", "cdn"], capsys
+    )
+    assert code == 2
+    assert "--base-url" in err

@@ -1311,6 +1311,14 @@ def export(
             help="PMTiles v3 archive to write the terrain into, as Terrarium PNG tiles.",
         ),
     ] = None,
+    base_url: Annotated[
+        str | None,
+        typer.Option(
+            help="The URL the --cesium folder will be served from (https://host/path), so its "
+            "imagery.json names its tiles absolutely (MapLibre resolves a relative one against "
+            "the page, not the TileJSON)."
+        ),
+    ] = None,
     workers: Annotated[
         int | None,
         typer.Option(help="Write the --cesium folder's tiles in this many processes."),
@@ -1338,7 +1346,9 @@ def export(
 
             executor = executor_for(workers, scheduler)
         try:
-            n = export_cesium(tileset, cesium, executor)
+            n = export_cesium(
+                tileset, cesium, executor, base_url=_absolute_url(base_url, "--base-url")
+            )
         finally:
             if executor is not None:
                 executor.close()
@@ -1444,6 +1454,14 @@ def serve(
     host: Annotated[
         str, typer.Option(help="Address to listen on (0.0.0.0: every interface).")
     ] = "127.0.0.1",
+    public_url: Annotated[
+        str | None,
+        typer.Option(
+            help="The URL clients reach this server by (https://tiles.example.org), for the "
+            "URLs it writes into its TileJSON; without it, a reverse proxy's "
+            "X-Forwarded-Proto and X-Forwarded-Host, else the request's own."
+        ),
+    ] = None,
 ) -> None:
     """Serve a tileset over HTTP: /layer.json and /{z}/{x}/{y}.terrain (quantized-mesh, for
     Cesium), /imagery/{z}/{x}/{y}.png, and the stored cities as 3D Tiles under
@@ -1457,7 +1475,20 @@ def serve(
         host,
         port,
         ready=lambda url: typer.echo(f"serving {tileset} on {url} (Ctrl-C stops)"),
+        public_url=_absolute_url(public_url, "--public-url"),
     )
+
+
+def _absolute_url(url: str | None, flag: str) -> str | None:
+    """An http(s) URL with a host, without its trailing slash; a one-line error otherwise."""
+    if url is None:
+        return None
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.netloc:
+        raise LodscapeError(f"{flag} {url!r}: give an absolute http(s) URL, e.g. https://host/path")
+    return url.rstrip("/")
 
 
 @app.command()

@@ -38,11 +38,12 @@ import hashlib
 import json
 import logging
 import os
+import re
 import sqlite3
 import sys
 import threading
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -352,7 +353,32 @@ class _Watched(asyncio.Protocol):
         self.inner.resume_writing()
 
 
-def make_app(service: TileService, deadlines: HeaderDeadlines | None = None) -> Any:
+_HOST = re.compile(r"^[A-Za-z0-9.\-]+(:\d{1,5})?$|^\[[0-9A-Fa-f:.]+\](:\d{1,5})?$")
+
+
+def public_base(
+    scheme: str, host: str, headers: Mapping[str, str], public_url: str | None = None
+) -> str:
+    """The scheme and host a client reaches the server by: ``public_url`` where given, else
+    what a reverse proxy says (``X-Forwarded-Proto``, ``X-Forwarded-Host``: the first, nearest
+    the client, of a list; values that are not a scheme or a host name are ignored), else the
+    request's own."""
+    if public_url:
+        return public_url.rstrip("/")
+    proto = headers.get("X-Forwarded-Proto", "").split(",")[0].strip().lower()
+    forwarded = headers.get("X-Forwarded-Host", "").split(",")[0].strip()
+    if proto not in ("http", "https"):
+        proto = scheme
+    if not _HOST.match(forwarded):
+        forwarded = host
+    return f"{proto}://{forwarded}"
+
+
+def make_app(
+    service: TileService,
+    deadlines: HeaderDeadlines | None = None,
+    public_url: str | None = None,
+) -> Any:
     """The aiohttp application serving ``service`` (``deadlines``: the connections' header
     deadlines, kept as their requests start and end)."""
     from aiohttp import web
@@ -419,7 +445,8 @@ def make_app(service: TileService, deadlines: HeaderDeadlines | None = None) -> 
         return _reply(request, data, "image/png")
 
     async def tilejson(request: web.Request) -> web.Response:
-        made = await service.run(service.tilejson, f"{request.scheme}://{request.host}")
+        base = public_base(request.scheme, request.host, request.headers, public_url)
+        made = await service.run(service.tilejson, base)
         return _reply(request, json.dumps(made).encode(), "application/json", compress=True)
 
     async def tileset(request: web.Request) -> web.Response:
@@ -524,14 +551,16 @@ def run(
     port: int = 8000,
     *,
     ready: Callable[[str], None] | None = None,
+    public_url: str | None = None,
 ) -> None:
     """Serve the tileset until interrupted; ``ready(url)`` once the port is bound (not before:
-    a bad file or a busy port fails first, and nothing says "serving")."""
+    a bad file or a busy port fails first, and nothing says "serving"). ``public_url``: the
+    scheme and host clients reach it by (behind a proxy), in the URLs it writes."""
 
     service = TileService(path)  # a file that is not a complete tileset fails here
     _quiet_server_logs()
     try:
-        asyncio.run(serve(service, host, port, ready=ready))
+        asyncio.run(serve(service, host, port, ready=ready, public_url=public_url))
     finally:
         service.close()
 
@@ -544,12 +573,13 @@ async def serve(
     ready: Callable[[str], None] | None = None,
     stop: asyncio.Event | None = None,
     header_timeout: float = HEADER_TIMEOUT,
+    public_url: str | None = None,
 ) -> None:
     """Serve ``service`` on ``host:port`` until ``stop`` is set (never, without one)."""
     from aiohttp import web
 
     deadlines = HeaderDeadlines(header_timeout)
-    runner = web.AppRunner(make_app(service, deadlines), access_log=None)
+    runner = web.AppRunner(make_app(service, deadlines, public_url), access_log=None)
     await runner.setup()
     loop = asyncio.get_running_loop()
     try:

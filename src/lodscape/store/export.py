@@ -58,10 +58,13 @@ def export_cesium(
     tileset: str | os.PathLike[str],
     folder: str | os.PathLike[str],
     executor: Mapper | None = None,
+    *,
+    base_url: str | None = None,
 ) -> int:
     """Write ``tileset`` into ``folder`` (new, or empty); returns the terrain tiles written.
     With an ``executor``, its workers write the tiles, a chunk of columns each (the folder's
-    parent must be one they reach)."""
+    parent must be one they reach). ``base_url``: where the folder will be served from, so the
+    imagery's TileJSON names its tiles absolutely (else relative to the TileJSON)."""
     target = Path(folder)
     if target.exists() and (not target.is_dir() or any(target.iterdir())):
         raise TilesetError(f"{target}: exists and is not an empty folder")
@@ -86,7 +89,10 @@ def export_cesium(
             _write(tmp / str(z) / str(x) / f"{tms}.terrain", data)
             count += 1
         (tmp / "layer.json").write_text(json.dumps(layer, indent=1))
-        tilejson = imagery_tilejson(db, Path(tileset).stem, "imagery/{z}/{x}/{y}.png")
+        tiles = "imagery/{z}/{x}/{y}.png"
+        if base_url is not None:
+            tiles = base_url.rstrip("/") + "/" + tiles
+        tilejson = imagery_tilejson(db, Path(tileset).stem, tiles)
         (tmp / "imagery.json").write_text(json.dumps(tilejson, indent=1))
         provider = TilesetProvider(tileset)
         try:
