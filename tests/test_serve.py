@@ -81,7 +81,7 @@ def test_layer_json_headers_etag_and_gzip(server: str) -> None:
         pre = c.options("/layer.json", headers={"Origin": "http://example.org"})
         assert pre.status_code == 204
         assert "GET" in pre.headers["access-control-allow-methods"]
-        index = c.get("/").json()
+        index = c.get("/index.json").json()
         assert index["buildings"] == "3dtiles/tileset.json"
 
 
@@ -130,7 +130,7 @@ def test_imagery_tilejson(server: str, site: Path) -> None:
         url = tj["tiles"][0].format(z=z, x=x, y=y)
         assert url.startswith(server)
         assert c.get(url).status_code == 200
-        assert c.get("/").json()["imagery_tilejson"] == "imagery.json"
+        assert c.get("/index.json").json()["imagery_tilejson"] == "imagery.json"
 
 
 def test_export_writes_the_stored_city_as_3d_tiles(site: Path, tmp_path: Path) -> None:
@@ -390,9 +390,20 @@ def _city_add_paused(tileset: Path) -> subprocess.Popen[bytes]:
     return proc
 
 
-def _serve_process(tileset: Path, port: int) -> subprocess.Popen[str]:
+def _serve_process(
+    tileset: Path, port: int, flags: list[str] | None = None
+) -> subprocess.Popen[str]:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "lodscape.cli", "serve", str(tileset), "--port", str(port)],
+        [
+            sys.executable,
+            "-m",
+            "lodscape.cli",
+            "serve",
+            str(tileset),
+            "--port",
+            str(port),
+            *(flags or []),
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -418,7 +429,7 @@ def test_serve_as_a_process_never_waits_for_a_writer(site: Path, tmp_path: Path)
         with httpx.Client(base_url=base, timeout=5.0) as c:
             assert c.get(f"/{z}/{x}/{y}.terrain").status_code == 200
             writer = _city_add_paused(copy)
-            for path in ("/layer.json", f"/{z}/{x}/{y}.terrain", "/imagery.json", "/"):
+            for path in ("/layer.json", f"/{z}/{x}/{y}.terrain", "/imagery.json", "/index.json"):
                 t = time.perf_counter()
                 r = c.get(path)
                 assert r.status_code == 200, (path, r.status_code)
@@ -493,7 +504,7 @@ def test_a_file_renamed_into_place_and_a_city_added_are_served(
         assert _wait_for(lambda: c.get(f"/{z}/{x}/{y}.terrain").status_code == 404)
         main(["city", "add", str(served), str(sample_city_path())])
         assert _wait_for(lambda: c.get("/3dtiles/tileset.json").status_code == 200)
-        assert c.get("/").json()["buildings"] == "3dtiles/tileset.json"
+        assert c.get("/index.json").json()["buildings"] == "3dtiles/tileset.json"
         main(["city", "remove", str(served), sample_city_path().name])
         assert _wait_for(lambda: c.get("/3dtiles/tileset.json").status_code == 404)
 
@@ -568,3 +579,50 @@ def test_serve_refuses_a_public_url_that_is_not_one(
         main(["serve", str(site), "--public-url", "tiles.example.org"])
     assert info.value.code == 2
     assert "--public-url" in capsys.readouterr().err
+
+
+def test_the_root_is_a_viewer_page_that_names_what_is_served(
+    server: str, site: Path, tmp_path: Path
+) -> None:
+    """``/`` is an HTML page: CesiumJS from the default CDN build, over the terrain at ./ and
+    what /index.json names (the imagery's TileJSON, the buildings); every URL it fetches is
+    served. With --viewer-js a local build, its files are served under /viewer-js/."""
+    from lodscape.serve import VIEWER_JS, viewer_source
+
+    with httpx.Client(base_url=server) as c:
+        r = c.get("/")
+        assert r.status_code == 200
+        assert r.headers["content-type"].startswith("text/html")
+        page = r.text
+        assert f'src="{VIEWER_JS}Cesium.js"' in page
+        assert 'fetch("index.json")' in page
+        assert 'fromUrl("./"' in page
+        assert site.stem in page
+        index = c.get("/index.json").json()
+        for key in ("terrain", "imagery_tilejson", "buildings"):
+            assert c.get("/" + index[key]).status_code == 200, key
+    build = tmp_path / "Build" / "Cesium"
+    (build / "Widgets").mkdir(parents=True)
+    (build / "Cesium.js").write_text("window.Cesium = {};")
+    (build / "Widgets" / "widgets.css").write_text("body {}")
+    assert viewer_source(str(build)) == ("viewer-js/", build.resolve())
+    with pytest.raises(Exception, match="--viewer-js"):
+        viewer_source(str(tmp_path))
+
+
+def test_serve_offers_a_local_cesium_build(site: Path, tmp_path: Path) -> None:
+    build = tmp_path / "Cesium"
+    (build / "Widgets").mkdir(parents=True)
+    (build / "Cesium.js").write_text("window.Cesium = {};")
+    (build / "Widgets" / "widgets.css").write_text("body {}")
+    port = _free_port()
+    proc = _serve_process(site, port, ["--viewer-js", str(build)])
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=5.0) as c:
+            page = c.get("/").text
+            assert 'src="viewer-js/Cesium.js"' in page
+            assert c.get("/viewer-js/Cesium.js").text == "window.Cesium = {};"
+            assert c.get("/viewer-js/../site.lods").status_code in (403, 404)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=10)

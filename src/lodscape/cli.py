@@ -1462,10 +1462,19 @@ def serve(
             "X-Forwarded-Proto and X-Forwarded-Host, else the request's own."
         ),
     ] = None,
+    viewer_js: Annotated[
+        str | None,
+        typer.Option(
+            help="Where the page at / loads CesiumJS from: a URL ending in Build/Cesium/, or a "
+            "local folder of it (node_modules/cesium/Build/Cesium), served under /viewer-js/ "
+            "(default: the npm package on jsDelivr)."
+        ),
+    ] = None,
 ) -> None:
-    """Serve a tileset over HTTP: /layer.json and /{z}/{x}/{y}.terrain (quantized-mesh, for
-    Cesium), /imagery/{z}/{x}/{y}.png, and the stored cities as 3D Tiles under
-    /3dtiles/tileset.json; CORS, ETag, gzip. Ctrl-C stops it."""
+    """Serve a tileset over HTTP: a viewer page at / (CesiumJS), /layer.json and
+    /{z}/{x}/{y}.terrain (quantized-mesh, for Cesium), /imagery/{z}/{x}/{y}.png with
+    /imagery.json, and the stored cities as 3D Tiles under /3dtiles/tileset.json; /index.json
+    lists them. CORS, ETag, gzip. Ctrl-C stops it."""
     from lodscape.serve import run
 
     if not 0 < port < 65536:
@@ -1476,6 +1485,7 @@ def serve(
         port,
         ready=lambda url: typer.echo(f"serving {tileset} on {url} (Ctrl-C stops)"),
         public_url=_absolute_url(public_url, "--public-url"),
+        viewer_js=viewer_js,
     )
 
 

@@ -1,6 +1,9 @@
 """``lodscape serve``: a tileset over HTTP (aiohttp) for Cesium, MapLibre or any tile client.
 
 Routes:
+- ``/``: a page that shows the tileset in CesiumJS (terrain, imagery, buildings), its scripts
+  from ``--viewer-js`` (a URL, or a local build of CesiumJS served under ``/viewer-js/``);
+  ``/index.json``: what is served, by relative URL;
 - ``/layer.json``: the Cesium terrain layer (TMS rows, as ``lodscape export --cesium``);
 - ``/{z}/{x}/{y}.terrain``: quantized-mesh-1.0 with octvertexnormals, gzipped where the client
   accepts it (as stored), plain otherwise; flat tiles above the tileset's roots;
@@ -374,10 +377,45 @@ def public_base(
     return f"{proto}://{forwarded}"
 
 
+#: Where the viewer page loads CesiumJS from by default (the npm package's build, on a CDN).
+VIEWER_JS = "https://cdn.jsdelivr.net/npm/cesium@1.145.0/Build/Cesium/"
+
+
+def viewer_page(name: str, viewer_js: str) -> bytes:
+    """The HTML page ``/`` answers: CesiumJS (from ``viewer_js``, a URL or path ending in ``/``
+    that holds ``Cesium.js``) over the served terrain, imagery and buildings."""
+    import html
+
+    from lodscape.data import data_path
+
+    page = data_path("viewer.html").read_text()
+    page = page.replace("VIEWER_JS_FILE", html.escape(viewer_js + "Cesium.js"))
+    page = page.replace("VIEWER_CSS_FILE", html.escape(viewer_js + "Widgets/widgets.css"))
+    page = page.replace("VIEWER_JS", json.dumps(viewer_js).replace("</", "<\\/"))
+    return page.replace("NAME", html.escape(name)).encode()
+
+
+def viewer_source(viewer_js: str | None) -> tuple[str, Path | None]:
+    """``--viewer-js`` as the page's script base and the local folder to serve it from (None:
+    a URL): a folder must hold CesiumJS's build (``Cesium.js``, ``Widgets/``)."""
+    if viewer_js is None:
+        return VIEWER_JS, None
+    if viewer_js.startswith(("http://", "https://", "//")):
+        return viewer_js if viewer_js.endswith("/") else viewer_js + "/", None
+    folder = Path(viewer_js)
+    if not (folder / "Cesium.js").is_file() or not (folder / "Widgets").is_dir():
+        raise LodscapeError(
+            f"--viewer-js {viewer_js}: not CesiumJS's build (a folder holding Cesium.js and "
+            "Widgets/, e.g. node_modules/cesium/Build/Cesium) nor an http(s) URL"
+        )
+    return "viewer-js/", folder.resolve()
+
+
 def make_app(
     service: TileService,
     deadlines: HeaderDeadlines | None = None,
     public_url: str | None = None,
+    viewer_js: str | None = None,
 ) -> Any:
     """The aiohttp application serving ``service`` (``deadlines``: the connections' header
     deadlines, kept as their requests start and end)."""
@@ -414,6 +452,12 @@ def make_app(
             raise
         response.headers.update(CORS)
         return response
+
+    script, local = viewer_source(viewer_js)
+
+    async def page(request: web.Request) -> web.Response:
+        body = viewer_page(service.path.stem, script)
+        return _reply(request, body, "text/html", compress=True)
 
     async def index(request: web.Request) -> web.Response:
         body = json.dumps(
@@ -464,7 +508,10 @@ def make_app(
 
     app = web.Application(middlewares=[watched, cors])
     num = "{%s:" + _NUMBER + "}"
-    app.router.add_get("/", index)
+    app.router.add_get("/", page)
+    app.router.add_get("/index.json", index)
+    if local is not None:
+        app.router.add_static("/viewer-js/", local)
     app.router.add_get("/layer.json", layer)
     app.router.add_get(f"/{num % 'z'}/{num % 'x'}/{num % 'y'}.terrain", terrain)
     app.router.add_get(f"/imagery/{num % 'z'}/{num % 'x'}/{num % 'y'}.png", imagery)
@@ -552,15 +599,19 @@ def run(
     *,
     ready: Callable[[str], None] | None = None,
     public_url: str | None = None,
+    viewer_js: str | None = None,
 ) -> None:
     """Serve the tileset until interrupted; ``ready(url)`` once the port is bound (not before:
     a bad file or a busy port fails first, and nothing says "serving"). ``public_url``: the
     scheme and host clients reach it by (behind a proxy), in the URLs it writes."""
 
+    viewer_source(viewer_js)  # a bad --viewer-js fails before anything is opened
     service = TileService(path)  # a file that is not a complete tileset fails here
     _quiet_server_logs()
     try:
-        asyncio.run(serve(service, host, port, ready=ready, public_url=public_url))
+        asyncio.run(
+            serve(service, host, port, ready=ready, public_url=public_url, viewer_js=viewer_js)
+        )
     finally:
         service.close()
 
@@ -574,12 +625,14 @@ async def serve(
     stop: asyncio.Event | None = None,
     header_timeout: float = HEADER_TIMEOUT,
     public_url: str | None = None,
+    viewer_js: str | None = None,
 ) -> None:
     """Serve ``service`` on ``host:port`` until ``stop`` is set (never, without one)."""
     from aiohttp import web
 
     deadlines = HeaderDeadlines(header_timeout)
-    runner = web.AppRunner(make_app(service, deadlines, public_url), access_log=None)
+    app = make_app(service, deadlines, public_url, viewer_js)
+    runner = web.AppRunner(app, access_log=None)
     await runner.setup()
     loop = asyncio.get_running_loop()
     try:

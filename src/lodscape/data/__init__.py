@@ -21,3 +21,10 @@ def sample_city_path() -> Path:
     resource = files(__package__).joinpath("helsinki.osm.pbf")
     with as_file(resource) as path:
         return Path(path)
+
+
+def data_path(name: str) -> Path:
+    """Path of a file shipped in ``lodscape.data`` (the viewer page, calibrations)."""
+    resource = files(__package__).joinpath(name)
+    with as_file(resource) as path:
+        return Path(path)
