@@ -244,3 +244,40 @@ def test_an_export_for_a_known_url_names_its_imagery_absolutely(
     )
     assert code == 2
     assert "--base-url" in err
+
+
+def test_the_credit_is_what_the_data_states_or_what_the_user_gives(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A GeoTIFF's copyright tag is the tileset's attribution in its MBTiles metadata, its
+    imagery's TileJSON and its layer.json; --attribution overrides it; a raster that states
+    none is credited by name (never a placeholder sentence)."""
+    import rasterio
+
+    dem = write_dem(
+        str(tmp_path / "dem.tif"), fbm_heights(65, seed=3), crs="EPSG:32617", west=700000.0,
+        north=4060000.0, res=30.0,
+    )  # fmt: skip
+    with rasterio.open(dem, "r+") as ds:
+        ds.update_tags(TIFFTAG_COPYRIGHT="© Test Survey 2024")
+    for flags, want in (([], "© Test Survey 2024"), (["--attribution", "© Mine"], "© Mine")):
+        out = tmp_path / f"site{len(flags)}.lods"
+        code, _, err = _run(["build", dem, "-o", str(out), "-q", *flags], capsys)
+        assert code == 0, err
+        folder = tmp_path / f"web{len(flags)}"
+        code, _, err = _run(["export", str(out), "--cesium", str(folder)], capsys)
+        assert code == 0, err
+        assert json.loads((folder / "imagery.json").read_text())["attribution"] == want
+        assert json.loads((folder / "layer.json").read_text())["attribution"] == want
+        with closing(sqlite3.connect(out)) as db:
+            row = db.execute("SELECT value FROM metadata WHERE name = 'attribution'").fetchone()
+        assert row[0] == want
+    plain = write_dem(
+        str(tmp_path / "plain.tif"), fbm_heights(65, seed=3), crs="EPSG:32617", west=700000.0,
+        north=4060000.0, res=30.0,
+    )  # fmt: skip
+    code, _, err = _run(["build", plain, "-o", str(tmp_path / "p.lods"), "-q"], capsys)
+    assert code == 0, err
+    with closing(sqlite3.connect(tmp_path / "p.lods")) as db:
+        row = db.execute("SELECT value FROM metadata WHERE name = 'attribution'").fetchone()
+    assert row[0].startswith("plain.tif")

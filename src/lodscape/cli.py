@@ -1245,6 +1245,14 @@ def build(
             "refinement: fewer triangles for the same error, slower to build)."
         ),
     ] = "rtin",
+    attribution: Annotated[
+        str | None,
+        typer.Option(
+            help="Who to credit (e.g. '© State Survey 2024'), written into the tileset's "
+            "TileJSON, layer.json and MBTiles metadata; default: what the inputs' metadata "
+            "states, else their names."
+        ),
+    ] = None,
     shards: Annotated[
         str | None,
         typer.Option(
@@ -1273,6 +1281,7 @@ def build(
             nodata=nodata,
             mesher=mesher,
             z_units=z_units,
+            attribution=attribution,
         )
     except ValueError as exc:
         raise LodscapeError(f"bad option: {exc}") from None

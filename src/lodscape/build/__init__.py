@@ -105,6 +105,10 @@ class BuildOptions:
     #: The rasters' height unit: ``m``, ``ft``, ``us-ft`` or metres per unit (None: what the
     #: files say: the band's unit, a vertical CRS, else a projected CRS's unit).
     z_units: str | None = None
+    #: Who to credit, shown by clients (TileJSON, layer.json, MBTiles); None: what the inputs
+    #: state (their attribution or copyright metadata), else their names. Not part of what a
+    #: resumed build must match: it can be changed by building again.
+    attribution: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "fill", str(parse_fill(self.fill)))
@@ -191,7 +195,7 @@ def build(
                 run.merge((z, x, y))
         made = run.made
         zmax = max(writer.finest(), span.zmax)
-        writer.finish(_mbtiles(manifest, out), zmax=zmax)
+        writer.finish(_mbtiles(manifest, out, _attribution(options, inputs)), zmax=zmax)
         span = replace(span, zmax=zmax)
         ok = True
         clear_shards(folder)
@@ -486,6 +490,7 @@ def _manifest(
         )
     opts = asdict(options)
     opts.pop("batch")
+    opts.pop("attribution")
     opts["imagery"] = [absolute(p) for p in options.imagery]
     return {
         "schema": SCHEMA_VERSION,
@@ -518,7 +523,38 @@ def _manifest(
     }
 
 
-def _mbtiles(manifest: dict[str, object], out: Path) -> dict[str, str]:
+#: The metadata keys GDAL reports a raster's credit under (GeoTIFF's copyright tag among them).
+_CREDIT_KEYS = ("attribution", "ATTRIBUTION", "TIFFTAG_COPYRIGHT", "COPYRIGHT", "copyright")
+
+
+def _attribution(options: BuildOptions, inputs: Sequence[str | os.PathLike[str]]) -> str:
+    """``options.attribution``, else what the rasters state (each once, in input order), else
+    their names and this tool: never a sentence that credits no one."""
+    if options.attribution:
+        return options.attribution
+    import rasterio
+
+    stated: list[str] = []
+    for path in inputs:
+        if _is_points(path):
+            continue
+        try:
+            with rasterio.open(os.fspath(path)) as ds:
+                tags = ds.tags()
+        except Exception:  # opened once already: a failure here only loses the credit
+            continue
+        for key in _CREDIT_KEYS:
+            text = str(tags.get(key, "")).strip()
+            if text and text not in stated:
+                stated.append(text)
+                break
+    if stated:
+        return "; ".join(stated)
+    names = ", ".join(os.path.basename(os.fspath(p)) for p in inputs)
+    return f"{names}; tiles made with lodscape"
+
+
+def _mbtiles(manifest: dict[str, object], out: Path, attribution: str) -> dict[str, str]:
     b = manifest["bounds_merc"]
     w, s, e, n = lonlat_bounds(Bbox(*b))  # type: ignore[misc]
     levels = manifest["levels"]
@@ -534,7 +570,7 @@ def _mbtiles(manifest: dict[str, object], out: Path) -> dict[str, str]:
         "type": "baselayer",
         "version": "1",
         "description": described,
-        "attribution": "terrain and imagery: see the lodscape metadata's provenance",
+        "attribution": attribution,
         "bounds": f"{w:.7f},{s:.7f},{e:.7f},{n:.7f}",
         "center": f"{(w + e) / 2:.7f},{(s + n) / 2:.7f},{lo}",
         "minzoom": str(lo),

@@ -244,6 +244,9 @@ def cesium_layer(
         "bounds": [w, s, e, n],
         "available": [_ranges(available[z]) for z in range(max(available) + 1)],
     }
+    row = db.execute("SELECT value FROM metadata WHERE name = 'attribution'").fetchone()
+    if row is not None and row[0]:
+        layer["attribution"] = str(row[0])
     return layer, flat
 
 
