@@ -203,6 +203,27 @@ def views(path: str) -> None:
     print(json.dumps(out))
 
 
+def opening(path: str) -> None:
+    """Seconds to open an input with an empty overview cache (the sidecar overviews made from
+    every pixel) and again with it made, and the pixels per second of the first; prints JSON."""
+    import rasterio
+
+    with tempfile.TemporaryDirectory() as cache:
+        os.environ["LODSCAPE_CACHE"] = cache
+        from lodscape.terrain.source import open_rasters
+
+        times = []
+        for _ in range(2):
+            t = time.perf_counter()
+            open_rasters([path]).close()
+            times.append(time.perf_counter() - t)
+    with rasterio.open(path) as ds:
+        pixels = ds.width * ds.height
+    print(
+        json.dumps({"cold_s": times[0], "warm_s": times[1], "mpx_per_s": pixels / times[0] / 1e6})
+    )
+
+
 def one(args: argparse.Namespace) -> None:
     """A single build in this process; prints its figures as JSON."""
     import lodscape.build as build_module
@@ -361,6 +382,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.one == "views":
         views(args.dem)
+        return
+    if args.one == "open":
+        opening(args.dem)
         return
     if args.one:
         args.mode = args.one

@@ -20,7 +20,6 @@ from lodscape import Camera, SceneOptions
 from lodscape.build import blocks, build, tiles
 from lodscape.build.executors import PoolExecutor
 from lodscape.geo.tiles import ORIGIN, merc_to_lonlat
-from lodscape.store.tileset import TIN_GRID
 from lodscape.terrain import source
 
 
@@ -172,4 +171,3 @@ def test_a_build_keeps_its_shards_apart_and_merges_them(tmp_path: Path) -> None:
             return db.execute("SELECT * FROM terrain ORDER BY z, x, y").fetchall()
 
     assert rows(tmp_path / "a.lods") == rows(tmp_path / "b.lods")
-    assert TIN_GRID == 64

@@ -213,7 +213,7 @@ def build(
                 Path(str(out) + suffix).unlink(missing_ok=True)
             clear_shards(folder)
     assert writer is not None
-    total, _ = _counts(out)
+    total = _tiles_made(out)
     return BuildReport(
         out,
         total,
@@ -226,14 +226,13 @@ def build(
     )
 
 
-def _counts(path: Path) -> tuple[int, int]:
+def _tiles_made(path: Path) -> int:
     import sqlite3
     from contextlib import closing
 
     with closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
         (tiles,) = db.execute("SELECT COUNT(*) FROM plan").fetchone()
-        (blocks_,) = db.execute("SELECT COUNT(*) FROM blocks").fetchone()
-    return int(tiles), int(blocks_)
+    return int(tiles)
 
 
 class _Run:

@@ -399,9 +399,3 @@ def plan_blocks(source: HeightSource, band: Band, rows: int = 1) -> Iterator[lis
             Block(band.root, int(a), int(b), band.leaf, bool(e))
             for a, b, e in zip(xx.tolist(), yy.tolist(), empty.tolist(), strict=True)
         ]
-
-
-def tiles_per_block(band: Band) -> int:
-    """The most tiles a block of the band holds."""
-    d = band.leaf - band.root
-    return ((1 << (2 * (d + 1))) - 1) // 3

@@ -1,6 +1,8 @@
-"""One tile of a build: heights → RTIN mesh within the level's budget → measured error →
-quantized-mesh and PNG bytes. A pure function of (job, z, x, y), so any executor (threads,
-processes, a Dask cluster) makes the same bytes, and each task reads only its tile's windows.
+"""One tile of a build: heights → RTIN mesh within the level's budget → its error → quantized-mesh
+and PNG bytes. A tile is made from the data (its heights sampled, its error measured on every
+pixel), from its four children (their heights and surfaces; no pixel read above the levels
+measured on the pixels), or from the fill where there is no data. Each is a pure function of
+the job, the tile and its children, so any executor makes the same bytes.
 """
 
 from __future__ import annotations
@@ -36,7 +38,6 @@ __all__ = [
     "made_from_data",
     "made_without_data",
     "make_tile",
-    "make_tiles",
     "tile_budget",
 ]
 
@@ -113,11 +114,6 @@ def level_budget(error_texels: float, tile_size: int, z: int, y: ArrayLike) -> N
 def tile_budget(job: Job, z: int, y: int) -> float:
     """``level_budget`` of one tile of a build."""
     return float(level_budget(job.error_texels, job.tile_size, z, y))
-
-
-def make_tiles(job: Job, tiles: list[tuple[int, int, int]]) -> list[TileRecord]:
-    """Several tiles in one task."""
-    return [make_tile(job, z, x, y) for z, x, y in tiles]
 
 
 def _layers(job: Job) -> list[Any]:
@@ -327,6 +323,8 @@ def made_from_children(job: Job, z: int, x: int, y: int, children: Sequence[Made
     # per child: its grid points and cell centres with data (EPSG:3857 x, y and the child's
     # height there, and which they are) and its own error bound per cell
     points: list[tuple[Any, ...]] = []
+    # near the finest level the error is measured on the data's pixels: no points are needed
+    on_pixels = job.zmax - z <= EXACT_LEVELS
     for i, child in enumerate(children):
         dx, dy = i & 1, i >> 1
         r = child.record
@@ -339,6 +337,8 @@ def made_from_children(job: Job, z: int, x: int, y: int, children: Sequence[Made
         own_grid = at if child.grid is None else np.where(hit, child.grid, at)
         heights[rows, cols] = np.where(hit, own_grid, heights[rows, cols])
         valid[rows, cols] |= ok
+        if on_pixels:
+            continue
         # a centre where all four corners have data
         cells = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1] & ok[1:, 1:] & centre_hit
         xs, ys = grid_coordinates(cz, cx, cy, n)
@@ -376,7 +376,7 @@ def made_from_children(job: Job, z: int, x: int, y: int, children: Sequence[Made
             emap[~cells] = 0.0
         return emap
 
-    if job.zmax - z <= EXACT_LEVELS:
+    if on_pixels:
         # near the finest level, the data's pixels under the tile are few enough to measure on
         got = _surface_tile(job, z, x, y, grid, gvalid, _on_pixels(_source(job), z, x, y))
     else:

@@ -520,7 +520,7 @@ class _GridSource:
         self._voids: tuple[NDArray[np.float64], B] | None = None
         self._seas: dict[float, B] = {}
         #: A summed-area table of the coarse cells with data (``has_data``), made when asked.
-        self._near: NDArray[np.int64] | None = None
+        self._data_table: NDArray[np.int64] | None = None
 
     def _stated_range(self) -> tuple[float, float] | None:
         """The band's minimum and maximum as its metadata states them (GDAL's statistics), in
@@ -815,10 +815,10 @@ class _GridSource:
         lo, bo, ri, to = (
             np.atleast_1d(np.asarray(v, np.float64)) for v in (left, bottom, right, top)
         )
-        table = self._near
+        table = self._data_table
         if table is None:
             has = (self._count > 0.0).astype(np.int64)
-            table = self._near = np.pad(has.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+            table = self._data_table = np.pad(has.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
         f = np.linspace(0.0, 1.0, 5)
         px = lo[:, None, None] + f[None, None, :] * (ri - lo)[:, None, None]
         py = bo[:, None, None] + f[None, :, None] * (to - bo)[:, None, None]
