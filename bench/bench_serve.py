@@ -68,7 +68,19 @@ def main() -> None:
         routes += [("/layer.json", 200), ("/5/0/0.terrain", 404), ("/imagery/3/0/0.png", 404)]
         port = _port()
         server = subprocess.Popen(
-            [sys.executable, "-m", "lodscape.cli", "serve", str(site), "--port", str(port)],
+            # the stored tiles as they are (the default geographic tiling makes each tile on
+            # its first request, then keeps it)
+            [
+                sys.executable,
+                "-m",
+                "lodscape.cli",
+                "serve",
+                str(site),
+                "--port",
+                str(port),
+                "--tiling",
+                "mercator",
+            ],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )

@@ -204,7 +204,9 @@ class TileServer:
 
 
 @contextmanager
-def serve_tileset(site: Path, header_timeout: float = 10.0) -> Iterator[str]:
+def serve_tileset(
+    site: Path, header_timeout: float = 10.0, tiling: str = "geographic"
+) -> Iterator[str]:
     """``lodscape serve`` over ``site`` (its app, connections and file watch) on a free loopback
     port, on its own thread: its base URL while the block runs."""
     import asyncio
@@ -212,7 +214,7 @@ def serve_tileset(site: Path, header_timeout: float = 10.0) -> Iterator[str]:
 
     from lodscape.serve import TileService, serve
 
-    service = TileService(site)
+    service = TileService(site, tiling)
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = int(s.getsockname()[1])

@@ -34,7 +34,14 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def served(site: Path) -> Iterator[str]:
-    """``lodscape serve``'s app on loopback."""
+    """``lodscape serve --tiling mercator``'s app on loopback: the stored tiles as they are."""
+    with serve_tileset(site, tiling="mercator") as url:
+        yield url
+
+
+@pytest.fixture(scope="module")
+def served_geographic(site: Path) -> Iterator[str]:
+    """``lodscape serve``'s app on loopback, in its default tiling (EPSG:4326)."""
     with serve_tileset(site) as url:
         yield url
 
@@ -76,6 +83,31 @@ def test_quantized_mesh_from_lodscape_serve_is_the_local_surface(
     assert stats["max_depth"] > 10
     assert stats["tiles"] > 4
     assert tiles_local > 4
+
+
+def test_geographic_tiles_from_lodscape_serve_hold_the_local_surface(
+    site: Path, served_geographic: str, tmp_path: Path
+) -> None:
+    """The default tiling's tiles, re-meshed from the stored ones, read back through lodscape's
+    own Cesium client: the same ground within the stored tiles' recorded error, twice over."""
+    cam = _camera(site)
+    with lodscape.open(f"{served_geographic}/layer.json", imagery_cache=tmp_path) as remote:
+        _, d_remote = remote.render(cam)
+        lon = cam.lon + np.linspace(-0.01, 0.01, 50)
+        lat = np.full(50, cam.lat + 0.004)
+        got = remote.provider.heights_at(lon, lat)
+    with lodscape.open(site) as local:
+        want = local.provider.heights_at(lon, lat)
+        _, d_local = local.render(cam)
+        error = local.provider.max_error(int(local.provider.manifest["levels"]["zmax"]),
+                                         0, 1 << 30, 0, 1 << 30)  # fmt: skip
+    ok = np.isfinite(want) & np.isfinite(got)
+    assert ok.sum() > 40
+    assert np.abs(got[ok] - want[ok]).max() <= 2.0 * error + 0.05
+    both = np.isfinite(d_local) & np.isfinite(d_remote)
+    assert both.mean() > 0.5
+    rel = np.abs(d_remote[both] - d_local[both]) / d_local[both]
+    assert np.median(rel) < 0.01, np.median(rel)
 
 
 def test_meshes_interpolate_on_their_own_triangles() -> None:

@@ -53,8 +53,13 @@ def _some_tile(site: Path, table: str) -> tuple[int, int, int]:
 
     with sqlite3.connect(site) as db:
         if table == "terrain":
-            z, x, y = db.execute("SELECT z, x, y FROM terrain ORDER BY z DESC LIMIT 1").fetchone()
-            return int(z), int(x), (1 << int(z)) - 1 - int(y)  # TMS row
+            # the finest geographic tile served (the default tiling): z, x, TMS row
+            from lodscape.store.geographic import available_tiles
+
+            available = available_tiles(db)
+            z = max(available)
+            x, tms = min(available[z])
+            return z, x, tms
         z, x, row = db.execute(
             "SELECT zoom_level, tile_column, tile_row FROM tiles ORDER BY zoom_level DESC LIMIT 1"
         ).fetchone()

@@ -13,6 +13,7 @@ import pytest
 
 from _synthetic import fbm_heights, run_cli, sky_share, write_dem
 from lodscape.cli import main
+from lodscape.store.geographic import available_tiles
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import decode
 
@@ -57,24 +58,31 @@ def test_info_render_and_export(
     folder = tmp_path / "cesium"
     code, out, err = _run(["export", str(built), "--cesium", str(folder)], capsys)
     assert code == 0, err
-    layer = json.loads((folder / "layer.json").read_text())
-    assert layer["format"] == "quantized-mesh-1.0"
-    assert layer["projection"] == "EPSG:3857"
-    assert layer["scheme"] == "tms"
-    # every level from 0 is there, and every available tile is a file that decodes
-    assert len(layer["available"]) == layer["maxzoom"] + 1
-    files = 0
-    for z, ranges in enumerate(layer["available"]):
-        for r in ranges:
-            for x in range(r["startX"], r["endX"] + 1):
-                for y in range(r["startY"], r["endY"] + 1):
-                    qm = decode((folder / str(z) / str(x) / f"{y}.terrain").read_bytes())
-                    assert qm.vertex_count >= 4
-                    files += 1
     with closing(sqlite3.connect(built)) as db:
         (terrain,) = db.execute("SELECT COUNT(*) FROM terrain").fetchone()
         (imagery,) = db.execute("SELECT COUNT(*) FROM tiles").fetchone()
-    assert files >= terrain
+    mercator = tmp_path / "mercator"
+    argv = ["export", str(built), "--cesium", str(mercator), "--tiling", "mercator"]
+    code, out, err = _run(argv, capsys)
+    assert code == 0, err
+    for where, projection in ((folder, "EPSG:4326"), (mercator, "EPSG:3857")):
+        layer = json.loads((where / "layer.json").read_text())
+        assert layer["format"] == "quantized-mesh-1.0"
+        assert layer["projection"] == projection
+        assert layer["scheme"] == "tms"
+        # every level from 0 is there, and every available tile is a file that decodes
+        assert len(layer["available"]) == layer["maxzoom"] + 1
+        files = 0
+        for z, ranges in enumerate(layer["available"]):
+            for r in ranges:
+                for x in range(r["startX"], r["endX"] + 1):
+                    for y in range(r["startY"], r["endY"] + 1):
+                        qm = decode((where / str(z) / str(x) / f"{y}.terrain").read_bytes())
+                        assert qm.vertex_count >= 4
+                        files += 1
+        assert files == len(list(where.rglob("*.terrain")))
+        # the stored tiles and the fillers above them; geographic ones from each level's
+        assert files >= terrain if projection == "EPSG:3857" else files >= terrain // 2
     assert len(list((folder / "imagery").rglob("*.png"))) == imagery
     # the imagery's TileJSON: its levels are the stored ones, its tiles the exported files
     tj = json.loads((folder / "imagery.json").read_text())
@@ -209,18 +217,23 @@ def test_an_export_on_workers_writes_the_same_folder(
     assert code == 0, err
     monkeypatch.setattr(export, "_CHUNK", 3)
     with closing(connect_readonly(built)) as db:
-        chunks = list(export._chunks(db))
+        chunks = list(export._chunks(db, ("terrain", "tiles")))
+        geographic = list(export._geographic_chunks(available_tiles(db)))
     assert len(chunks) > 6
+    assert len(geographic) > 6
     pool = PoolExecutor(2, processes=False)
     try:
         export.export_cesium(built, parallel, pool)
+        export.export_cesium(built, tmp_path / "many-mercator", pool, tiling="mercator")
     finally:
         pool.close()
+    export.export_cesium(built, tmp_path / "one-mercator", tiling="mercator")
 
     def files(root: Path) -> dict[str, bytes]:
         return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
 
     assert files(serial) == files(parallel)
+    assert files(tmp_path / "one-mercator") == files(tmp_path / "many-mercator")
     code, _, err = _run(
         ["export", str(built), "--cesium", str(tmp_path / "w"), "--workers", "2"], capsys
     )

@@ -1303,6 +1303,15 @@ def build(
         )
 
 
+TilingOpt = Annotated[
+    str,
+    typer.Option(
+        help="The Cesium terrain's tiling: geographic (EPSG:4326, two level-0 tiles, to the "
+        "poles) or mercator (EPSG:3857, the stored tiles, which stop at ±85.05°).",
+    ),
+]
+
+
 @app.command()
 def export(
     tileset: Annotated[str, typer.Argument(help="A .lods tileset.")],
@@ -1339,6 +1348,7 @@ def export(
             "'local'): its workers must reach the folder."
         ),
     ] = None,
+    tiling: TilingOpt = "geographic",
 ) -> None:
     """Write a tileset as files clients stream: with --cesium a folder (layer.json,
     {z}/{x}/{y}.terrain, the imagery as imagery/{z}/{x}/{y}.png with its TileJSON, a stored
@@ -1356,7 +1366,11 @@ def export(
             executor = executor_for(workers, scheduler)
         try:
             n = export_cesium(
-                tileset, cesium, executor, base_url=_absolute_url(base_url, "--base-url")
+                tileset,
+                cesium,
+                executor,
+                base_url=_absolute_url(base_url, "--base-url"),
+                tiling=tiling,
             )
         finally:
             if executor is not None:
@@ -1479,6 +1493,7 @@ def serve(
             "(default: the npm package on jsDelivr)."
         ),
     ] = None,
+    tiling: TilingOpt = "geographic",
 ) -> None:
     """Serve a tileset over HTTP: a viewer page at / (CesiumJS), /layer.json and
     /{z}/{x}/{y}.terrain (quantized-mesh, for Cesium), /imagery/{z}/{x}/{y}.png with
@@ -1495,6 +1510,7 @@ def serve(
         ready=lambda url: typer.echo(f"serving {tileset} on {url} (Ctrl-C stops)"),
         public_url=_absolute_url(public_url, "--public-url"),
         viewer_js=viewer_js,
+        tiling=tiling,
     )
 
 

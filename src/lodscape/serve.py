@@ -4,9 +4,11 @@ Routes:
 - ``/``: a page that shows the tileset in CesiumJS (terrain, imagery, buildings), its scripts
   from ``--viewer-js`` (a URL, or a local build of CesiumJS served under ``/viewer-js/``);
   ``/index.json``: what is served, by relative URL;
-- ``/layer.json``: the Cesium terrain layer (TMS rows, as ``lodscape export --cesium``);
+- ``/layer.json``: the Cesium terrain layer (TMS rows, as ``lodscape export --cesium``), in the
+  geographic tiling (EPSG:4326, to the poles; its tiles made from the stored ones as they are
+  asked for) or, with ``--tiling mercator``, the stored Web Mercator one;
 - ``/{z}/{x}/{y}.terrain``: quantized-mesh-1.0 with octvertexnormals, gzipped where the client
-  accepts it (as stored), plain otherwise; flat tiles above the tileset's roots;
+  accepts it, plain otherwise; filler tiles of the ellipsoid above the tileset's roots;
 - ``/imagery/{z}/{x}/{y}.png``: the imagery (OSM rows), and ``/imagery.json`` its TileJSON
   (levels, bounds, attribution; for MapLibre, Leaflet or any XYZ client);
 - ``/3dtiles/tileset.json`` and ``/3dtiles/{i}.glb``: the stored cities' buildings as 3D Tiles
@@ -53,7 +55,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from lodscape._lru import ByteLRU
 from lodscape.errors import LodscapeError
-from lodscape.store.export import cesium_layer
+from lodscape.store.export import cesium_layer, geographic_layer
+from lodscape.store.geographic import TILINGS, available_tiles, geographic_tile
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import ungzip
 from lodscape.store.tileset import TilesetProvider
@@ -102,10 +105,13 @@ def _file_key(path: Path) -> tuple[int, ...] | None:
 class TileService:
     """The tileset's bytes by route, read-only; safe from the server's event loop."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, tiling: str = "geographic") -> None:
+        if tiling not in TILINGS:
+            raise LodscapeError(f"tiling {tiling!r}: expected one of {', '.join(TILINGS)}")
         self.path = Path(path)
+        self.tiling = tiling
         self._local = threading.local()
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # a reader thread may come back for its connection
         self._connections: list[sqlite3.Connection] = []
         self._pool = ThreadPoolExecutor(READERS, thread_name_prefix="lodscape-serve")
         #: Counts the versions of the file served; a reader's connection is to one of them.
@@ -125,7 +131,13 @@ class TileService:
             for _ in range(READERS):
                 conns.append(connect_readonly(self.path))
                 conns[-1].execute("SELECT count(*) FROM sqlite_master").fetchone()
-            layer, flat = cesium_layer(conns[0], provider.manifest, self.path.stem)
+            available: dict[int, set[tuple[int, int]]] = {}
+            if self.tiling == "geographic":
+                available = available_tiles(conns[0])
+                flat: dict[tuple[int, int, int], bytes] = {}
+                layer = geographic_layer(conns[0], provider.manifest, self.path.stem, available)
+            else:
+                layer, flat = cesium_layer(conns[0], provider.manifest, self.path.stem)
             has_city = bool(provider.cities())
         except BaseException:
             provider.close()
@@ -137,9 +149,11 @@ class TileService:
             for db in getattr(self, "_free", []):
                 db.close()  # the last version's, never taken by a reader
             self._free = conns
+            provider.read_with(self._db)  # its tiles from the file loaded, as the others
             self._provider = provider
             self.manifest = provider.manifest
             self._flat = flat
+            self._available = available
             self.layer = json.dumps(layer, indent=1).encode()
             self._tiles3d: tuple[bytes, list[bytes]] | None = None
             self.has_city = has_city
@@ -207,6 +221,12 @@ class TileService:
 
     def terrain(self, z: int, x: int, tms: int) -> bytes | None:
         """Gzipped quantized-mesh of tile z/x/TMS row, or None."""
+        if self.tiling == "geographic":
+            if (x, tms) not in self._available.get(z, ()):
+                return None
+            zmax = int(self.manifest["levels"]["zmax"])
+            made = geographic_tile(self._provider, z, x, tms, zmax)
+            return None if made is None else gzip.compress(made, mtime=0)
         if not (0 <= z <= MAX_ZOOM and 0 <= x < (1 << z) and 0 <= tms < (1 << z)):
             return None
         flat = self._flat.get((z, x, tms))
@@ -600,13 +620,14 @@ def run(
     ready: Callable[[str], None] | None = None,
     public_url: str | None = None,
     viewer_js: str | None = None,
+    tiling: str = "geographic",
 ) -> None:
     """Serve the tileset until interrupted; ``ready(url)`` once the port is bound (not before:
     a bad file or a busy port fails first, and nothing says "serving"). ``public_url``: the
     scheme and host clients reach it by (behind a proxy), in the URLs it writes."""
 
     viewer_source(viewer_js)  # a bad --viewer-js fails before anything is opened
-    service = TileService(path)  # a file that is not a complete tileset fails here
+    service = TileService(path, tiling)  # a file that is not a complete tileset fails here
     _quiet_server_logs()
     try:
         asyncio.run(

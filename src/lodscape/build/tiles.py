@@ -19,14 +19,14 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lodscape.geo.frames import WGS84_A, geodetic_to_ecef
+from lodscape.geo.frames import WGS84_A
 from lodscape.geo.tiles import ORIGIN, Bbox, Tile, bounds, merc_to_lonlat, xy_bounds
 from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, decode, encode, quantize
 from lodscape.store.tileset import TIN_GRID, TileRecord
 from lodscape.terrain.greedy import barycentric, greedy_mesh, tin_sample_errors
-from lodscape.terrain.mesh import grid_coordinates
+from lodscape.terrain.mesh import grid_coordinates, vertex_normals
 from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
 
@@ -277,7 +277,7 @@ def _surface_tile(
     # the grid's sides exactly on the tile's edges, as the format's edge lists require
     lon_col[0], lon_col[-1], lat_row[0], lat_row[-1] = b.left, b.right, b.top, b.bottom
     lon, lat = lon_col[verts[:, 0]], lat_row[verts[:, 1]]
-    normals = _normals(lon, lat, vh, tris)
+    normals = vertex_normals(lon, lat, vh, tris)
     rect = (b.left, b.bottom, b.right, b.top)
     data = encode(lon, lat, vh, tris, rect, normals=normals)
     # stored gzipped, as Cesium's servers keep them (and serve them: Content-Encoding: gzip);
@@ -703,26 +703,6 @@ def _sample_errors(
 @numba.njit(cache=True, inline="always")  # type: ignore[misc]
 def _side(x0: float, y0: float, x1: float, y1: float, px: float, py: float) -> float:
     return (x1 - x0) * (py - y0) - (y1 - y0) * (px - x0)
-
-
-def _normals(
-    lon: NDArray[np.float64],
-    lat: NDArray[np.float64],
-    h: NDArray[np.float64],
-    tris: NDArray[np.int32],
-) -> NDArray[np.float64]:
-    """Area-weighted vertex normals in ECEF, pointing away from the Earth."""
-    p = geodetic_to_ecef(lon, lat, h).reshape(-1, 3)
-    t = tris.astype(np.int64)
-    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
-    up = p[t[:, 0]]
-    face *= np.where(np.einsum("ij,ij->i", face, up) < 0.0, -1.0, 1.0)[:, None]
-    n = np.zeros_like(p)
-    for c in range(3):
-        np.add.at(n, t[:, c], face)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    out: NDArray[np.float64] = n / np.where(norm > 0.0, norm, 1.0)
-    return out
 
 
 def _png(rgba: NDArray[np.uint8]) -> bytes:

@@ -1,14 +1,16 @@
-"""A tileset as a folder a Cesium client streams: ``layer.json``, ``{z}/{x}/{y}.terrain`` (TMS rows,
-the layer's default scheme), the imagery as ``imagery/{z}/{x}/{y}.png`` (OSM rows) with its
-TileJSON (``imagery.json``: levels, bounds, attribution), and the stored cities' buildings as
-3D Tiles (``3dtiles/tileset.json``, ``3dtiles/{i}.glb``).
+"""A tileset as a folder a Cesium client streams: ``layer.json``, ``{z}/{x}/{y}.terrain`` (TMS
+rows, the layer's default scheme) in the geographic tiling (EPSG:4326, ``store.geographic``: to
+the poles, the default) or the stored Web Mercator one, the imagery as
+``imagery/{z}/{x}/{y}.png`` (OSM rows) with its TileJSON (``imagery.json``: levels, bounds,
+attribution), and the stored cities' buildings as 3D Tiles (``3dtiles/tileset.json``,
+``3dtiles/{i}.glb``).
 
 Cesium starts from the tiling scheme's level 0, so the levels above the tileset's roots get
 filler tiles over the roots' ancestors: the ellipsoid (height 0) itself, curved meshes with
-enough vertices to follow it at their level, with normals; from the roots down every tile is the
-tileset's own. Where a tile is not available a client draws its ancestor's surface, so the
-world outside the data is the ellipsoid, never the data's lowest height. The folder is written
-under a temporary name and renamed when complete, so a failed export leaves nothing behind.
+enough vertices to follow it at their level, with normals. Where a tile is not available a
+client draws its ancestor's surface, so the world outside the data is the ellipsoid, never the
+data's lowest height. The folder is written under a temporary name and renamed when complete,
+so a failed export leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import os
 import shutil
 import sqlite3
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -27,6 +29,7 @@ import numpy as np
 from lodscape._tmp import temp_beside
 from lodscape.geo.frames import up_vector
 from lodscape.geo.tiles import Bbox, Tile, bounds, merc_to_lonlat
+from lodscape.store.geographic import TILINGS, available_tiles, geographic_tile
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import encode, ungzip
 from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
@@ -38,8 +41,10 @@ __all__ = [
     "city_3dtiles",
     "ellipsoid_tile",
     "export_cesium",
+    "geographic_layer",
     "imagery_tilejson",
     "write_chunk",
+    "write_geographic",
 ]
 
 
@@ -60,11 +65,16 @@ def export_cesium(
     executor: Mapper | None = None,
     *,
     base_url: str | None = None,
+    tiling: str = "geographic",
 ) -> int:
     """Write ``tileset`` into ``folder`` (new, or empty); returns the terrain tiles written.
     With an ``executor``, its workers write the tiles, a chunk of columns each (the folder's
     parent must be one they reach). ``base_url``: where the folder will be served from, so the
-    imagery's TileJSON names its tiles absolutely (else relative to the TileJSON)."""
+    imagery's TileJSON names its tiles absolutely (else relative to the TileJSON). ``tiling``:
+    "geographic" (EPSG:4326, to the poles; ``store.geographic``) or "mercator" (EPSG:3857, the
+    stored tiles as they are)."""
+    if tiling not in TILINGS:
+        raise TilesetError(f"tiling {tiling!r}: expected one of {', '.join(TILINGS)}")
     target = Path(folder)
     if target.exists() and (not target.is_dir() or any(target.iterdir())):
         raise TilesetError(f"{target}: exists and is not an empty folder")
@@ -78,16 +88,35 @@ def export_cesium(
     shutil.rmtree(tmp, ignore_errors=True)
     db = connect_readonly(tileset)
     try:
+        if tiling == "geographic":
+            available = available_tiles(db)
+            pieces = [(str(tileset), str(tmp), *c) for c in _geographic_chunks(available)]
+            done = (
+                executor.imap(write_geographic, pieces)
+                if executor is not None
+                else (write_geographic(*a) for a in pieces)
+            )
+            count = 0
+            for made, missing in done:
+                count += made
+                for z, x, tms in missing:
+                    available[z].discard((x, tms))
+            layer = geographic_layer(db, manifest, Path(tileset).stem, available)
+        else:
+            if executor is None:
+                count = write_chunk(str(tileset), str(tmp), "terrain", -1, 0, 0)
+            else:
+                args = [(str(tileset), str(tmp), *c) for c in _chunks(db, ("terrain",))]
+                count = sum(executor.imap(write_chunk, args))
+            layer, flat = cesium_layer(db, manifest, Path(tileset).stem)
+            for (z, x, tms), data in flat.items():
+                _write(tmp / str(z) / str(x) / f"{tms}.terrain", data)
+                count += 1
         if executor is None:
-            count = write_chunk(str(tileset), str(tmp), "terrain", -1, 0, 0)
             write_chunk(str(tileset), str(tmp), "tiles", -1, 0, 0)
         else:
-            args = [(str(tileset), str(tmp), *c) for c in _chunks(db)]
-            count = sum(executor.imap(write_chunk, args))
-        layer, flat = cesium_layer(db, manifest, Path(tileset).stem)
-        for (z, x, tms), data in flat.items():
-            _write(tmp / str(z) / str(x) / f"{tms}.terrain", data)
-            count += 1
+            args = [(str(tileset), str(tmp), *c) for c in _chunks(db, ("tiles",))]
+            sum(executor.imap(write_chunk, args))
         (tmp / "layer.json").write_text(json.dumps(layer, indent=1))
         tiles = "imagery/{z}/{x}/{y}.png"
         if base_url is not None:
@@ -115,10 +144,12 @@ def export_cesium(
     return count
 
 
-def _chunks(db: sqlite3.Connection) -> Iterator[tuple[str, int, int, int]]:
-    """The tiles of both tables in chunks of whole columns, about _CHUNK tiles each: (table,
-    level, first column, column after the last)."""
-    for table, z_col, x_col in (("terrain", "z", "x"), ("tiles", "zoom_level", "tile_column")):
+def _chunks(db: sqlite3.Connection, tables: Sequence[str]) -> Iterator[tuple[str, int, int, int]]:
+    """The tiles of ``tables`` ("terrain", "tiles") in chunks of whole columns, about _CHUNK
+    tiles each: (table, level, first column, column after the last)."""
+    columns = {"terrain": ("z", "x"), "tiles": ("zoom_level", "tile_column")}
+    for table in tables:
+        z_col, x_col = columns[table]
         rows = db.execute(
             f"SELECT {z_col}, {x_col}, COUNT(*) FROM {table} GROUP BY {z_col}, {x_col} "
             f"ORDER BY {z_col}, {x_col}"
@@ -164,6 +195,81 @@ def write_chunk(tileset: str, folder: str, table: str, z: int, x0: int, x1: int)
     finally:
         db.close()
     return count
+
+
+def _geographic_chunks(
+    available: dict[int, set[tuple[int, int]]],
+) -> Iterator[tuple[int, list[tuple[int, int]]]]:
+    """The available geographic tiles in chunks of about _CHUNK: (level, [(x, TMS row)])."""
+    for z in sorted(available):
+        tiles = sorted(available[z])
+        for i in range(0, len(tiles), _CHUNK):
+            yield z, tiles[i : i + _CHUNK]
+
+
+def write_geographic(
+    tileset: str, folder: str, z: int, tiles: Sequence[tuple[int, int]]
+) -> tuple[int, list[tuple[int, int, int]]]:
+    """Write geographic tiles z/x/TMS row (``store.geographic``) of ``tileset`` into the
+    export's ``folder``: (how many, those not written: in a hole of the data throughout)."""
+    provider = TilesetProvider(tileset)
+    zmax = int(provider.manifest["levels"]["zmax"])
+    missing: list[tuple[int, int, int]] = []
+    count = 0
+    try:
+        for x, tms in tiles:
+            data = geographic_tile(provider, z, x, tms, zmax)
+            if data is None:
+                missing.append((z, x, tms))
+                continue
+            _write(Path(folder) / str(z) / str(x) / f"{tms}.terrain", data)
+            count += 1
+    finally:
+        provider.close()
+    return count, missing
+
+
+def geographic_layer(
+    db: sqlite3.Connection,
+    manifest: dict[str, object],
+    name: str,
+    available: dict[int, set[tuple[int, int]]],
+) -> dict[str, object]:
+    """A tileset's Cesium ``layer.json`` in the geographic tiling, ``available`` (x, TMS row)
+    by level."""
+    layer = _layer(db, manifest, name, available)
+    layer["projection"] = "EPSG:4326"
+    return layer
+
+
+def _layer(
+    db: sqlite3.Connection,
+    manifest: dict[str, object],
+    name: str,
+    available: dict[int, set[tuple[int, int]]],
+) -> dict[str, object]:
+    bounds_merc: Any = manifest["bounds_merc"]
+    w, s, e, n = lonlat_bounds(Bbox(*bounds_merc))
+    top = max(z for z, tiles in available.items() if tiles)
+    layer: dict[str, object] = {
+        "tilejson": "2.1.0",
+        "name": name,
+        "description": "terrain built by lodscape",
+        "version": "1.0.0",
+        "format": "quantized-mesh-1.0",
+        "scheme": "tms",
+        "projection": "EPSG:3857",
+        "extensions": ["octvertexnormals"],
+        "tiles": ["{z}/{x}/{y}.terrain?v={version}"],
+        "minzoom": 0,
+        "maxzoom": top,
+        "bounds": [w, s, e, n],
+        "available": [_ranges(available.get(z, set())) for z in range(top + 1)],
+    }
+    row = db.execute("SELECT value FROM metadata WHERE name = 'attribution'").fetchone()
+    if row is not None and row[0]:
+        layer["attribution"] = str(row[0])
+    return layer
 
 
 def imagery_tilejson(db: sqlite3.Connection, name: str, tiles: str) -> dict[str, object]:
@@ -227,26 +333,7 @@ def cesium_layer(
             tms = (1 << z) - 1 - y
             flat[(z, x, tms)] = ellipsoid_tile(z, x, y)
             available[z].add((x, tms))
-    bounds_merc: Any = manifest["bounds_merc"]
-    w, s, e, n = lonlat_bounds(Bbox(*bounds_merc))
-    layer: dict[str, object] = {
-        "tilejson": "2.1.0",
-        "name": name,
-        "description": "terrain built by lodscape",
-        "version": "1.0.0",
-        "format": "quantized-mesh-1.0",
-        "scheme": "tms",
-        "projection": "EPSG:3857",
-        "extensions": ["octvertexnormals"],
-        "tiles": ["{z}/{x}/{y}.terrain?v={version}"],
-        "minzoom": 0,
-        "maxzoom": max(available),
-        "bounds": [w, s, e, n],
-        "available": [_ranges(available[z]) for z in range(max(available) + 1)],
-    }
-    row = db.execute("SELECT value FROM metadata WHERE name = 'attribution'").fetchone()
-    if row is not None and row[0]:
-        layer["attribution"] = str(row[0])
+    layer = _layer(db, manifest, name, available)
     return layer, flat
 
 

@@ -24,7 +24,7 @@ import math
 import os
 import sqlite3
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,7 @@ from lodscape._lru import ByteLRU
 from lodscape.errors import SourceError
 from lodscape.geo.keys import is_texture, tile_of
 from lodscape.geo.tiles import (
+    ORIGIN,
     Bbox,
     Tile,
     bounds,
@@ -366,6 +367,7 @@ class TilesetProvider:
         self._local = threading.local()
         self._lock = threading.Lock()
         self._connections: list[sqlite3.Connection] = []
+        self._connect: Callable[[], sqlite3.Connection] | None = None
         self._meshes: ByteLRU[tuple[int, int, int], _Mesh | None] = ByteLRU()
         try:
             db = self._db()
@@ -397,8 +399,15 @@ class TilesetProvider:
         b = self.manifest["bounds_merc"]
         self.bounds_merc = Bbox(*(float(v) for v in b))
 
+    def read_with(self, connect: Callable[[], sqlite3.Connection]) -> None:
+        """Read through the connections ``connect`` gives (this thread's, to the file as it was
+        opened: a server keeps reading the file it loaded when another is renamed over it)."""
+        self._connect = connect
+
     def _db(self) -> sqlite3.Connection:
         """This thread's read-only connection (SQLite connections are not shared by threads)."""
+        if self._connect is not None:
+            return self._connect()
         db: sqlite3.Connection | None = getattr(self._local, "db", None)
         if db is None:
             db = connect_readonly(self.path)
@@ -414,6 +423,20 @@ class TilesetProvider:
             .fetchone()
         )
         return None if row is None else bytes(row[0])
+
+    def max_error(self, z: int, x0: int, x1: int, y0: int, y1: int) -> float | None:
+        """The largest recorded error of the stored terrain tiles of level z in columns x0..x1
+        and rows y0..y1 (OSM rows, both inclusive); None where there is none."""
+        row = (
+            self._db()
+            .execute(
+                "SELECT MAX(error) FROM terrain WHERE z = ? AND x BETWEEN ? AND ? "
+                "AND y BETWEEN ? AND ?",
+                (z, x0, x1, y0, y1),
+            )
+            .fetchone()
+        )
+        return None if row[0] is None else float(row[0])
 
     def fetch(self, key: int) -> bytes:
         """A tile's stored bytes: gzipped quantized-mesh for a mesh key, PNG for a texture key."""
@@ -495,15 +518,29 @@ class TilesetProvider:
     def heights(self, lon: ArrayLike, lat: ArrayLike) -> NDArray[np.float64]:
         """Heights of the finest stored meshes at many points (NaN outside the data): each
         tile is read and decoded once per call (and kept for the next few calls)."""
+        return self.surface(lon, lat, footprint=True)[0]
+
+    def surface(
+        self, lon: ArrayLike, lat: ArrayLike, zmax: int | None = None, *, footprint: bool = False
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """(heights, covered) at many points: the heights of the finest stored meshes of level
+        ``zmax`` or coarser (NaN where none has a surface; ``footprint``: NaN outside the
+        data's footprint too, where a fill stands in), and whether a stored tile covers the
+        point at all (False: outside the tileset's tiles; True and NaN: a hole)."""
         lon = np.asarray(lon, np.float64)
         lat = np.asarray(lat, np.float64)
         shape = lon.shape
         lon, lat = lon.ravel(), lat.ravel()
         out = np.full(len(lon), np.nan)
+        covered = np.zeros(len(lon), bool)
         xm, ym = lonlat_to_merc(lon, lat)
-        b = self.bounds_merc
-        todo = (xm >= b.left) & (xm <= b.right) & (ym >= b.bottom) & (ym <= b.top)
+        todo = (np.abs(xm) <= ORIGIN) & (np.abs(ym) <= ORIGIN)  # beyond ±85.05°: no tile
+        if footprint:
+            b = self.bounds_merc
+            todo &= (xm >= b.left) & (xm <= b.right) & (ym >= b.bottom) & (ym <= b.top)
         for lv in reversed(self.tree.levels):
+            if zmax is not None and lv.z > zmax:
+                continue
             if not todo.any():
                 break
             idx = np.nonzero(todo)[0]
@@ -512,19 +549,22 @@ class TilesetProvider:
             idx, tx, ty = idx[ok], tx[ok], ty[ok]
             if not len(idx):
                 continue
-            cells, which = np.unique(np.stack([tx, ty], 1), axis=0, return_inverse=True)
+            covered[idx] = True
             # the points grouped by tile: tile k's are idx[order[ends[k]:ends[k + 1]]]
-            order = np.argsort(which.ravel(), kind="stable")
-            ends = np.searchsorted(which.ravel()[order], np.arange(len(cells) + 1))
-            for k, (x, y) in enumerate(cells):  # a loop over tiles, each a vectorised lookup
-                mesh = self._decoded(lv.z, int(x), int(y))
+            key = (tx << 32) | ty
+            order = np.argsort(key)
+            sorted_key = key[order]
+            ends = np.flatnonzero(np.diff(sorted_key, prepend=-1, append=-1))
+            for k, cell in enumerate(sorted_key[ends[:-1]].tolist()):
+                # a loop over tiles, each a vectorised lookup
+                mesh = self._decoded(lv.z, cell >> 32, cell & 0xFFFFFFFF)
                 if mesh is None:
                     continue
                 at = idx[order[ends[k] : ends[k + 1]]]
                 h = _heights_in(mesh, lon[at], lat[at])
                 out[at] = h
                 todo[at[~np.isnan(h)]] = False
-        return out.reshape(shape)
+        return out.reshape(shape), covered.reshape(shape)
 
     def tile_heights(
         self, z: int, x: int, y: int, lon: ArrayLike, lat: ArrayLike

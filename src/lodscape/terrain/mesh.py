@@ -31,6 +31,7 @@ __all__ = [
     "patches",
     "ring_indices",
     "tin_mesh",
+    "vertex_normals",
 ]
 
 #: Segment counts a tile grid may have, coarsest first (grid k has 16·2^k segments). Finer detail
@@ -281,3 +282,23 @@ def tin_mesh(
     up = up_vector(clon, clat).astype(np.float32)
     cone = patch_cones(vertices[: lon.size], tris[None], up)
     return TileMesh(key, 0, vertices, center, up, indices.astype(np.uint32), cone)
+
+
+def vertex_normals(
+    lon: NDArray[np.float64],
+    lat: NDArray[np.float64],
+    h: NDArray[np.float64],
+    tris: NDArray[np.integer],
+) -> NDArray[np.float64]:
+    """Area-weighted vertex normals in ECEF, pointing away from the Earth."""
+    p = geodetic_to_ecef(lon, lat, h).reshape(-1, 3)
+    t = tris.astype(np.int64)
+    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    up = p[t[:, 0]]
+    face *= np.where(np.einsum("ij,ij->i", face, up) < 0.0, -1.0, 1.0)[:, None]
+    n = np.zeros_like(p)
+    for c in range(3):
+        np.add.at(n, t[:, c], face)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    out: NDArray[np.float64] = n / np.where(norm > 0.0, norm, 1.0)
+    return out
