@@ -1494,11 +1494,20 @@ def serve(
         ),
     ] = None,
     tiling: TilingOpt = "geographic",
+    maplibre_js: Annotated[
+        str | None,
+        typer.Option(
+            help="Where the page at /maplibre loads MapLibre GL JS from: a URL ending in dist/, "
+            "or a local folder of it (node_modules/maplibre-gl/dist), served under "
+            "/maplibre-js/ (default: the npm package on jsDelivr)."
+        ),
+    ] = None,
 ) -> None:
-    """Serve a tileset over HTTP: a viewer page at / (CesiumJS), /layer.json and
-    /{z}/{x}/{y}.terrain (quantized-mesh, for Cesium), /imagery/{z}/{x}/{y}.png with
-    /imagery.json, and the stored cities as 3D Tiles under /3dtiles/tileset.json; /index.json
-    lists them. CORS, ETag, gzip. Ctrl-C stops it."""
+    """Serve a tileset over HTTP: a viewer page at / (CesiumJS) and at /maplibre (MapLibre),
+    /layer.json and /{z}/{x}/{y}.terrain (quantized-mesh, for Cesium), /imagery/{z}/{x}/{y}.png
+    with /imagery.json, /terrarium/{z}/{x}/{y}.png with /terrarium.json (Terrarium heights, for
+    MapLibre and deck.gl), and the stored cities as 3D Tiles under /3dtiles/tileset.json;
+    /index.json lists them. CORS, ETag, gzip. Ctrl-C stops it."""
     from lodscape.serve import run
 
     if not 0 < port < 65536:
@@ -1511,6 +1520,7 @@ def serve(
         public_url=_absolute_url(public_url, "--public-url"),
         viewer_js=viewer_js,
         tiling=tiling,
+        maplibre_js=maplibre_js,
     )
 
 

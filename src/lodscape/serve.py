@@ -3,14 +3,21 @@
 Routes:
 - ``/``: a page that shows the tileset in CesiumJS (terrain, imagery, buildings), its scripts
   from ``--viewer-js`` (a URL, or a local build of CesiumJS served under ``/viewer-js/``);
+  ``/maplibre``: a page that shows it in MapLibre GL JS (the imagery over the Terrarium
+  terrain), its scripts from ``--maplibre-js`` (likewise, under ``/maplibre-js/``);
   ``/index.json``: what is served, by relative URL;
 - ``/layer.json``: the Cesium terrain layer (TMS rows, as ``lodscape export --cesium``), in the
   geographic tiling (EPSG:4326, to the poles; its tiles made from the stored ones as they are
   asked for) or, with ``--tiling mercator``, the stored Web Mercator one;
 - ``/{z}/{x}/{y}.terrain``: quantized-mesh-1.0 with octvertexnormals, gzipped where the client
   accepts it, plain otherwise; filler tiles of the ellipsoid above the tileset's roots;
-- ``/imagery/{z}/{x}/{y}.png``: the imagery (OSM rows), and ``/imagery.json`` its TileJSON
-  (levels, bounds, attribution; for MapLibre, Leaflet or any XYZ client);
+- ``/imagery/{z}/{x}/{y}.png``: the imagery (OSM rows; alpha 0 where there is no data, and a
+  transparent tile for one the TileJSON's range holds and the tileset does not), and
+  ``/imagery.json`` its TileJSON (levels, bounds, attribution; for MapLibre, Leaflet or any
+  XYZ client);
+- ``/terrarium/{z}/{x}/{y}.png``: the terrain as Terrarium PNG (``store.pmtiles.TerrariumTiles``:
+  levels 0 to the data's own, no-data at the fill's height with alpha 0), and
+  ``/terrarium.json`` its TileJSON (MapLibre's raster-dem source, deck.gl, pydeck);
 - ``/3dtiles/tileset.json`` and ``/3dtiles/{i}.glb``: the stored cities' buildings as 3D Tiles
   1.1, when the tileset holds a city (made at the first request, then kept): groups of box
   models, each replaced by its full buildings up close.
@@ -42,6 +49,7 @@ import gzip
 import hashlib
 import json
 import logging
+import mimetypes
 import os
 import re
 import sqlite3
@@ -55,9 +63,16 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from lodscape._lru import ByteLRU
 from lodscape.errors import LodscapeError
-from lodscape.store.export import cesium_layer, geographic_layer
+from lodscape.store.export import (
+    cesium_layer,
+    empty_png,
+    geographic_layer,
+    imagery_range,
+    in_imagery_range,
+)
 from lodscape.store.geographic import TILINGS, available_tiles, geographic_tile
 from lodscape.store.manifest import connect_readonly
+from lodscape.store.pmtiles import TerrariumTiles
 from lodscape.store.quantized_mesh import ungzip
 from lodscape.store.tileset import TilesetProvider
 
@@ -139,6 +154,8 @@ class TileService:
             else:
                 layer, flat = cesium_layer(conns[0], provider.manifest, self.path.stem)
             has_city = bool(provider.cities())
+            advertised = imagery_range(conns[0])
+            empty = empty_png(int(provider.manifest.get("tile_size", 256)))
         except BaseException:
             provider.close()
             for db in conns:
@@ -154,6 +171,9 @@ class TileService:
             self.manifest = provider.manifest
             self._flat = flat
             self._available = available
+            self._advertised = advertised
+            self._terrarium = TerrariumTiles(provider)
+            self._empty = empty
             self.layer = json.dumps(layer, indent=1).encode()
             self._tiles3d: tuple[bytes, list[bytes]] | None = None
             self.has_city = has_city
@@ -205,7 +225,8 @@ class TileService:
         key = (kind, z, x, y)
         if key in self._hot:
             return self._hot.get(key)
-        data = await self.run(self.terrain if kind == "terrain" else self.imagery, z, x, y)
+        fn = {"terrain": self.terrain, "imagery": self.imagery, "terrarium": self.terrarium}[kind]
+        data = await self.run(fn, z, x, y)
         self._hot.put(key, data, 64 + (0 if data is None else len(data)))
         self._hot.shrink(HOT_BYTES)
         return data
@@ -243,7 +264,8 @@ class TileService:
         return None if row is None else bytes(row[0])
 
     def imagery(self, z: int, x: int, y: int) -> bytes | None:
-        """PNG of imagery tile z/x/y (OSM rows), or None."""
+        """PNG of imagery tile z/x/y (OSM rows); a transparent one where the TileJSON says
+        there are tiles and none is stored (no data there); else None."""
         if not (0 <= z <= MAX_ZOOM and 0 <= x < (1 << z) and 0 <= y < (1 << z)):
             return None
         row = (
@@ -255,7 +277,43 @@ class TileService:
             )
             .fetchone()
         )
-        return None if row is None else bytes(row[0])
+        if row is None:
+            return self._empty if in_imagery_range(self._advertised, z, x, y) else None
+        return bytes(row[0])
+
+    def terrarium(self, z: int, x: int, y: int) -> bytes | None:
+        """Terrarium PNG of tile z/x/y (OSM rows) over the data, levels 0 to the data's own;
+        else None."""
+        if not (0 <= z <= MAX_ZOOM and 0 <= x < (1 << z) and 0 <= y < (1 << z)):
+            return None
+        if not self._terrarium.contains(z, x, y):
+            return None
+        return self._terrarium.tile(z, x, y)
+
+    def terrarium_tilejson(self, base: str) -> dict[str, object]:
+        """The Terrarium tiles' TileJSON (for MapLibre's raster-dem source, deck.gl, pydeck),
+        its tiles under ``base``."""
+        t = self._terrarium
+        w, s, e, n = t.bounds
+        meta = t.metadata(self.path.stem)
+        return {
+            "tilejson": "3.0.0",
+            "name": str(meta["name"]),
+            "description": str(meta["description"]),
+            "attribution": str(meta["attribution"]),
+            "scheme": "xyz",
+            "format": "png",
+            "encoding": "terrarium",
+            "tileSize": 256,
+            "tiles": [base + "/terrarium/{z}/{x}/{y}.png"],
+            "vector_layers": [],
+            "minzoom": 0,
+            "maxzoom": t.maxzoom,
+            "bounds": [w, s, e, n],
+            "center": [(w + e) / 2.0, (s + n) / 2.0, t.maxzoom],
+            "fill": t.fill,
+            "nodata_height": t.nodata_height,
+        }
 
     def tilejson(self, base: str) -> dict[str, object]:
         """The imagery's TileJSON, its tiles under ``base`` (scheme and host)."""
@@ -415,6 +473,49 @@ def viewer_page(name: str, viewer_js: str) -> bytes:
     return page.replace("NAME", html.escape(name)).encode()
 
 
+#: Where the MapLibre page loads MapLibre GL JS from by default (the npm package, on a CDN).
+MAPLIBRE_JS = "https://cdn.jsdelivr.net/npm/maplibre-gl@6.17.0/dist/"
+
+
+# MapLibre GL JS 6 is ES modules: a browser runs them only with a JavaScript MIME type (Python
+# knows .mjs from 3.12, or from the system's mime.types)
+mimetypes.add_type("text/javascript", ".mjs")
+
+
+def maplibre_page(name: str, maplibre_js: str) -> bytes:
+    """The HTML page ``/maplibre`` answers: MapLibre GL JS (from ``maplibre_js``, a URL or path
+    ending in ``/`` that holds ``maplibre-gl.mjs`` and ``maplibre-gl.css``) with the served
+    imagery over the Terrarium terrain."""
+    import html
+
+    from lodscape.data import data_path
+
+    page = data_path("maplibre.html").read_text()
+    script = json.dumps(maplibre_js + "maplibre-gl.mjs").replace("</", "<\\/")
+    page = page.replace("MAPLIBRE_JS_FILE", script)
+    page = page.replace("MAPLIBRE_CSS_FILE", html.escape(maplibre_js + "maplibre-gl.css"))
+    page = page.replace("MAPLIBRE_JS", json.dumps(maplibre_js).replace("</", "<\\/"))
+    return page.replace("NAME", html.escape(name)).encode()
+
+
+def maplibre_source(maplibre_js: str | None) -> tuple[str, Path | None]:
+    """``--maplibre-js`` as the MapLibre page's script base and the local folder to serve it
+    from (None: a URL): a folder must hold ``maplibre-gl.mjs`` and ``maplibre-gl.css`` (the npm
+    package's ``dist``, version 6 or later: an ES module)."""
+    if maplibre_js is None:
+        return MAPLIBRE_JS, None
+    if maplibre_js.startswith(("http://", "https://", "//")):
+        return maplibre_js if maplibre_js.endswith("/") else maplibre_js + "/", None
+    folder = Path(maplibre_js)
+    if not (folder / "maplibre-gl.mjs").is_file() or not (folder / "maplibre-gl.css").is_file():
+        raise LodscapeError(
+            f"--maplibre-js {maplibre_js}: not MapLibre GL JS's build (a folder holding "
+            "maplibre-gl.mjs and maplibre-gl.css, e.g. node_modules/maplibre-gl/dist) nor an "
+            "http(s) URL"
+        )
+    return "maplibre-js/", folder.resolve()
+
+
 def viewer_source(viewer_js: str | None) -> tuple[str, Path | None]:
     """``--viewer-js`` as the page's script base and the local folder to serve it from (None:
     a URL): a folder must hold CesiumJS's build (``Cesium.js``, ``Widgets/``)."""
@@ -436,6 +537,7 @@ def make_app(
     deadlines: HeaderDeadlines | None = None,
     public_url: str | None = None,
     viewer_js: str | None = None,
+    maplibre_js: str | None = None,
 ) -> Any:
     """The aiohttp application serving ``service`` (``deadlines``: the connections' header
     deadlines, kept as their requests start and end)."""
@@ -474,9 +576,14 @@ def make_app(
         return response
 
     script, local = viewer_source(viewer_js)
+    maplibre_script, maplibre_local = maplibre_source(maplibre_js)
 
     async def page(request: web.Request) -> web.Response:
         body = viewer_page(service.path.stem, script)
+        return _reply(request, body, "text/html", compress=True)
+
+    async def maplibre(request: web.Request) -> web.Response:
+        body = maplibre_page(service.path.stem, maplibre_script)
         return _reply(request, body, "text/html", compress=True)
 
     async def index(request: web.Request) -> web.Response:
@@ -486,6 +593,8 @@ def make_app(
                 "terrain": "layer.json",
                 "imagery": "imagery/{z}/{x}/{y}.png",
                 "imagery_tilejson": "imagery.json",
+                "terrarium": "terrarium/{z}/{x}/{y}.png",
+                "terrarium_tilejson": "terrarium.json",
                 "buildings": "3dtiles/tileset.json" if service.has_city else None,
             }
         ).encode()
@@ -507,6 +616,18 @@ def make_app(
         if data is None:
             raise web.HTTPNotFound()
         return _reply(request, data, "image/png")
+
+    async def terrarium(request: web.Request) -> web.Response:
+        z, x, y = _ints(request, "z", "x", "y")
+        data = await service.tile("terrarium", z, x, y)
+        if data is None:
+            raise web.HTTPNotFound()
+        return _reply(request, data, "image/png")
+
+    async def terrarium_json(request: web.Request) -> web.Response:
+        base = public_base(request.scheme, request.host, request.headers, public_url)
+        made = await service.run(service.terrarium_tilejson, base)
+        return _reply(request, json.dumps(made).encode(), "application/json", compress=True)
 
     async def tilejson(request: web.Request) -> web.Response:
         base = public_base(request.scheme, request.host, request.headers, public_url)
@@ -532,10 +653,15 @@ def make_app(
     app.router.add_get("/index.json", index)
     if local is not None:
         app.router.add_static("/viewer-js/", local)
+    app.router.add_get("/maplibre", maplibre)
+    if maplibre_local is not None:
+        app.router.add_static("/maplibre-js/", maplibre_local)
     app.router.add_get("/layer.json", layer)
     app.router.add_get(f"/{num % 'z'}/{num % 'x'}/{num % 'y'}.terrain", terrain)
     app.router.add_get(f"/imagery/{num % 'z'}/{num % 'x'}/{num % 'y'}.png", imagery)
     app.router.add_get("/imagery.json", tilejson)
+    app.router.add_get(f"/terrarium/{num % 'z'}/{num % 'x'}/{num % 'y'}.png", terrarium)
+    app.router.add_get("/terrarium.json", terrarium_json)
     app.router.add_get("/3dtiles/tileset.json", tileset)
     app.router.add_get(f"/3dtiles/{num % 'i'}.glb", content)
     return app
@@ -621,17 +747,27 @@ def run(
     public_url: str | None = None,
     viewer_js: str | None = None,
     tiling: str = "geographic",
+    maplibre_js: str | None = None,
 ) -> None:
     """Serve the tileset until interrupted; ``ready(url)`` once the port is bound (not before:
     a bad file or a busy port fails first, and nothing says "serving"). ``public_url``: the
     scheme and host clients reach it by (behind a proxy), in the URLs it writes."""
 
     viewer_source(viewer_js)  # a bad --viewer-js fails before anything is opened
+    maplibre_source(maplibre_js)
     service = TileService(path, tiling)  # a file that is not a complete tileset fails here
     _quiet_server_logs()
     try:
         asyncio.run(
-            serve(service, host, port, ready=ready, public_url=public_url, viewer_js=viewer_js)
+            serve(
+                service,
+                host,
+                port,
+                ready=ready,
+                public_url=public_url,
+                viewer_js=viewer_js,
+                maplibre_js=maplibre_js,
+            )
         )
     finally:
         service.close()
@@ -647,12 +783,13 @@ async def serve(
     header_timeout: float = HEADER_TIMEOUT,
     public_url: str | None = None,
     viewer_js: str | None = None,
+    maplibre_js: str | None = None,
 ) -> None:
     """Serve ``service`` on ``host:port`` until ``stop`` is set (never, without one)."""
     from aiohttp import web
 
     deadlines = HeaderDeadlines(header_timeout)
-    app = make_app(service, deadlines, public_url, viewer_js)
+    app = make_app(service, deadlines, public_url, viewer_js, maplibre_js)
     runner = web.AppRunner(app, access_log=None)
     await runner.setup()
     loop = asyncio.get_running_loop()

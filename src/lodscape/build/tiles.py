@@ -130,13 +130,15 @@ def _layers(job: Job) -> list[Any]:
 
 
 def _texture(job: Job, src: HeightSource, z: int, x: int, y: int) -> bytes:
-    """The tile's PNG: the tint (its alpha: where the terrain has data) under the layers."""
+    """The tile's PNG: the tint under the layers, its alpha where the terrain has data (the
+    raster's footprint for a nearest fill): a client's base map shows where there is none, and
+    lodscape's own renderer draws a fill's ground there (``TilesetProvider.decode``)."""
     kind = parse_fill(job.fill).kind
     rgba = TintImagery(
         src,
         job.height_range,
         tile_size=job.tile_size,
-        alpha={"none": "valid", "nearest": "covers"}.get(kind, "all"),
+        alpha="covers" if kind == "nearest" else "valid",
         sea_level=job.sea_level,
     ).texture(z, x, y)
     if job.imagery and z <= job.imagery_zmax:
@@ -579,7 +581,8 @@ def _rasterize(
 
 def _downsample(images: Sequence[bytes | None], size: int) -> bytes | None:
     """A parent's PNG from its four children's (west-north, east-north, west-south,
-    east-south): each texel the alpha-weighted mean of the four beneath it."""
+    east-south): each texel the alpha-weighted mean of the four beneath it (their plain mean
+    where all four are transparent: the fill's tint, which lodscape draws there)."""
     if all(i is None for i in images):
         return None
     from PIL import Image
@@ -601,7 +604,7 @@ def _downsample(images: Sequence[bytes | None], size: int) -> bytes | None:
         return out
 
     asum = quad(a)
-    rgb = np.where(asum > 0.0, quad(pm) / np.maximum(asum, 1e-12), 0.0)
+    rgb = np.where(asum > 0.0, quad(pm) / np.maximum(asum, 1e-12), quad(big[..., :3]) / 4.0)
     alpha = asum / 4.0 * 255.0
     out = np.dstack([rgb, alpha])
     return _png(np.floor(np.clip(out, 0.0, 255.0) + 0.5).astype(np.uint8))

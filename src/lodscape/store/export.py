@@ -15,6 +15,7 @@ so a failed export leaves nothing behind.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import shutil
@@ -28,7 +29,7 @@ import numpy as np
 
 from lodscape._tmp import temp_beside
 from lodscape.geo.frames import up_vector
-from lodscape.geo.tiles import Bbox, Tile, bounds, merc_to_lonlat
+from lodscape.geo.tiles import Bbox, Tile, bounds, lonlat_to_merc, merc_to_lonlat, tiles_array
 from lodscape.store.geographic import TILINGS, available_tiles, geographic_tile
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import encode, ungzip
@@ -40,9 +41,13 @@ __all__ = [
     "cesium_layer",
     "city_3dtiles",
     "ellipsoid_tile",
+    "empty_png",
     "export_cesium",
     "geographic_layer",
+    "imagery_range",
     "imagery_tilejson",
+    "in_imagery_range",
+    "missing_imagery",
     "write_chunk",
     "write_geographic",
 ]
@@ -117,6 +122,9 @@ def export_cesium(
         else:
             args = [(str(tileset), str(tmp), *c) for c in _chunks(db, ("tiles",))]
             sum(executor.imap(write_chunk, args))
+        empty = empty_png(int(manifest.get("tile_size", 256)))  # type: ignore[call-overload]
+        for z, x, y in missing_imagery(db):
+            _write(tmp / "imagery" / str(z) / str(x) / f"{y}.png", empty)
         (tmp / "layer.json").write_text(json.dumps(layer, indent=1))
         tiles = "imagery/{z}/{x}/{y}.png"
         if base_url is not None:
@@ -272,14 +280,71 @@ def _layer(
     return layer
 
 
-def imagery_tilejson(db: sqlite3.Connection, name: str, tiles: str) -> dict[str, object]:
-    """TileJSON 3.0.0 of a tileset's imagery (its MBTiles metadata: levels, bounds,
-    attribution), its tiles at the URL template ``tiles``."""
+def imagery_range(db: sqlite3.Connection) -> tuple[int, int, tuple[float, float, float, float]]:
+    """What the imagery's TileJSON advertises: (minzoom, maxzoom, (west, south, east, north))."""
     meta = dict(db.execute("SELECT name, value FROM metadata").fetchall())
     lo, hi = db.execute("SELECT MIN(zoom_level), MAX(zoom_level) FROM tiles").fetchone()
     w, s, e, n = (float(v) for v in str(meta.get("bounds", "-180,-85,180,85")).split(","))
     lo = int(lo if lo is not None else meta.get("minzoom", 0))
     hi = int(hi if hi is not None else meta.get("maxzoom", 0))
+    return lo, hi, (w, s, e, n)
+
+
+def in_imagery_range(
+    advertised: tuple[int, int, tuple[float, float, float, float]], z: int, x: int, y: int
+) -> bool:
+    """Whether tile z/x/y (OSM rows) is inside what the imagery's TileJSON advertises."""
+    lo, hi, box = advertised
+    if not lo <= z <= hi:
+        return False
+    (x0, x1), (y0, y1) = _range_at(box, z)
+    return x0 <= x <= x1 and y0 <= y <= y1
+
+
+def _range_at(
+    box: tuple[float, float, float, float], z: int
+) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The columns and rows (OSM) of level z that the box touches, first and last."""
+    w, s, e, n = box
+    edge = 85.05112878
+    xm, ym = lonlat_to_merc([w, e], [min(n, edge), max(s, -edge)])
+    tx, ty = tiles_array(xm, ym, z)
+    return (int(tx[0]), int(tx[1])), (int(ty[0]), int(ty[1]))
+
+
+def missing_imagery(db: sqlite3.Connection) -> Iterator[tuple[int, int, int]]:
+    """The tiles (z, x, OSM row) inside what the imagery's TileJSON advertises that the
+    tileset does not store (all outside the data: a nodata collar, a rotated raster's corners):
+    a client asks for them, and gets a transparent tile, not a 404."""
+    lo, hi, box = imagery_range(db)
+    for z in range(lo, hi + 1):
+        (x0, x1), (y0, y1) = _range_at(box, z)
+        stored = {
+            (x, (1 << z) - 1 - row)
+            for x, row in db.execute(
+                "SELECT tile_column, tile_row FROM tiles WHERE zoom_level = ?", (z,)
+            )
+        }
+        for x in range(x0, x1 + 1):
+            for y in range(y0, y1 + 1):
+                if (x, y) not in stored:
+                    yield z, x, y
+
+
+def empty_png(size: int) -> bytes:
+    """A transparent PNG tile, ``size`` pixels a side."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.new("RGBA", (size, size), (0, 0, 0, 0)).save(buf, "PNG", optimize=True)
+    return buf.getvalue()
+
+
+def imagery_tilejson(db: sqlite3.Connection, name: str, tiles: str) -> dict[str, object]:
+    """TileJSON 3.0.0 of a tileset's imagery (its MBTiles metadata: levels, bounds,
+    attribution), its tiles at the URL template ``tiles``."""
+    meta = dict(db.execute("SELECT name, value FROM metadata").fetchall())
+    lo, hi, (w, s, e, n) = imagery_range(db)
     return {
         "tilejson": "3.0.0",
         "name": str(meta.get("name", name)),
@@ -288,6 +353,8 @@ def imagery_tilejson(db: sqlite3.Connection, name: str, tiles: str) -> dict[str,
         "scheme": "xyz",
         "format": str(meta.get("format", "png")),
         "tiles": [tiles],
+        # the 3.0.0 schema asks for it; a raster source has no vector layers
+        "vector_layers": [],
         "minzoom": lo,
         "maxzoom": hi,
         "bounds": [w, s, e, n],

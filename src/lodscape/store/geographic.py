@@ -110,7 +110,7 @@ def geographic_tile(provider: Any, z: int, x: int, tms: int, zmax: int) -> bytes
     lat_row = np.linspace(n, s, g + 1)
     lon_col[0], lon_col[-1], lat_row[0], lat_row[-1] = w, e, n, s
     lon, lat = np.meshgrid(lon_col, lat_row)
-    h, covered = provider.surface(lon, lat, zm)
+    h, covered = provider.surface(lon, lat, zm, holes=True)
     if not covered.any():
         return ellipsoid_tile(z, x, tms)
     # outside the stored tiles: the ellipsoid, as the fillers and Mercator's ancestors show

@@ -2,10 +2,10 @@
 imagery as PNG/JPEG tiles, and its terrain as Terrarium PNG tiles (height = R·256 + G + B/256
 − 32768 metres), each a separate archive since an archive holds one tile type.
 
-Terrarium tiles are 256² heights of each stored terrain tile's own mesh (its level's surface,
-as a pyramid has it) at the pixels' centres, one for each stored terrain tile; where the
-tileset has no data a pixel is transparent (alpha 0; Terrarium readers that ignore alpha see
-height −32768 there, never a made-up one).
+Terrarium tiles (``TerrariumTiles``) are 256² heights of the stored surface of their level at
+the pixels' centres, every level from 0 to the data's own; where the tileset has no data a pixel
+is transparent (alpha 0) at the fill's height (stated in the metadata; never −32,768 m, which
+readers that ignore alpha, as MapLibre does, would draw as a shaft).
 
 Tiles are written in Hilbert order of their tile ids (a clustered archive); identical tiles
 (the sea, an empty area) are stored once, by their SHA-256, and consecutive ones run-length
@@ -39,11 +39,12 @@ from pmtiles.tile import (
 
 from lodscape._tmp import temp_beside
 from lodscape.errors import LodscapeError
-from lodscape.geo.tiles import Tile, merc_to_lonlat, xy_bounds
+from lodscape.geo.tiles import ORIGIN, Tile, merc_to_lonlat, xy_bounds
+from lodscape.store.export import empty_png, missing_imagery
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.tileset import TilesetError, TilesetProvider
 
-__all__ = ["export_pmtiles", "terrarium", "write_archive"]
+__all__ = ["TerrariumTiles", "export_pmtiles", "terrarium", "write_archive"]
 
 #: Header plus root directory: what a client reads first.
 _ROOT_BYTES = 16384 - 127
@@ -105,13 +106,16 @@ def _imagery(db: sqlite3.Connection, name: str, out: Path) -> tuple[int, Path]:
     ]
     if not keys:
         raise TilesetError(f"{name}: the tileset holds no imagery to export")
+    # every tile of the advertised range: those without data transparent (stored once)
+    keys += list(missing_imagery(db))
+    empty = empty_png(int(json.loads(meta.get("lodscape", "{}")).get("tile_size", 256)))
 
     def data(z: int, x: int, y: int) -> bytes:
         row = db.execute(
             "SELECT tile_data FROM tiles WHERE zoom_level=? AND tile_column=? AND tile_row=?",
             (z, x, (1 << z) - 1 - y),
         ).fetchone()
-        return bytes(row[0])
+        return empty if row is None else bytes(row[0])
 
     metadata = {
         "name": str(meta.get("name", name)),
@@ -123,25 +127,90 @@ def _imagery(db: sqlite3.Connection, name: str, out: Path) -> tuple[int, Path]:
     return _stage(out, keys, data, tile_type=3 if fmt in ("jpg", "jpeg") else 2, metadata=metadata)
 
 
+class TerrariumTiles:
+    """A tileset's terrain as Terrarium tiles, for MapLibre, deck.gl and any raster-DEM client:
+    every level from 0 to the data's own (``texture_zmax``, where a 256-pixel tile's pixel is as
+    fine as the data; finer levels would only cut the same surface smaller), every tile over
+    the data's bounds. A tile's pixels are the stored surface of its level (the tileset's roots
+    for the levels above them) at their centres; where there is no data (outside the data's
+    footprint, or in a hole) they are the fill's height (0 m unless ``--fill value:H``) with
+    alpha 0, never −32,768 m (which MapLibre, ignoring alpha, would draw as a shaft)."""
+
+    def __init__(self, provider: TilesetProvider) -> None:
+        self.provider = provider
+        levels = provider.manifest["levels"]
+        self.zmin, self.zmax = int(levels["zmin"]), int(levels["zmax"])
+        top = levels.get("texture_zmax")
+        self.maxzoom = int(self.zmax if top is None else min(int(top), self.zmax))
+        fill = str(provider.manifest.get("options", {}).get("fill", "none"))
+        kind, _, value = fill.partition(":")
+        #: The fill the tileset was built with, and the height a pixel without data holds.
+        self.fill = fill
+        self.nodata_height = float(value) if kind == "value" and value else 0.0
+        b = provider.bounds_merc
+        (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+        self.bounds = (float(w), float(s), float(e), float(n))
+
+    def _range(self, z: int) -> tuple[int, int, int, int]:
+        b = self.provider.bounds_merc
+        size = 2.0 * ORIGIN / (1 << z)
+        top = (1 << z) - 1
+        x0 = min(max(int((b.left + ORIGIN) // size), 0), top)
+        x1 = min(max(int(np.ceil((b.right + ORIGIN) / size)) - 1, x0), top)
+        y0 = min(max(int((ORIGIN - b.top) // size), 0), top)
+        y1 = min(max(int(np.ceil((ORIGIN - b.bottom) / size)) - 1, y0), top)
+        return x0, x1, y0, y1
+
+    def keys(self) -> list[tuple[int, int, int]]:
+        """Every tile (z, x, OSM row) of levels 0..maxzoom over the data's bounds."""
+        out: list[tuple[int, int, int]] = []
+        for z in range(self.maxzoom + 1):
+            x0, x1, y0, y1 = self._range(z)
+            out.extend((z, x, y) for x in range(x0, x1 + 1) for y in range(y0, y1 + 1))
+        return out
+
+    def contains(self, z: int, x: int, y: int) -> bool:
+        if not 0 <= z <= self.maxzoom:
+            return False
+        x0, x1, y0, y1 = self._range(z)
+        return x0 <= x <= x1 and y0 <= y <= y1
+
+    def tile(self, z: int, x: int, y: int) -> bytes:
+        """Terrarium PNG of tile z/x/y (OSM rows)."""
+        level = min(max(z, self.zmin), self.zmax)
+
+        def heights(lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
+            h: NDArray[np.float64] = self.provider.surface(
+                lon, lat, level, footprint=True, holes=True
+            )[0]
+            return h
+
+        return terrarium(heights, z, x, y, nodata=self.nodata_height)
+
+    def metadata(self, name: str) -> dict[str, object]:
+        return {
+            "name": f"{name} terrain",
+            "description": "Terrarium: height = R*256 + G + B/256 - 32768 m; alpha 0: no data "
+            f"(there the fill's height, {self.nodata_height:g} m)",
+            "attribution": str(self.provider.metadata().get("attribution", "")),
+            "type": "baselayer",
+            "format": "png",
+            "encoding": "terrarium",
+            "fill": self.fill,
+            "nodata_height": self.nodata_height,
+            "minzoom": 0,
+            "maxzoom": self.maxzoom,
+        }
+
+
 def _terrain(
     db: sqlite3.Connection, provider: TilesetProvider, name: str, out: Path
 ) -> tuple[int, Path]:
-    keys = [(int(z), int(x), int(y)) for z, x, y in db.execute("SELECT z, x, y FROM terrain")]
-    if not keys:
+    (count,) = db.execute("SELECT COUNT(*) FROM terrain").fetchone()
+    if not count:
         raise TilesetError(f"{name}: the tileset holds no terrain to export")
-
-    def data(z: int, x: int, y: int) -> bytes:
-        return terrarium(lambda lon, lat: provider.tile_heights(z, x, y, lon, lat), z, x, y)
-
-    metadata = {
-        "name": f"{name} terrain",
-        "description": "Terrarium: height = R*256 + G + B/256 - 32768 m; alpha 0: no data",
-        "attribution": "",
-        "type": "baselayer",
-        "format": "png",
-        "encoding": "terrarium",
-    }
-    return _stage(out, keys, data, tile_type=2, metadata=metadata)
+    tiles = TerrariumTiles(provider)
+    return _stage(out, tiles.keys(), tiles.tile, tile_type=2, metadata=tiles.metadata(name))
 
 
 def terrarium(
@@ -150,9 +219,11 @@ def terrarium(
     x: int,
     y: int,
     size: int = 256,
+    *,
+    nodata: float = 0.0,
 ) -> bytes:
     """A Terrarium PNG of tile z/x/y: ``heights(lon, lat)`` at its pixels' centres (NaN: no
-    data, transparent)."""
+    data, transparent, at height ``nodata``)."""
     from PIL import Image
 
     b = xy_bounds(Tile(x, y, z))
@@ -162,7 +233,7 @@ def terrarium(
     lon, lat = merc_to_lonlat(*np.meshgrid(xm, ym))
     h = np.asarray(heights(np.asarray(lon), np.asarray(lat)), np.float64).reshape(size, size)
     ok = np.isfinite(h)
-    v = np.clip(np.where(ok, h, -32768.0) + 32768.0, 0.0, 65535.99)
+    v = np.clip(np.where(ok, h, nodata) + 32768.0, 0.0, 65535.99)
     r = np.floor(v / 256.0)
     g = np.floor(v - r * 256.0)
     bl = np.floor((v - r * 256.0 - g) * 256.0)

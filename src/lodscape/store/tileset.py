@@ -396,6 +396,9 @@ class TilesetProvider:
                 "lodscape build again to finish it"
             )
         self.tree = read_tree(db, self.manifest)
+        fill = str(self.manifest.get("options", {}).get("fill", "none")).partition(":")[0]
+        #: The fill stands in wherever the tiles reach (not none or nearest): every texel drawn.
+        self._fill_drawn = fill not in ("none", "nearest")
         b = self.manifest["bounds_merc"]
         self.bounds_merc = Bbox(*(float(v) for v in b))
 
@@ -423,6 +426,11 @@ class TilesetProvider:
             .fetchone()
         )
         return None if row is None else bytes(row[0])
+
+    def metadata(self) -> dict[str, str]:
+        """The MBTiles metadata (name, bounds, attribution, …; the manifest under lodscape)."""
+        rows = self._db().execute("SELECT name, value FROM metadata").fetchall()
+        return {str(k): str(v) for k, v in rows}
 
     def max_error(self, z: int, x0: int, x1: int, y0: int, y1: int) -> float | None:
         """The largest recorded error of the stored terrain tiles of level z in columns x0..x1
@@ -466,9 +474,13 @@ class TilesetProvider:
             from PIL import Image
 
             try:
-                rgba = np.asarray(Image.open(io.BytesIO(data)).convert("RGBA"))
+                rgba = np.array(Image.open(io.BytesIO(data)).convert("RGBA"))
             except Exception as exc:  # Pillow raises several unrelated classes on bad data
                 raise TilesetError(f"{self.name}: imagery tile {t.z}/{t.x}/{t.y}: {exc}") from None
+            if self._fill_drawn:
+                # alpha says where there is data (for clients' base maps); a fill's ground is
+                # drawn everywhere the tiles reach, so nothing is cut
+                rgba[..., 3] = 255
             return np.ascontiguousarray(rgba)
         try:
             qm = decode(data)
@@ -521,12 +533,20 @@ class TilesetProvider:
         return self.surface(lon, lat, footprint=True)[0]
 
     def surface(
-        self, lon: ArrayLike, lat: ArrayLike, zmax: int | None = None, *, footprint: bool = False
+        self,
+        lon: ArrayLike,
+        lat: ArrayLike,
+        zmax: int | None = None,
+        *,
+        footprint: bool = False,
+        holes: bool = False,
     ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """(heights, covered) at many points: the heights of the finest stored meshes of level
         ``zmax`` or coarser (NaN where none has a surface; ``footprint``: NaN outside the
         data's footprint too, where a fill stands in), and whether a stored tile covers the
-        point at all (False: outside the tileset's tiles; True and NaN: a hole)."""
+        point at all (False: outside the tileset's tiles; True and NaN: a hole). A point in a
+        hole of the finest tile that covers it is looked for in coarser ones, whose meshes'
+        rims may reach it; ``holes``: it stays a hole (NaN)."""
         lon = np.asarray(lon, np.float64)
         lat = np.asarray(lat, np.float64)
         shape = lon.shape
@@ -563,7 +583,7 @@ class TilesetProvider:
                 at = idx[order[ends[k] : ends[k + 1]]]
                 h = _heights_in(mesh, lon[at], lat[at])
                 out[at] = h
-                todo[at[~np.isnan(h)]] = False
+                todo[at if holes else at[~np.isnan(h)]] = False
         return out.reshape(shape), covered.reshape(shape)
 
     def tile_heights(
