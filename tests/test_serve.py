@@ -157,6 +157,34 @@ def test_export_writes_the_stored_city_as_3d_tiles(site: Path, tmp_path: Path) -
         assert (tmp_path / "out" / "3dtiles" / uri).read_bytes()[:4] == b"glTF"
 
 
+def test_city_add_stores_its_3d_tiles_and_serve_reads_them(
+    site: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``city add`` makes the 3D Tiles in its transaction and keeps them in the file: a server
+    answers its first request from them, making nothing (it took 77 s on a request before)."""
+    import sqlite3
+
+    from lodscape.serve import TileService
+    from lodscape.store import city_tiles
+
+    with sqlite3.connect(site) as db:
+        names = {n for (n,) in db.execute("SELECT name FROM city_3dtiles")}
+    assert {"tileset.json", "signature", "0.glb"} <= names
+
+    def boom(*args: object) -> None:
+        raise AssertionError("3D Tiles made on a request")
+
+    monkeypatch.setattr(city_tiles, "make_city_tiles", boom)
+    service = TileService(site)
+    try:
+        made = service.tiles3d()
+        assert made is not None
+        assert json.loads(made[0])["asset"]["version"] == "1.1"
+        assert len(made[1]) == len(names) - 2
+    finally:
+        service.close()
+
+
 def test_buildings_as_3d_tiles(server: str) -> None:
     with httpx.Client(base_url=server, timeout=120) as c:
         r = c.get("/3dtiles/tileset.json")
@@ -178,6 +206,7 @@ def test_buildings_as_3d_tiles(server: str) -> None:
         assert uris
         assert uris == list(range(len(uris)))
         triangles = {0.0: 0, 1.0: 0}  # full (leaves, geometric error 0), boxes
+        contents = 0
         for tile, parent in tiles:
             if parent is not None:
                 assert tile["geometricError"] <= parent["geometricError"]
@@ -204,7 +233,17 @@ def test_buildings_as_3d_tiles(server: str) -> None:
                 ind = np.frombuffer(data[start : start + view["byteLength"]], np.uint32)
                 assert ind.max() < pos["count"]
                 triangles[float(tile["geometricError"] > 0)] += len(ind) // 3
+                # every vertex inside the tile's box (east-north-up; glTF is y-up)
+                pview = doc["bufferViews"][pos["bufferView"]]
+                at = 28 + jlen + pview["byteOffset"] + pos.get("byteOffset", 0)
+                xyz = np.frombuffer(data[at : at + 12 * pos["count"]], np.float32).reshape(-1, 3)
+                enu = np.column_stack([xyz[:, 0], -xyz[:, 2], xyz[:, 1]]).astype(np.float64)
+                box = np.array(tile["boundingVolume"]["box"])
+                half = np.array([box[3], box[7], box[11]])
+                assert (np.abs(enu - box[:3]) <= half + 1e-3).all(), tile["content"]["uri"]
+            contents += 1
         assert triangles[0.0] > 1000
+        assert contents == len(uris)
         # the boxes stand in for the buildings with far fewer triangles
         assert 0 < triangles[1.0] < triangles[0.0] / 2
         children = uris

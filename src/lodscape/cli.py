@@ -1748,20 +1748,31 @@ def city_add(
     transaction); render, fly and view then drape them on its terrain."""
     from lodscape.city.osm import read_osm
     from lodscape.store.city import add_city
+    from lodscape.store.city_tiles import store_city_tiles
     from lodscape.store.tileset import TilesetProvider, lonlat_bounds
 
     provider = TilesetProvider(tileset)
+    made: list[int] = []
     try:
         box = lonlat_bounds(provider.bounds_merc)
+        town = read_osm(osm)
+        got = add_city(
+            tileset,
+            town,
+            name=name,
+            replace=replace,
+            bounds=box,
+            # its 3D Tiles (for serve and export) made and stored in the same transaction
+            then=lambda db: made.append(store_city_tiles(db, provider)),
+        )
     finally:
         provider.close()
-    town = read_osm(osm)
-    got = add_city(tileset, town, name=name, replace=replace, bounds=box)
     rep = town.report()
     typer.echo(
         f"stored {name or osm.name} in {tileset}: {got['buildings']:,} buildings, "
         f"{got['features']:,} street objects ({got['outside']:,} outside the tileset left out; "
-        f"{rep['repaired']} footprints repaired, {sum(town.skipped.values())} skipped)"
+        f"{rep['repaired']} footprints repaired, {sum(town.skipped.values())} skipped); "
+        f"3D Tiles: {made[0] if made else 0} contents"
     )
 
 
@@ -1793,8 +1804,14 @@ def city_remove(
 ) -> None:
     """Remove a stored city (one transaction)."""
     from lodscape.store.city import remove_city
+    from lodscape.store.city_tiles import store_city_tiles
+    from lodscape.store.tileset import TilesetProvider
 
-    remove_city(tileset, name)
+    provider = TilesetProvider(tileset)
+    try:
+        remove_city(tileset, name, then=lambda db: store_city_tiles(db, provider))
+    finally:
+        provider.close()
     typer.echo(f"removed {name} from {tileset}")
 
 

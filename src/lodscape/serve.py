@@ -19,7 +19,7 @@ Routes:
   levels 0 to the data's own, no-data at the fill's height with alpha 0), and
   ``/terrarium.json`` its TileJSON (MapLibre's raster-dem source, deck.gl, pydeck);
 - ``/3dtiles/tileset.json`` and ``/3dtiles/{i}.glb``: the stored cities' buildings as 3D Tiles
-  1.1, when the tileset holds a city (made at the first request, then kept): groups of box
+  1.1, when the tileset holds a city (as ``city add`` made and stored them): groups of box
   models, each replaced by its full buildings up close.
 
 Every answer carries CORS headers and a strong ETag of the bytes sent (the gzipped and the
@@ -327,12 +327,10 @@ class TileService:
             return None
         with self._lock:
             if self._tiles3d is None:
-                from lodscape.store.export import city_3dtiles
+                from lodscape.store.city_tiles import city_tiles
 
-                made = city_3dtiles(self._provider)
-                if made is None:
-                    return None
-                self._tiles3d = (json.dumps(made[0]).encode(), made[1])
+                # as city add stored them (made now only for a city stored without them)
+                self._tiles3d = city_tiles(self._provider)
             return self._tiles3d
 
 

@@ -20,7 +20,7 @@ import json
 import os
 import sqlite3
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -107,10 +107,13 @@ def add_city(
     name: str | None = None,
     replace: bool = False,
     bounds: Box | None = None,
+    then: Callable[[sqlite3.Connection], object] | None = None,
 ) -> dict[str, int]:
     """Store ``city`` in the tileset at ``path`` under ``name`` (its file's name by default),
     all in one transaction. With ``bounds`` (west, south, east, north) only objects that touch
-    it are kept, and a city wholly outside is refused. Returns what was stored."""
+    it are kept, and a city wholly outside is refused. ``then(db)`` runs inside the
+    transaction once the city is in (``store.city_tiles.store_city_tiles``: its 3D Tiles made
+    and kept with it). Returns what was stored."""
     name = name or Path(city.name).name
     db = _open_rw(path)
     try:
@@ -179,6 +182,8 @@ def add_city(
                     "INSERT INTO city_feature_index VALUES (?, ?, ?, ?, ?)",
                     (cur.lastrowid, f.lon, f.lon, f.lat, f.lat),
                 )
+            if then is not None:
+                then(db)
     except sqlite3.Error as exc:
         raise TilesetError(f"{path}: cannot store the city ({exc})") from None
     finally:
@@ -206,8 +211,13 @@ def _delete(db: sqlite3.Connection, name: str) -> None:
     db.execute("DELETE FROM city_sets WHERE name = ?", (name,))
 
 
-def remove_city(path: str | os.PathLike[str], name: str) -> None:
-    """Remove the city ``name`` from the tileset, in one transaction."""
+def remove_city(
+    path: str | os.PathLike[str],
+    name: str,
+    then: Callable[[sqlite3.Connection], object] | None = None,
+) -> None:
+    """Remove the city ``name`` from the tileset, in one transaction (``then(db)`` inside it,
+    once the city is out, as ``add_city``'s)."""
     db = _open_rw(path)
     try:
         if (
@@ -217,6 +227,8 @@ def remove_city(path: str | os.PathLike[str], name: str) -> None:
             raise TilesetError(f"{path}: holds no city named {name!r}")
         with _transaction(db):
             _delete(db, name)
+            if then is not None:
+                then(db)
     except sqlite3.Error as exc:
         raise TilesetError(f"{path}: cannot remove the city ({exc})") from None
     finally:

@@ -363,24 +363,14 @@ def imagery_tilejson(db: sqlite3.Connection, name: str, tiles: str) -> dict[str,
 
 
 def city_3dtiles(provider: TilesetProvider) -> tuple[dict[str, Any], list[bytes]] | None:
-    """(tileset.json, glb contents) of the cities a tileset stores, standing on its ground;
-    None without a city."""
-    city = provider.city()
-    if city is None:
+    """(tileset.json, glb contents) of the cities a tileset stores, standing on its ground (as
+    ``city add`` made and stored them); None without a city."""
+    from lodscape.store.city_tiles import city_tiles
+
+    made = city_tiles(provider)
+    if made is None:
         return None
-    from lodscape.city.model import build_city
-    from lodscape.store.tiles3d import city_tileset
-
-    def ground(lon: Any, lat: Any) -> Any:
-        flat = [
-            provider.ground_height(float(a), float(b))
-            for a, b in zip(np.ravel(lon), np.ravel(lat), strict=True)
-        ]
-        out = np.array([np.nan if v is None else v for v in flat], np.float64)
-        return out.reshape(np.shape(lon))
-
-    tileset, contents = city_tileset(build_city(city, ground))
-    return tileset, contents
+    return json.loads(made[0]), made[1]
 
 
 def cesium_layer(

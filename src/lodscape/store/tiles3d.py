@@ -133,6 +133,18 @@ def _box(lo: NDArray[np.float64], hi: NDArray[np.float64]) -> list[float]:
 CLIENT_SSE = 16.0
 
 
+def _extent(
+    parts: list[Any], lo: NDArray[np.float64], hi: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The east-north-up box holding ``lo``..``hi`` and every vertex of glb ``parts`` (written
+    y-up: (east, up, -north))."""
+    for _mat, p, _n, _t in parts:
+        enu = np.column_stack([p[:, 0], -p[:, 2], p[:, 1]]).astype(np.float64)
+        lo = np.minimum(lo, enu.min(axis=0))
+        hi = np.maximum(hi, enu.max(axis=0))
+    return lo, hi
+
+
 def _parts(model: CityModel, leaves: NDArray[np.int64], lod: int) -> list[Any]:
     """The glb parts (material, positions, normals, triangles) of some leaves at one level of
     detail, in glTF's y-up frame."""
@@ -177,20 +189,24 @@ def city_tileset(model: CityModel) -> tuple[dict[str, Any], list[bytes]]:
     contents: list[bytes] = []
     children: list[dict[str, Any]] = []
     per_px = CLIENT_SSE / CityOptions().full_px
+    every = (np.full(3, np.inf), np.full(3, -np.inf))
     for g in range(groups):
         leaves = np.arange(g * fanout, min((g + 1) * fanout, tree.leaves))
         full = _parts(model, leaves, 0)
         if not full:
             continue
+        coarse = _parts(model, leaves, 1)
+        # the boxes hold what is drawn: the leaves' boxes and every vertex of both levels
+        # (roofs and box models may reach past the footprints' boxes)
         boxes = tree.levels[0][leaves]
-        lo, hi = boxes[:, :3].min(axis=0), boxes[:, 3:].max(axis=0)
+        lo, hi = _extent(full + coarse, boxes[:, :3].min(axis=0), boxes[:, 3:].max(axis=0))
         fine = {
             "boundingVolume": {"box": _box(lo, hi)},
             "geometricError": 0.0,
             "content": {"uri": f"{len(contents)}.glb"},
         }
         contents.append(glb(full))
-        coarse = _parts(model, leaves, 1)
+        every = (np.minimum(every[0], lo), np.maximum(every[1], hi))
         if not coarse:
             children.append(fine)
             continue
@@ -205,7 +221,8 @@ def city_tileset(model: CityModel) -> tuple[dict[str, Any], list[bytes]]:
         )
         contents.append(glb(coarse))
     all_boxes = tree.levels[0]
-    lo, hi = all_boxes[:, :3].min(axis=0), all_boxes[:, 3:].max(axis=0)
+    lo = np.minimum(all_boxes[:, :3].min(axis=0), every[0])
+    hi = np.maximum(all_boxes[:, 3:].max(axis=0), every[1])
     to_ecef = np.eye(4)
     to_ecef[:3, :3] = model.frame.basis.T
     to_ecef[:3, 3] = model.frame.origin

@@ -407,6 +407,10 @@ class TilesetProvider:
         opened: a server keeps reading the file it loaded when another is renamed over it)."""
         self._connect = connect
 
+    def connection(self) -> sqlite3.Connection:
+        """This thread's read-only connection to the tileset."""
+        return self._db()
+
     def _db(self) -> sqlite3.Connection:
         """This thread's read-only connection (SQLite connections are not shared by threads)."""
         if self._connect is not None:
