@@ -83,12 +83,17 @@ def test_info_render_and_export(
         assert files == len(list(where.rglob("*.terrain")))
         # the stored tiles and the fillers above them; geographic ones from each level's
         assert files >= terrain if projection == "EPSG:3857" else files >= terrain // 2
-    assert len(list((folder / "imagery").rglob("*.png"))) == imagery
+    # every stored tile, and the overviews above them (levels from 0)
+    pngs = list((folder / "imagery").rglob("*.png"))
+    assert len(pngs) > imagery
+    assert {p.parent.parent.name for p in pngs} >= {"0", "1"}
     # the imagery's TileJSON: its levels are the stored ones, its tiles the exported files
     tj = json.loads((folder / "imagery.json").read_text())
     with closing(sqlite3.connect(built)) as db:
         lo, hi = db.execute("SELECT MIN(zoom_level), MAX(zoom_level) FROM tiles").fetchone()
-    assert (tj["tilejson"], tj["minzoom"], tj["maxzoom"]) == ("3.0.0", lo, hi)
+    # from level 0: the levels above the stored ones are overviews made from them
+    assert (tj["tilejson"], tj["minzoom"], tj["maxzoom"]) == ("3.0.0", 0, hi)
+    assert lo > 0
     w, s, e, n = tj["bounds"]
     assert w < e
     assert s < n

@@ -63,13 +63,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from lodscape._lru import ByteLRU
 from lodscape.errors import LodscapeError
-from lodscape.store.export import (
-    cesium_layer,
-    empty_png,
-    geographic_layer,
-    imagery_range,
-    in_imagery_range,
-)
+from lodscape.store.export import ImageryTiles, cesium_layer, geographic_layer
 from lodscape.store.geographic import TILINGS, available_tiles, geographic_tile
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.pmtiles import TerrariumTiles
@@ -154,8 +148,9 @@ class TileService:
             else:
                 layer, flat = cesium_layer(conns[0], provider.manifest, self.path.stem)
             has_city = bool(provider.cities())
-            advertised = imagery_range(conns[0])
-            empty = empty_png(int(provider.manifest.get("tile_size", 256)))
+            imagery = ImageryTiles(
+                self._db, int(provider.manifest.get("tile_size", 256)), db=conns[0]
+            )
         except BaseException:
             provider.close()
             for db in conns:
@@ -171,9 +166,8 @@ class TileService:
             self.manifest = provider.manifest
             self._flat = flat
             self._available = available
-            self._advertised = advertised
+            self._imagery = imagery
             self._terrarium = TerrariumTiles(provider)
-            self._empty = empty
             self.layer = json.dumps(layer, indent=1).encode()
             self._tiles3d: tuple[bytes, list[bytes]] | None = None
             self.has_city = has_city
@@ -264,22 +258,11 @@ class TileService:
         return None if row is None else bytes(row[0])
 
     def imagery(self, z: int, x: int, y: int) -> bytes | None:
-        """PNG of imagery tile z/x/y (OSM rows); a transparent one where the TileJSON says
-        there are tiles and none is stored (no data there); else None."""
+        """PNG of imagery tile z/x/y (OSM rows) of the advertised range (``ImageryTiles``: the
+        stored ones, overviews above them, transparent ones where no data is); else None."""
         if not (0 <= z <= MAX_ZOOM and 0 <= x < (1 << z) and 0 <= y < (1 << z)):
             return None
-        row = (
-            self._db()
-            .execute(
-                "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
-                "AND tile_row = ?",
-                (z, x, (1 << z) - 1 - y),
-            )
-            .fetchone()
-        )
-        if row is None:
-            return self._empty if in_imagery_range(self._advertised, z, x, y) else None
-        return bytes(row[0])
+        return self._imagery.tile(z, x, y)
 
     def terrarium(self, z: int, x: int, y: int) -> bytes | None:
         """Terrarium PNG of tile z/x/y (OSM rows) over the data, levels 0 to the data's own;

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from lodscape._tmp import temp_beside
 from lodscape.geo.frames import up_vector
@@ -37,6 +38,7 @@ from lodscape.store.tileset import TilesetError, TilesetProvider, lonlat_bounds
 from lodscape.terrain.mesh import grid_coordinates, grid_indices
 
 __all__ = [
+    "ImageryTiles",
     "Mapper",
     "cesium_layer",
     "city_3dtiles",
@@ -46,8 +48,6 @@ __all__ = [
     "geographic_layer",
     "imagery_range",
     "imagery_tilejson",
-    "in_imagery_range",
-    "missing_imagery",
     "write_chunk",
     "write_geographic",
 ]
@@ -122,9 +122,12 @@ def export_cesium(
         else:
             args = [(str(tileset), str(tmp), *c) for c in _chunks(db, ("tiles",))]
             sum(executor.imap(write_chunk, args))
-        empty = empty_png(int(manifest.get("tile_size", 256)))  # type: ignore[call-overload]
-        for z, x, y in missing_imagery(db):
-            _write(tmp / "imagery" / str(z) / str(x) / f"{y}.png", empty)
+        size: Any = manifest.get("tile_size", 256)
+        every = ImageryTiles(lambda: db, int(size))
+        for z, x, y in every.missing():
+            made = every.tile(z, x, y)
+            if made is not None:
+                _write(tmp / "imagery" / str(z) / str(x) / f"{y}.png", made)
         (tmp / "layer.json").write_text(json.dumps(layer, indent=1))
         tiles = "imagery/{z}/{x}/{y}.png"
         if base_url is not None:
@@ -281,24 +284,14 @@ def _layer(
 
 
 def imagery_range(db: sqlite3.Connection) -> tuple[int, int, tuple[float, float, float, float]]:
-    """What the imagery's TileJSON advertises: (minzoom, maxzoom, (west, south, east, north))."""
+    """What the imagery's TileJSON advertises: (minzoom, maxzoom, (west, south, east, north)):
+    from level 0 (``ImageryTiles`` makes the levels above the stored ones) to the finest
+    stored, over the data's bounds."""
     meta = dict(db.execute("SELECT name, value FROM metadata").fetchall())
-    lo, hi = db.execute("SELECT MIN(zoom_level), MAX(zoom_level) FROM tiles").fetchone()
+    (hi,) = db.execute("SELECT MAX(zoom_level) FROM tiles").fetchone()
     w, s, e, n = (float(v) for v in str(meta.get("bounds", "-180,-85,180,85")).split(","))
-    lo = int(lo if lo is not None else meta.get("minzoom", 0))
     hi = int(hi if hi is not None else meta.get("maxzoom", 0))
-    return lo, hi, (w, s, e, n)
-
-
-def in_imagery_range(
-    advertised: tuple[int, int, tuple[float, float, float, float]], z: int, x: int, y: int
-) -> bool:
-    """Whether tile z/x/y (OSM rows) is inside what the imagery's TileJSON advertises."""
-    lo, hi, box = advertised
-    if not lo <= z <= hi:
-        return False
-    (x0, x1), (y0, y1) = _range_at(box, z)
-    return x0 <= x <= x1 and y0 <= y <= y1
+    return 0, hi, (w, s, e, n)
 
 
 def _range_at(
@@ -312,23 +305,113 @@ def _range_at(
     return (int(tx[0]), int(tx[1])), (int(ty[0]), int(ty[1]))
 
 
-def missing_imagery(db: sqlite3.Connection) -> Iterator[tuple[int, int, int]]:
-    """The tiles (z, x, OSM row) inside what the imagery's TileJSON advertises that the
-    tileset does not store (all outside the data: a nodata collar, a rotated raster's corners):
-    a client asks for them, and gets a transparent tile, not a 404."""
-    lo, hi, box = imagery_range(db)
-    for z in range(lo, hi + 1):
+class ImageryTiles:
+    """Every imagery tile of the advertised range (``imagery_range``): the stored ones as they
+    are; above the coarsest stored level, overviews made from the four tiles beneath (the
+    alpha-weighted mean of each 2×2 texels; MapLibre draws nothing of a raster source below its
+    minzoom); where a stored level has no tile (all outside the data: a nodata collar, a rotated
+    raster's corners), a transparent one, so a client never meets a 404 it was promised."""
+
+    def __init__(
+        self,
+        connect: Callable[[], sqlite3.Connection],
+        tile_size: int = 256,
+        db: sqlite3.Connection | None = None,
+    ) -> None:
+        """``connect()``: the calling thread's connection to the tileset; ``db``: one to read
+        the range from now (else ``connect()``'s)."""
+        self._connect = connect
+        db = db if db is not None else connect()
+        self.range = imagery_range(db)
+        (lo,) = db.execute("SELECT MIN(zoom_level) FROM tiles").fetchone()
+        self.stored_min = int(lo if lo is not None else 0)
+        self.size = tile_size
+        self.empty = empty_png(tile_size)
+        self._made: dict[tuple[int, int, int], bytes] = {}
+
+    def contains(self, z: int, x: int, y: int) -> bool:
+        """Whether tile z/x/y (OSM rows) is inside the advertised range."""
+        lo, hi, box = self.range
+        if not lo <= z <= hi:
+            return False
         (x0, x1), (y0, y1) = _range_at(box, z)
-        stored = {
-            (x, (1 << z) - 1 - row)
-            for x, row in db.execute(
-                "SELECT tile_column, tile_row FROM tiles WHERE zoom_level = ?", (z,)
+        return x0 <= x <= x1 and y0 <= y <= y1
+
+    def _stored(self, z: int, x: int, y: int) -> bytes | None:
+        row = (
+            self._connect()
+            .execute(
+                "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
+                "AND tile_row = ?",
+                (z, x, (1 << z) - 1 - y),
             )
-        }
-        for x in range(x0, x1 + 1):
-            for y in range(y0, y1 + 1):
-                if (x, y) not in stored:
-                    yield z, x, y
+            .fetchone()
+        )
+        return None if row is None else bytes(row[0])
+
+    def tile(self, z: int, x: int, y: int) -> bytes | None:
+        """PNG of tile z/x/y (OSM rows): a stored one (some lie past the bounds: the fill's
+        beside the data), else one of the advertised range; None outside it."""
+        stored = self._stored(z, x, y)
+        if stored is not None:
+            return stored
+        if not self.contains(z, x, y):
+            return None
+        if z >= self.stored_min:
+            return self.empty
+        made = self._made.get((z, x, y))
+        if made is None:
+            children = [self.tile(z + 1, 2 * x + i % 2, 2 * y + i // 2) for i in range(4)]
+            made = _overview(children, self.size)
+            self._made[(z, x, y)] = made
+        return made
+
+    def missing(self) -> Iterator[tuple[int, int, int]]:
+        """The tiles (z, x, OSM row) of the advertised range the tileset does not store."""
+        lo, hi, box = self.range
+        db = self._connect()
+        for z in range(lo, hi + 1):
+            (x0, x1), (y0, y1) = _range_at(box, z)
+            stored = {
+                (x, (1 << z) - 1 - row)
+                for x, row in db.execute(
+                    "SELECT tile_column, tile_row FROM tiles WHERE zoom_level = ?", (z,)
+                )
+            }
+            for x in range(x0, x1 + 1):
+                for y in range(y0, y1 + 1):
+                    if (x, y) not in stored:
+                        yield z, x, y
+
+
+def _overview(children: Sequence[bytes | None], size: int) -> bytes:
+    """A tile from its four children's PNGs (west-north, east-north, west-south, east-south;
+    None: transparent): each texel the alpha-weighted mean of the four beneath it."""
+    from PIL import Image
+
+    big = np.zeros((2 * size, 2 * size, 4), np.float64)
+    for i, data in enumerate(children):
+        if data is None:
+            continue
+        img = Image.open(io.BytesIO(data)).convert("RGBA")
+        if img.size != (size, size):
+            img = img.resize((size, size), Image.Resampling.BILINEAR)
+        dx, dy = i % 2, i // 2
+        big[dy * size : (dy + 1) * size, dx * size : (dx + 1) * size] = np.asarray(img)
+    a = big[..., 3:4] / 255.0
+    rgb = big[..., :3] * a
+
+    def quad(v: NDArray[np.float64]) -> NDArray[np.float64]:
+        out: NDArray[np.float64] = v[0::2, 0::2] + v[1::2, 0::2] + v[0::2, 1::2] + v[1::2, 1::2]
+        return out
+
+    asum = quad(a)
+    colour = quad(rgb) / np.maximum(asum, 1e-12)
+    out = np.dstack([colour, asum / 4.0 * 255.0])
+    buf = io.BytesIO()
+    rgba = np.floor(np.clip(out, 0.0, 255.0) + 0.5).astype(np.uint8)
+    Image.fromarray(rgba, "RGBA").save(buf, "PNG", compress_level=6)
+    return buf.getvalue()
 
 
 def empty_png(size: int) -> bytes:

@@ -40,7 +40,7 @@ from pmtiles.tile import (
 from lodscape._tmp import temp_beside
 from lodscape.errors import LodscapeError
 from lodscape.geo.tiles import ORIGIN, Tile, merc_to_lonlat, xy_bounds
-from lodscape.store.export import empty_png, missing_imagery
+from lodscape.store.export import ImageryTiles
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.tileset import TilesetError, TilesetProvider
 
@@ -106,16 +106,18 @@ def _imagery(db: sqlite3.Connection, name: str, out: Path) -> tuple[int, Path]:
     ]
     if not keys:
         raise TilesetError(f"{name}: the tileset holds no imagery to export")
-    # every tile of the advertised range: those without data transparent (stored once)
-    keys += list(missing_imagery(db))
-    empty = empty_png(int(json.loads(meta.get("lodscape", "{}")).get("tile_size", 256)))
+    # every tile of the advertised range: overviews above the stored levels, those without
+    # data transparent (stored once)
+    every = ImageryTiles(
+        lambda: db, int(json.loads(meta.get("lodscape", "{}")).get("tile_size", 256))
+    )
+    keys += list(every.missing())
 
     def data(z: int, x: int, y: int) -> bytes:
-        row = db.execute(
-            "SELECT tile_data FROM tiles WHERE zoom_level=? AND tile_column=? AND tile_row=?",
-            (z, x, (1 << z) - 1 - y),
-        ).fetchone()
-        return empty if row is None else bytes(row[0])
+        made = every.tile(z, x, y)
+        if made is None:
+            raise TilesetError(f"{name}: imagery tile {z}/{x}/{y} outside its range")
+        return made
 
     metadata = {
         "name": str(meta.get("name", name)),
