@@ -288,8 +288,17 @@ class TerrainServer:
     request for one. ``url`` is the layer's."""
 
     def __init__(
-        self, fault: str | None = None, from_z: int = 4, maxzoom: int = 11, down_s: float = 2.0
+        self,
+        fault: str | None = None,
+        from_z: int = 4,
+        maxzoom: int = 11,
+        down_s: float = 2.0,
+        shallow: tuple[float, int] | None = None,
+        available: list[list[dict[str, int]]] | None = None,
     ) -> None:
+        """``shallow`` (latitude, level z): the pyramid stops at level z under the level-z+1
+        tiles whose north edge is at or south of that latitude (their descendants are 404s, as
+        real servers' over the sea); ``available``: the layer's list of the tiles it has."""
         import json
 
         self.fault, self.from_z, self.down_s = fault, from_z, down_s
@@ -305,6 +314,8 @@ class TerrainServer:
             "maxzoom": maxzoom,
             "bounds": list(TERRAIN_BOX),
         }
+        if available is not None:
+            layer["available"] = available
         server = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -320,6 +331,11 @@ class TerrainServer:
                 parts = path.split("/")
                 z, x, y = int(parts[-3]), int(parts[-2]), int(parts[-1].split(".")[0])
                 body = geographic_terrain_tile(z, x, y) if z <= maxzoom else None
+                if shallow is not None and z > shallow[1]:
+                    top = shallow[1] + 1
+                    north = -90.0 + ((y >> (z - top)) + 1) * 180.0 / (1 << top)
+                    if north <= shallow[0]:
+                        body = None
                 fault = server.fault if z >= server.from_z else None
                 if server.fault == "root-down" and z == 0:
                     now = time.monotonic()

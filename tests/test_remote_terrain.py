@@ -223,7 +223,9 @@ def test_terrarium_heights_are_the_servers(
         assert not ok2.any()
         heights.sample(*lonlat_to_merc(np.array([9.5]), np.array([46.5])), 10.0)
         said = capsys.readouterr().err
-        assert said.count("a hole is drawn") == 1, said  # the first missing tile, said once
+        assert said.count("its deepest ancestor the server has is drawn") == 1, (
+            said
+        )  # the first missing tile, said once
         assert tree.zmax == MAXZOOM
         assert level_error(0, 64) == pytest.approx(6378137.0 * 2 * math.pi * 0.25 / 65)
     finally:
@@ -367,3 +369,207 @@ def test_availability_past_the_listed_levels_follows_the_last_listed() -> None:
         assert not tiles.has(13, np.array([0]), np.array([0])).any()  # past maxzoom
     finally:
         tiles.close()
+
+
+# --- height tiles of other sizes ------------------------------------------------------------
+
+
+def _encoded(kind: str, side: int, border: int, z: int, x: int, y: int) -> bytes | None:
+    """Tile z/x/y of the analytic terrain as a ``side``-pixel PNG (``border``: pixels of the
+    neighbours' around it), Terrarium through lodscape's own writer (``store.pmtiles``) or
+    Mapbox Terrain-RGB (0.1 m steps from -10000 m)."""
+    from PIL import Image
+
+    from lodscape.store.pmtiles import terrarium
+
+    w, s, e, n = BOX
+    inner = side - 2 * border
+    size = 2.0 * ORIGIN / (1 << z)
+    f = (np.arange(side) - border + 0.5) / inner
+    lon, lat = merc_to_lonlat(-ORIGIN + (x + f)[None, :] * size, ORIGIN - (y + f)[:, None] * size)
+    lon, lat = np.broadcast_arrays(lon, lat)
+    inside = (lon >= w) & (lon <= e) & (lat >= s) & (lat <= n)
+    if not inside[border : -border or None, border : -border or None].any():
+        return None
+    if kind == "terrarium" and border == 0:
+        return terrarium(
+            lambda lo, la: np.where(
+                (lo >= w) & (lo <= e) & (la >= s) & (la <= n), _height(lo, la), np.nan
+            ),
+            z,
+            x,
+            y,
+            size=side,
+        )
+    h = _height(lon, lat)
+    if kind == "terrarium":
+        v = h + 32768.0
+        r = np.floor(v / 256.0)
+        g = np.floor(v - r * 256.0)
+        b = np.floor((v - r * 256.0 - g) * 256.0)
+    else:
+        v = np.round((h + 10000.0) * 10.0)
+        r, g, b = np.floor(v / 65536.0), np.floor(v / 256.0) % 256, v % 256
+    rgba = np.dstack([r, g, b, np.where(inside, 255, 0)]).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(rgba, "RGBA").save(buf, "PNG")
+    return buf.getvalue()
+
+
+class _SizedServer:
+    """PNG height tiles of one size on loopback: /{kind}/{side}/{border}/{z}/{x}/{y}.png."""
+
+    def __init__(self) -> None:
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args: object) -> None:
+                pass
+
+            def do_GET(self) -> None:
+                parts = self.path.strip("/").split("/")
+                try:
+                    kind, side, border = parts[0], int(parts[1]), int(parts[2])
+                    z, x, y = int(parts[3]), int(parts[4]), int(parts[5].split(".")[0])
+                except (ValueError, IndexError):
+                    self.send_error(400)
+                    return
+                body = _encoded(kind, side, border, z, x, y) if z <= MAXZOOM else None
+                if body is None:
+                    self.send_error(404)
+                    return
+                self.send_response(200)
+                self.send_header("Content-Type", "image/png")
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+@pytest.fixture(scope="module")
+def sized() -> Iterator[_SizedServer]:
+    server = _SizedServer()
+    yield server
+    server.close()
+
+
+@pytest.mark.parametrize(
+    ("kind", "side", "border"),
+    [
+        ("terrarium", 256, 0),
+        ("terrarium", 512, 0),
+        ("terrain-rgb", 512, 0),
+        ("terrarium", 514, 1),
+        ("terrain-rgb", 258, 1),
+    ],
+)
+def test_height_tiles_of_any_square_size_are_read_whole(
+    sized: _SizedServer, tmp_path: Path, kind: str, side: int, border: int
+) -> None:
+    """rio-rgbify, MapTiler and Mapbox's @2x tiles are 512 pixels; some carry a border of
+    their neighbours' pixels. Every size is read from the image: heights right everywhere
+    over the data (they were read as 256-pixel tiles: the top-left quadrant, hundreds of
+    metres off, half of it no data)."""
+    spec = f"{kind}:{MAXZOOM}:{sized.url}/{kind}/{side}/{border}/{{z}}/{{x}}/{{y}}.png"
+    heights, _tree = open_server(spec, cache_dir=tmp_path)
+    try:
+        rng = np.random.default_rng(3)
+        lon = rng.uniform(7.95, 8.05, 500)
+        lat = rng.uniform(45.97, 46.03, 500)
+        xm, ym = lonlat_to_merc(lon, lat)
+        for spacing in (heights.resolution_merc, 40.0, 300.0):
+            h, ok = heights.sample(xm, ym, spacing)
+            assert ok.all(), (spacing, (~ok).sum())
+            # bilinear between pixel centres on a smooth surface; coarser levels' pixels are
+            # farther apart (300 m spacing: level 9, 150 m pixels over a 150 m sine)
+            tol = {40.0: 2.0, 300.0: 40.0}.get(spacing, 0.5)
+            np.testing.assert_allclose(h, _height(lon, lat), atol=tol)
+        assert heights.tiles.pixels == side - 2 * border
+        # a 512-pixel server resolves twice as fine a cell at its finest level
+        assert heights.resolution_merc == pytest.approx(
+            2.0 * ORIGIN / (1 << MAXZOOM) / (side - 2 * border)
+        )
+    finally:
+        heights.close()
+
+
+@pytest.mark.parametrize(("side", "border"), [(300, 0), (257, 0)])
+def test_a_height_tile_of_another_shape_is_refused_in_one_line(
+    sized: _SizedServer, tmp_path: Path, side: int, border: int
+) -> None:
+    from lodscape.imagery.sources import ImageryError
+
+    spec = f"terrarium:{MAXZOOM}:{sized.url}/terrarium/{side}/{border}/{{z}}/{{x}}/{{y}}.png"
+    heights, _tree = open_server(spec, cache_dir=tmp_path)
+    try:
+        xm, ym = lonlat_to_merc(np.array([8.0]), np.array([46.0]))
+        with pytest.raises(ImageryError, match=r"2\^k pixels a side") as info:
+            heights.sample(xm, ym, 40.0)
+        assert "\n" not in str(info.value)
+        assert f"{side}×{side}" in str(info.value)
+    finally:
+        heights.close()
+
+
+# --- a pyramid of uneven depth ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("listed", [False, True])
+def test_a_pyramid_of_uneven_depth_is_drawn_from_the_deepest_tile_there(
+    tmp_path: Path, listed: bool
+) -> None:
+    """Real servers are deep on land and shallow over the sea: under the level-11 tiles south
+    of 46.0° this one stops at level 10 (a 404 below, or not in its ``available`` list).
+    Heights there come from the deepest tile it has, as CesiumJS draws them, not a hole;
+    elsewhere from the deep ones (level 12)."""
+    from _tileserver import TERRAIN_BOX
+
+    split, shallow_z, maxzoom = 46.0, 10, 12
+    available = None
+    if listed:
+        w, s, e, n = TERRAIN_BOX
+        top = shallow_z + 1
+        first_deep = math.floor((split + 90.0) / (180.0 / (1 << top)))  # level-11 row
+        available = []
+        for z in range(maxzoom + 1):
+            span = 180.0 / (1 << z)
+            x0, x1 = int((w + 180) // span), int((e + 180) // span)
+            y0, y1 = int((s + 90) // span), int((n + 90) // span)
+            if z > shallow_z:
+                y0 = max(y0, first_deep << (z - top))
+            available.append([{"startX": x0, "startY": y0, "endX": x1, "endY": y1}])
+    server = TerrainServer(maxzoom=maxzoom, shallow=(split, shallow_z), available=available)
+    try:
+        heights, _tree = open_server(server.url, cache_dir=tmp_path)
+        try:
+            rng = np.random.default_rng(4)
+            lon = rng.uniform(7.92, 8.08, 400)
+            lat = rng.uniform(45.952, 46.045, 400)
+            xm, ym = lonlat_to_merc(lon, lat)
+
+            def spacing(z: int) -> float:  # what a geographic level z resolves
+                return 2.0 * ORIGIN / 64 / (1 << (z + 1))
+
+            h, ok = heights.sample(xm, ym, spacing(maxzoom))
+            assert ok.all(), int((~ok).sum())  # no hole where the server is shallower
+            h10, ok10 = heights.sample(xm, ym, spacing(shallow_z))
+            assert ok10.all()
+            edge = -90.0 + math.floor((split + 90.0) / (180.0 / 2048)) * 180.0 / 2048
+            south = lat < edge - 0.001  # under the shallow level-11 tiles
+            deep = lat > edge + 0.001
+            assert south.sum() > 20
+            assert deep.sum() > 200
+            np.testing.assert_allclose(h[south], h10[south], atol=1e-6)
+            # the deep tiles follow the terrain better than level 10 does
+            err = np.abs(h - _height(lon, lat))
+            err10 = np.abs(h10 - _height(lon, lat))
+            assert err[deep].mean() < 0.5 * err10[deep].mean()
+        finally:
+            heights.close()
+    finally:
+        server.close()

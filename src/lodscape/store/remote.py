@@ -148,11 +148,14 @@ class ServerTiles:
         #: ellipsoid) meanwhile; a one-shot render fails with the error itself.
         self.failures: Counter[str] = Counter()
         self._notices: dict[str, str] = {}
+        #: A PNG server's tile size (pixels a side, without a border), from its first tile.
+        self.pixels: int | None = None
 
     @property
     def cells(self) -> int:
-        """Cells a side a tile's data resolves (a PNG's pixels; a mesh taken as 64)."""
-        return 64 if self.kind == "quantized-mesh" else 256
+        """Cells a side a tile's data resolves (a PNG's pixels, 256 until a tile says; a mesh
+        taken as 64)."""
+        return 64 if self.kind == "quantized-mesh" else (self.pixels or 256)
 
     def has(self, z: int, x: I64, y: I64) -> NDArray[np.bool_]:
         """Which tiles (x, y; rows from the north) of level z the server says it has."""
@@ -216,13 +219,28 @@ class ServerTiles:
             data = self.http.fetch(z, x, row)
             if self.kind == "quantized-mesh":
                 return _decode_mesh(data)
-            return _decode_png(data, self.kind, self.http.url(z, x, row))
+            raster = _decode_png(data, self.kind, self.http.url(z, x, row))
+            side = raster.h.shape[0]
+            with self._lock:
+                if self.pixels is None:
+                    self.pixels = side
+                seen = self.pixels
+            if side != seen:
+                raise ImageryError(
+                    f"{self.http.url(z, x, row)}: {side} pixels a side where this server's "
+                    f"first tile had {seen}",
+                    "not-terrain",
+                )
+            return raster
         except TileMissing as exc:
             with self._lock:
                 self.missing += 1
                 first = self.missing == 1
             if first:
-                self._warn(f"terrain: {exc}; where {self.name} has no tile, a hole is drawn")
+                self._warn(
+                    f"terrain: {exc}; where {self.name} has no tile, its deepest ancestor the "
+                    "server has is drawn (a hole where it has none)"
+                )
             return None
         except ImageryError as exc:
             self._failed(exc.kind, str(exc))
@@ -284,8 +302,17 @@ def _decode_png(data: bytes, kind: str, url: str) -> _Raster:
         raise ImageryError(
             f"{url}: not an image ({type(exc).__name__}: {exc})", "not-image"
         ) from None
-    if rgba.shape[0] != rgba.shape[1]:
-        raise ImageryError(f"{url}: a height tile must be square, got {rgba.shape[1::-1]}")
+    side = rgba.shape[0]
+    # 256 or 512 pixels (rio-rgbify, MapTiler and Mapbox's @2x write 512), or either with a
+    # one-pixel border of the neighbours' (2^k + 2)
+    if side == rgba.shape[1] and side >= 4 and (side - 2) & (side - 3) == 0 and side & (side - 1):
+        rgba = rgba[1:-1, 1:-1]
+    elif rgba.shape[0] != rgba.shape[1] or side < 2 or side & (side - 1):
+        raise ImageryError(
+            f"{url}: a height tile must be square with 2^k pixels a side (256, 512), or 2^k + 2 "
+            f"with a one-pixel border; got {rgba.shape[1]}×{rgba.shape[0]}",
+            "not-terrain",
+        )
     r, g, b, a = (rgba[..., i] for i in range(4))
     if kind == "terrarium":
         h = r * 256.0 + g + b / 256.0 - 32768.0
@@ -313,8 +340,13 @@ class RemoteHeights:
             [max(w, -180.0), min(e, 180.0)], [max(s, -85.05), min(n, 85.05)]
         )
         self.bounds_merc = Bbox(float(x0), float(y0), float(x1), float(y1))
-        world = 2.0 * ORIGIN / (1 << tiles.maxzoom)
-        self.resolution_merc = world / tiles.cells / (2.0 if tiles.geographic else 1.0)
+
+    @property
+    def resolution_merc(self) -> float:
+        """The finest level's cell (a PNG server's: known once a tile has come)."""
+        t = self.tiles
+        world = 2.0 * ORIGIN / (1 << t.maxzoom)
+        return world / t.cells / (2.0 if t.geographic else 1.0)
 
     def level_for(self, spacing: float) -> int:
         """The server level whose data resolves ``spacing`` (Web Mercator metres)."""
@@ -346,7 +378,7 @@ class RemoteHeights:
             todo = ~ok
             if not todo.any():
                 break
-            hz, okz = self._at(x[todo], y[todo], z, cached=True)
+            hz, okz = self._at(x[todo], y[todo], z, cached=True, deepest=False)
             idx = np.flatnonzero(todo)
             h[idx[okz]], ok[idx[okz]] = hz[okz], True
         return h, ok
@@ -378,10 +410,26 @@ class RemoteHeights:
 
     # -- sampling one level
 
-    def _at(self, x: F64, y: F64, z: int, *, cached: bool) -> tuple[F64, NDArray[np.bool_]]:
-        if self.tiles.kind == "quantized-mesh":
-            return self._on_meshes(x, y, z, cached)
-        return self._on_pixels(x, y, z, cached)
+    def _at(
+        self, x: F64, y: F64, z: int, *, cached: bool, deepest: bool = True
+    ) -> tuple[F64, NDArray[np.bool_]]:
+        """Heights at level z, or where the server has no tile there (its pyramid shallower:
+        over the sea, say; ``available`` or a 404 says) at the deepest level above that has
+        one, as CesiumJS draws the deepest available ancestor (``deepest``; else level z
+        only)."""
+        h = np.full(x.shape, np.nan)
+        ok = np.zeros(x.shape, bool)
+        todo = np.arange(x.size)
+        for level in range(z, self.tiles.minzoom - 1, -1):
+            if self.tiles.kind == "quantized-mesh":
+                hz, okz, tiled = self._on_meshes(x[todo], y[todo], level, cached)
+            else:
+                hz, okz, tiled = self._on_pixels(x[todo], y[todo], level, cached)
+            h[todo[okz]], ok[todo[okz]] = hz[okz], True
+            todo = todo[~tiled]
+            if not todo.size or not deepest:
+                break
+        return h, ok
 
     def _get(self, z: int, tx: int, ty: int, cached: bool) -> Any:
         if cached:
@@ -389,8 +437,20 @@ class RemoteHeights:
             return None if got is False else got
         return self.tiles.tile(z, tx, ty)
 
-    def _on_pixels(self, x: F64, y: F64, z: int, cached: bool) -> tuple[F64, NDArray[np.bool_]]:
-        n = 256 << z
+    def _on_pixels(
+        self, x: F64, y: F64, z: int, cached: bool
+    ) -> tuple[F64, NDArray[np.bool_], NDArray[np.bool_]]:
+        """(heights, which have one, which points' own tile the server has) at level z."""
+        tiles = 1 << z
+        if self.tiles.pixels is None and not cached:
+            # the server's tile size from the first tile these points fall in that it has
+            tx = np.clip(np.floor((x + ORIGIN) / (2.0 * ORIGIN) * tiles), 0, tiles - 1)
+            ty = np.clip(np.floor((ORIGIN - y) / (2.0 * ORIGIN) * tiles), 0, tiles - 1)
+            for tid in np.unique(ty.astype(np.int64) * tiles + tx.astype(np.int64)):
+                if self._get(z, int(tid % tiles), int(tid // tiles), cached) is not None:
+                    break
+        side = self.tiles.pixels or 256
+        n = side * tiles
         gx = (x + ORIGIN) / (2.0 * ORIGIN) * n - 0.5
         gy = (ORIGIN - y) / (2.0 * ORIGIN) * n - 0.5
         x0, y0 = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
@@ -398,19 +458,27 @@ class RemoteHeights:
         px = np.stack([x0, x0 + 1, x0, x0 + 1]).clip(0, n - 1)
         py = np.stack([y0, y0, y0 + 1, y0 + 1]).clip(0, n - 1)
         vals = np.full(px.shape, np.nan)
-        tile_ids = (py >> 8) * (n >> 8) + (px >> 8)
-        for tid in np.unique(tile_ids):
-            got = self._get(z, int(tid % (n >> 8)), int(tid // (n >> 8)), cached)
+        tile_ids = (py // side) * tiles + (px // side)
+        own = np.clip(np.floor(gy + 0.5).astype(np.int64), 0, n - 1) // side * tiles
+        own += np.clip(np.floor(gx + 0.5).astype(np.int64), 0, n - 1) // side
+        had: set[int] = set()
+        for tid in np.unique(np.concatenate([tile_ids.ravel(), own])):
+            got = self._get(z, int(tid % tiles), int(tid // tiles), cached)
             if got is None:
                 continue
+            had.add(int(tid))
             m = tile_ids == tid
-            vals[m] = got.h[py[m] & 255, px[m] & 255]
+            vals[m] = got.h[py[m] % side, px[m] % side]
         w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
         ok = np.isfinite(vals).all(axis=0)
         h = np.where(ok, (np.nan_to_num(vals) * w).sum(axis=0), np.nan)
-        return h, ok
+        tiled = np.isin(own, np.fromiter(had, np.int64, len(had)))
+        return h, ok, tiled
 
-    def _on_meshes(self, x: F64, y: F64, z: int, cached: bool) -> tuple[F64, NDArray[np.bool_]]:
+    def _on_meshes(
+        self, x: F64, y: F64, z: int, cached: bool
+    ) -> tuple[F64, NDArray[np.bool_], NDArray[np.bool_]]:
+        """(heights, which have one, which points' tile the server has) at level z."""
         t = self.tiles
         if t.geographic:
             lon, lat = merc_to_lonlat(x, y)
@@ -425,6 +493,7 @@ class RemoteHeights:
         ty = np.clip(np.floor(fy).astype(np.int64), 0, ny - 1)
         u, v = fx - tx, fy - ty
         h = np.full(x.shape, np.nan)
+        tiled = np.zeros(x.shape, bool)
         ids = ty * nx + tx
         for tid in np.unique(ids):
             got = self._get(z, int(tid % nx), int(tid // nx), cached)
@@ -432,7 +501,8 @@ class RemoteHeights:
                 continue
             m = ids == tid
             h[m] = interpolate_mesh(got, u[m], v[m])
-        return h, np.isfinite(h)
+            tiled |= m
+        return h, np.isfinite(h), tiled
 
 
 def interpolate_mesh(mesh: _Mesh, u: F64, v: F64, cells: int = 32) -> F64:
