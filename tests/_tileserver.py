@@ -325,7 +325,7 @@ class TerrainServer:
             def do_GET(self) -> None:
                 server.requests += 1
                 path = self.path.split("?")[0]
-                if path.endswith("/layer.json"):
+                if path.endswith(("/layer.json", "/metadata")):  # a layer by another name
                     self._send(json.dumps(layer).encode())
                     return
                 parts = path.split("/")

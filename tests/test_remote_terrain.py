@@ -573,3 +573,27 @@ def test_a_pyramid_of_uneven_depth_is_drawn_from_the_deepest_tile_there(
             heights.close()
     finally:
         server.close()
+
+
+def test_a_terrain_layer_is_known_by_what_it_answers_not_its_path(tmp_path: Path) -> None:
+    """A URL that answers a quantized-mesh layer.json is a terrain server whatever its path
+    (it was read as a raster file), and so is the layer's folder, as CesiumJS takes it; a
+    URL answering something else is left to GDAL."""
+    from lodscape.sources import parse_source
+
+    server = TerrainServer(maxzoom=8)
+    try:
+        other = server.url.replace("layer.json", "metadata")
+        folder = server.url.removesuffix("layer.json")
+        assert parse_source(other) == type(parse_source(other))("server", other)
+        assert parse_source(folder).kind == "server"
+        assert parse_source(folder).text == server.url
+        assert parse_source(folder.rstrip("/")).text == server.url
+        assert parse_source(server.url.replace("layer.json", "nothing.bin")).kind == "raster"
+        assert parse_source("http://127.0.0.1:1/dem").kind == "raster"  # nothing answers
+        with lodscape.open(other, imagery_cache=tmp_path) as scene:
+            g, ok = scene.provider.heights.sample(*lonlat_to_merc([8.0], [46.0]), 100.0)
+        assert ok.all()
+        assert abs(g[0] - float(_height(np.array(8.0), np.array(46.0)))) < 30.0
+    finally:
+        server.close()

@@ -87,6 +87,13 @@ def parse_source(source: str | PathLike[str]) -> SourceSpec:
         return SourceSpec("none", text)
     if is_server_spec(text):
         return SourceSpec("server", text)
+    if text.lower().startswith(("http://", "https://")):
+        # a terrain server's layer (or its folder) whatever its path, else a raster for GDAL
+        from lodscape.store.remote import server_layer
+
+        layer = server_layer(text)
+        if layer is not None:
+            return SourceSpec("server", layer)
     if text == "flat" or text.startswith("flat:"):
         return SourceSpec("flat", text)
     if text == "procedural" or text.startswith("procedural:"):

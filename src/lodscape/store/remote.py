@@ -679,11 +679,61 @@ def _key_array(z: int, x: I64, y: I64) -> NDArray[np.uint64]:
 
 
 def is_server_spec(text: str) -> bool:
-    """Whether a SOURCE names terrain on a server."""
+    """Whether a SOURCE names terrain on a server (without asking it: a ``layer.json`` URL or
+    ``terrarium:``/``terrain-rgb:``; ``server_layer`` asks a URL that says neither)."""
     low = text.lower()
     return low.startswith(("terrarium:", "terrain-rgb:")) or (
         low.startswith(("http://", "https://")) and "layer.json" in low
     )
+
+
+#: Endings of URLs that name a raster for GDAL, never a terrain layer: not asked.
+_RASTER_ENDINGS = (".tif", ".tiff", ".vrt", ".img", ".jp2", ".nc", ".hgt", ".dem", ".asc", ".zip")
+
+
+def server_layer(url: str, timeout: float = 10.0) -> str | None:
+    """The ``layer.json`` URL of a quantized-mesh terrain server that ``url`` names, whatever
+    its path: the URL itself where it answers JSON whose ``format`` is quantized-mesh, or its
+    ``layer.json`` where it is the layer's folder (as CesiumJS takes it); None where it is
+    neither (a raster for GDAL, or nothing answers)."""
+    import httpx
+
+    from lodscape.imagery.sources import USER_AGENT
+
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or parts.path.lower().endswith(_RASTER_ENDINGS):
+        return None
+    candidates = [url]
+    if "." not in parts.path.rstrip("/").rsplit("/", 1)[-1]:  # a folder's name, not a file's
+        candidates.append(parts._replace(path=parts.path.rstrip("/") + "/layer.json").geturl())
+    for candidate in candidates:
+        try:
+            with httpx.stream(
+                "GET",
+                candidate,
+                timeout=timeout,
+                headers={"User-Agent": USER_AGENT},
+                follow_redirects=True,
+            ) as r:
+                if r.status_code != 200:
+                    continue
+                head = b""
+                for chunk in r.iter_bytes():
+                    head += chunk
+                    # a raster's bytes (or a page) end the reading at once
+                    if head.lstrip()[:1] not in (b"", b"{") or len(head) > 1 << 20:
+                        break
+        except httpx.HTTPError:
+            continue
+        if head.lstrip()[:1] != b"{":
+            continue
+        try:
+            layer = json.loads(head)
+        except ValueError:
+            continue
+        if isinstance(layer, dict) and str(layer.get("format", "")).startswith("quantized-mesh"):
+            return candidate
+    return None
 
 
 def open_server(
