@@ -227,6 +227,11 @@ class Scene:
         background: tuple[float, float, float] | None = None,
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32] | None]:
         """One frame through the loop: ``before`` (layer, pass) stages first (the globe's)."""
+        if not isinstance(camera, Camera):
+            raise LodscapeError(
+                f"render: expected a lodscape.Camera, got {type(camera).__name__} "
+                "(lodscape.Camera(lon=…, lat=…, alt=…, heading=…, pitch=…))"
+            )
         if self._renderer is None:
             self.prepare(camera)  # a camera under the ground is refused before any GL
         renderer = self._renderer_for(camera)

@@ -405,9 +405,21 @@ def _terrain(
     """The terrain provider a source names, and whether the scene owns it."""
     ground = ground or _Ground()
     if spec is None:
+        dataset = _rasterio_dataset(source)
+        if dataset is not None:
+            # a rasterio dataset the caller opened: read again by its name (a file, a URL,
+            # /vsimem/…), with the same band, nodata and units rules as a path
+            return _terrain(dataset, parse_source(dataset), detail, array_kwargs, ground)
+        source = _array_of(source, array_kwargs)
         if isinstance(source, np.ndarray):
             if ground.nodata is not None:
                 array_kwargs = {"nodata": ground.nodata, **array_kwargs}
+            if "transform" not in array_kwargs:
+                raise SourceError(
+                    "array: a numpy array needs transform= (an affine: six numbers, or a "
+                    "rasterio/affine Affine) and crs= (default EPSG:3857) to be placed on the "
+                    "Earth; an xarray DataArray brings them through rioxarray's .rio"
+                )
             array = ArraySource(source, **array_kwargs)
             return _lattice(FilledSource(array, ground.fill), detail, ground.sea_level), True
         if detail is not None:
@@ -465,6 +477,48 @@ def _terrain(
             warn_stderr(said)
         src = FilledSource(raster, ground.fill)
     return _lattice(src, detail, ground.sea_level), True
+
+
+def _rasterio_dataset(source: Any) -> str | None:
+    """The name of a rasterio dataset passed as SOURCE (None: not one)."""
+    try:
+        import rasterio.io
+    except ImportError:  # pragma: no cover - rasterio is a dependency
+        return None
+    if isinstance(source, rasterio.io.DatasetReaderBase):
+        if source.closed:
+            raise SourceError(f"{source.name}: the rasterio dataset is closed")
+        return str(source.name)
+    return None
+
+
+def _array_of(source: Any, array_kwargs: dict[str, Any]) -> Any:
+    """An xarray DataArray as its heights, with its transform, CRS and nodata (rioxarray's
+    ``.rio``) put in ``array_kwargs`` where the caller did not give them; anything else as
+    it is."""
+    module = type(source).__module__ or ""
+    if not module.startswith("xarray") or not hasattr(source, "dims"):
+        return source
+    name = f"xarray {getattr(source, 'name', None) or 'DataArray'}"
+    try:
+        rio = source.rio  # the accessor exists once rioxarray is imported
+    except AttributeError:
+        raise SourceError(
+            f"{name}: needs rioxarray (pip install rioxarray; import rioxarray) for its "
+            "transform and CRS, or pass .values with transform= and crs="
+        ) from None
+    data = source.squeeze()
+    if data.ndim != 2:
+        raise SourceError(f"{name}: expected one band of heights, got dims {source.dims}")
+    crs = rio.crs
+    if crs is None and "crs" not in array_kwargs:
+        raise SourceError(f"{name}: has no CRS (da.rio.write_crs(...), or pass crs=)")
+    array_kwargs.setdefault("transform", rio.transform())
+    array_kwargs.setdefault("crs", crs.to_wkt() if crs is not None else None)
+    nodata = rio.nodata if rio.nodata is not None else rio.encoded_nodata
+    if nodata is not None and "nodata" not in array_kwargs:
+        array_kwargs["nodata"] = float(nodata)
+    return np.asarray(data.values)
 
 
 def _lattice(src: HeightSource, detail: Fractal | None, sea_level: float | None) -> Provider:
