@@ -181,9 +181,14 @@ def test_the_normals_of_level_ground_point_up(flat_dataset: Path) -> None:
         # the ellipsoid's normal turns 1' per 1.85 km: under a degree anywhere in the box
         assert cos.min() > math.cos(math.radians(1.0)), name
         np.testing.assert_allclose(np.linalg.norm(n[ground], axis=1), 1.0, atol=1e-5)
-        # sky: no depth, label 0, normal 0; everything drawn has a depth
-        assert np.array_equal(lab == L.SKY, ~np.isfinite(depth))
-        assert not n[lab == L.SKY].any()
+        # sky and the no-data ellipsoid: no depth (inf by default), normal 0, mask 0;
+        # every measured surface has a depth
+        unmeasured = (lab == L.SKY) | (lab == L.NO_DATA)
+        assert np.array_equal(unmeasured, ~np.isfinite(depth))
+        assert not n[unmeasured].any()
+        mask = np.array(Image.open(flat_dataset / "mask" / f"{name}.png"))
+        assert np.array_equal(mask == 255, ~unmeasured)
+        assert set(np.unique(mask).tolist()) <= {0, 255}
 
 
 def test_the_city_is_labelled_by_what_it_is(tmp_path: Path) -> None:
@@ -232,7 +237,7 @@ def test_the_command_line_writes_a_dataset(
         [
             *(f"{d}/0000{i}.{e}" for i in (0, 1) for d, e in (
                 ("images", "png"), ("depth", "npy"), ("normals", "npy"), ("semantic", "png"),
-                ("cameras", "json"))),
+                ("mask", "png"), ("cameras", "json"))),
             "colmap/cameras.txt", "colmap/images.txt", "colmap/points3D.txt",
             "frame.json", "transforms.json",
         ]
@@ -240,6 +245,32 @@ def test_the_command_line_writes_a_dataset(
     assert np.load(out / "depth" / "00001.npy").shape == (64, 96)
     with Image.open(out / "images" / "00000.png") as im:
         assert im.size == (96, 64)
+    # instant-ngp's box: every camera (and most of what they see) inside its unit cube
+    tj = json.loads((out / "transforms.json").read_text())
+    assert tj["aabb_scale"] in (1, 2, 4, 8, 16, 32, 64, 128)
+    for frame in tj["frames"]:
+        c = np.array(frame["transform_matrix"])[:3, 3] * tj["scale"] + np.array(tj["offset"])
+        assert ((c >= 0.0) & (c <= 1.0)).all(), c
+        assert frame["mask_path"].startswith("mask/")
+    # and the same poses with depth 0 where no surface is measured
+    zero = tmp_path / "ds0"
+    code, _, err = run_cli(
+        ["render", str(sample_dem_path()), "--poses", str(poses), "--dataset", str(zero),
+         "--size", "96x64", "--origin", "-84.25,36.5,300", "--depth-invalid", "0"],
+        capsys,
+    )  # fmt: skip
+    assert code == 0, err
+    d_inf, d_0 = (np.load(f / "depth" / "00000.npy") for f in (out, zero))
+    assert np.array_equal(np.isinf(d_inf), d_0 == 0.0)
+    assert np.isinf(d_inf).any()
+    assert json.loads((zero / "frame.json").read_text())["depth_invalid"] == "0"
+    code, _, err = run_cli(
+        ["render", str(sample_dem_path()), "--poses", str(poses), "--dataset",
+         str(tmp_path / "dsx"), "--depth-invalid", "-1"],
+        capsys,
+    )  # fmt: skip
+    assert code == 2
+    assert "depth_invalid" in err
     # the same folder again: refused, and the first dataset is left as it was
     code, _, err = run_cli(
         ["render", str(sample_dem_path()), "--poses", str(poses), "--dataset", str(out)], capsys
@@ -316,3 +347,25 @@ def test_the_gpu_terrain_mode_labels_the_same_ground() -> None:
     assert ground.mean() > 0.3
     up = conventions(cap.camera, Origin(24.94, 60.17)).R @ np.array([0.0, 0.0, 1.0])
     assert (cap.normals[ground] @ up).min() > math.cos(math.radians(1.0))
+
+
+def test_the_default_origin_is_where_the_cameras_are_not_0_0() -> None:
+    """A server's terrain has whole-world bounds (terrarium:, terrain-rgb:, a layer.json without
+    bounds): the frame's origin is the poses' centre, not lon 0, lat 0 (cameras 3,600 km away,
+    "up" tilted 36° at the data); a DEM's is its centre."""
+    from types import SimpleNamespace
+
+    from lodscape.dataset import default_origin
+    from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc
+
+    cams = [Camera(8.0 + 0.01 * i, 46.0, 3000.0) for i in range(3)]
+    world = SimpleNamespace(
+        source=SimpleNamespace(bounds_merc=Bbox(-ORIGIN, -ORIGIN, ORIGIN, ORIGIN))
+    )
+    o = default_origin(world, cams)
+    assert o.lon == pytest.approx(8.01, abs=1e-6)
+    assert o.lat == pytest.approx(46.0, abs=1e-3)
+    (x0, x1), (y0, y1) = lonlat_to_merc([7.9, 8.1], [45.9, 46.1])
+    local = SimpleNamespace(source=SimpleNamespace(bounds_merc=Bbox(x0, y0, x1, y1)))
+    o = default_origin(local, cams)
+    assert (o.lon, o.lat) == pytest.approx((8.0, 46.0), abs=1e-3)

@@ -728,9 +728,18 @@ def render(
         str | None,
         typer.Option(
             help="LON,LAT[,HEIGHT]: the dataset's local east-north-up origin (default: the "
-            "data's centre at height 0)."
+            "data's centre at height 0, or the poses' centre where the data spans more than "
+            "10°, as a server's may)."
         ),
     ] = None,
+    depth_invalid: Annotated[
+        str,
+        typer.Option(
+            help="With --dataset: what depth holds where no measured surface is (sky, the "
+            "no-data ellipsoid): inf (the default), 0 (Open3D, TUM, ScanNet; nerfstudio masks "
+            "depth <= 0) or nan."
+        ),
+    ] = "inf",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print nothing.")] = False,
     *,
     terrain: TerrainFlags,
@@ -748,7 +757,15 @@ def render(
             "--depth": depth,
         }
         _render_dataset(
-            source, *_dataset_alone(poses, dataset, given, globe), origin, w, h, fov, quiet, terrain
+            source,
+            *_dataset_alone(poses, dataset, given, globe),
+            origin,
+            w,
+            h,
+            fov,
+            quiet,
+            terrain,
+            depth_invalid,
         )
         return
     _check_outputs(output, depth)
@@ -891,6 +908,7 @@ def _render_dataset(
     fov: float,
     quiet: bool,
     terrain: TerrainFlags,
+    depth_invalid: str = "inf",
 ) -> None:
     from rich.progress import (
         BarColumn,
@@ -929,6 +947,7 @@ def _render_dataset(
                 out,
                 origin,
                 progress=lambda done, _total: bar.update(task, completed=done),
+                depth_invalid=depth_invalid,
             )
         _mode_notice(scene)
     if not quiet:

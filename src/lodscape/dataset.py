@@ -8,9 +8,14 @@ ellipsoid) and optionally ``heading, pitch, roll`` (degrees, as everywhere in lo
 (vertical, degrees) and ``name`` (the files' stem; default the row number). ``out/`` gets:
 
 - ``images/NAME.png``: RGB.
-- ``depth/NAME.npy``: float32 (H, W), metres along the optical axis (OpenCV's z), inf: sky.
+- ``depth/NAME.npy``: float32 (H, W), metres along the optical axis (OpenCV's z); where no
+  measured surface is (sky, and the no-data ellipsoid drawn where the terrain has none) the
+  ``depth_invalid`` value: ``inf`` by default, ``0`` (Open3D, TUM, ScanNet; nerfstudio masks
+  depth ≤ 0) or ``nan``.
 - ``normals/NAME.npy``: float32 (H, W, 3), unit surface normals in the camera's OpenCV frame
-  (x right, y down, z ahead), facing the camera; 0 where nothing is drawn.
+  (x right, y down, z ahead), facing the camera; 0 where no measured surface is.
+- ``mask/NAME.png``: uint8 (H, W), 255 where a measured surface is drawn, 0 elsewhere (sky,
+  the no-data ellipsoid): nerfstudio's ``mask_path``.
 - ``semantic/NAME.png``: uint8 (H, W) labels, the legend in ``frame.json``
   (``render.labels.LABELS``: sky, terrain, water, building, road, vegetation, street furniture,
   and 255 where the ground is the no-data ellipsoid).
@@ -20,9 +25,12 @@ ellipsoid) and optionally ``heading, pitch, roll`` (degrees, as everywhere in lo
   COLMAP puts pixel centres at half-integers, so cx = W / 2; quaternion w, x, y, z of R).
 - ``transforms.json``: NeRF (instant-ngp / nerfstudio): per frame ``transform_matrix``, the
   camera-to-world matrix in the OpenGL convention (x right, y up, z backwards), and the
-  intrinsics ``fl_x, fl_y, cx, cy, w, h`` (cx = W / 2: rays through pixel centres i + 0.5).
+  intrinsics ``fl_x, fl_y, cx, cy, w, h`` (cx = W / 2: rays through pixel centres i + 0.5);
+  instant-ngp's ``scale`` and ``offset`` (world × scale + offset puts the cameras and the
+  ground they see in its unit cube) and ``aabb_scale`` (a power of two: the far ground seen).
 - ``frame.json``: the world frame: local east-north-up metres from an origin (lon, lat,
-  ellipsoidal height; default the data's centre at height 0), the legend, the conventions.
+  ellipsoidal height; default the data's centre at height 0, or the poses' centre where the
+  data spans more than 10° or has no bounds, as a server may), the legend, the conventions.
 
 The folder is written under a temporary name and renamed when complete: a failure leaves
 nothing.
@@ -50,7 +58,19 @@ from lodscape.geo.frames import enu_basis, geodetic_to_ecef
 from lodscape.lod.camera import Camera
 from lodscape.render.labels import LABELS
 
-__all__ = ["Origin", "Pose", "PoseMatrices", "conventions", "read_poses", "write_dataset"]
+__all__ = [
+    "DEPTH_INVALID",
+    "Origin",
+    "Pose",
+    "PoseMatrices",
+    "conventions",
+    "ngp_box",
+    "read_poses",
+    "write_dataset",
+]
+
+#: What depth holds where no measured surface is: its name in ``--depth-invalid`` and value.
+DEPTH_INVALID = {"inf": np.inf, "0": 0.0, "nan": np.nan}
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 #: OpenGL's view axes (x right, y up, z backwards) to OpenCV's (x right, y down, z ahead).
@@ -211,10 +231,17 @@ def write_dataset(
     out: str | os.PathLike[str],
     origin: Origin | None = None,
     progress: Callable[[int, int], None] | None = None,
+    *,
+    depth_invalid: str = "inf",
 ) -> Origin:
     """Render every pose of ``scene`` (``Scene.capture``) into the folder ``out`` (see the
     module; written under a temporary name, renamed when complete). Returns the origin used.
-    Every pose is checked (under the ground, outside the Earth) before anything is drawn."""
+    Every pose is checked (under the ground, outside the Earth) before anything is drawn.
+    ``depth_invalid``: "inf", "0" or "nan", what depth holds where no surface is measured."""
+    if depth_invalid not in DEPTH_INVALID:
+        raise LodscapeError(
+            f"depth_invalid must be one of {', '.join(DEPTH_INVALID)}, got {depth_invalid!r}"
+        )
 
     target = Path(out).expanduser()
     if target.exists() and (not target.is_dir() or any(target.iterdir())):
@@ -230,22 +257,26 @@ def write_dataset(
         except CameraError as exc:
             raise LodscapeError(f"pose {pose.name}: {exc}") from None
     if origin is None:
-        origin = default_origin(scene)
+        origin = default_origin(scene, [p.camera for p in poses])
     tmp = temp_beside(parent / target.name, kind="partial")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        for sub in ("images", "depth", "normals", "semantic", "cameras", "colmap"):
+        for sub in ("images", "depth", "normals", "semantic", "mask", "cameras", "colmap"):
             (tmp / sub).mkdir(parents=True)
         frames: list[dict[str, Any]] = []
         cameras_txt, images_txt = [], []
+        seen: list[NDArray[np.float64]] = []
         for i, pose in enumerate(poses):
-            camera_line, image_line, frame = _write_pose(tmp, i, pose, scene, origin)
+            camera_line, image_line, frame, points = _write_pose(
+                tmp, i, pose, scene, origin, DEPTH_INVALID[depth_invalid]
+            )
             cameras_txt.append(camera_line)
             images_txt.append(image_line)
             frames.append(frame)
+            seen.append(points)
             if progress is not None:
                 progress(i + 1, len(poses))
-        _write_indexes(tmp, frames, cameras_txt, images_txt, origin)
+        _write_indexes(tmp, frames, cameras_txt, images_txt, origin, seen, depth_invalid)
         if target.exists():
             target.rmdir()  # empty, checked above
         os.replace(tmp, target)
@@ -256,19 +287,38 @@ def write_dataset(
     return origin
 
 
+#: Points of each view's measured surface kept to size instant-ngp's box (a sample).
+_SEEN_POINTS = 4096
+
+
 def _write_pose(
-    tmp: Path, i: int, pose: Pose, scene: Any, origin: Origin
-) -> tuple[str, str, dict[str, Any]]:
-    """Pose ``i`` captured and written (image, depth, normals, labels, its camera's JSON);
-    its lines of COLMAP's cameras.txt and images.txt, and its NeRF frame."""
+    tmp: Path, i: int, pose: Pose, scene: Any, origin: Origin, invalid: float
+) -> tuple[str, str, dict[str, Any], NDArray[np.float64]]:
+    """Pose ``i`` captured and written (image, depth, normals, labels, mask, its camera's
+    JSON); its lines of COLMAP's cameras.txt and images.txt, its NeRF frame, and a sample of
+    the world points it sees (with its centre)."""
     from PIL import Image
+
+    from lodscape.render.labels import NO_DATA, SKY
 
     cap = scene.capture(pose.camera)
     m = conventions(cap.camera, origin)
+    measured = (cap.labels != SKY) & (cap.labels != NO_DATA) & np.isfinite(cap.depth)
+    depth = np.where(measured, cap.depth, np.float32(invalid)).astype(np.float32)
+    normals = np.where(measured[..., None], cap.normals, 0.0).astype(np.float32)
     Image.fromarray(cap.rgb, "RGB").save(tmp / "images" / f"{pose.name}.png")
-    np.save(tmp / "depth" / f"{pose.name}.npy", cap.depth)
-    np.save(tmp / "normals" / f"{pose.name}.npy", cap.normals)
+    np.save(tmp / "depth" / f"{pose.name}.npy", depth)
+    np.save(tmp / "normals" / f"{pose.name}.npy", normals)
     Image.fromarray(cap.labels, "L").save(tmp / "semantic" / f"{pose.name}.png")
+    mask = np.where(measured, 255, 0).astype(np.uint8)
+    Image.fromarray(mask, "L").save(tmp / "mask" / f"{pose.name}.png")
+    # what it sees, in the world frame: x_world = R^T (z K^-1 [u, v, 1] - t)
+    rows, cols = np.nonzero(measured)
+    pick = np.random.default_rng(i).permutation(rows.size)[:_SEEN_POINTS]
+    z = cap.depth[rows[pick], cols[pick]].astype(np.float64)
+    uv1 = np.stack([cols[pick], rows[pick], np.ones(pick.size)]).astype(np.float64)
+    cam = np.linalg.solve(m.K, uv1) * z
+    points = np.vstack([(m.R.T @ (cam - m.t[:, None])).T, m.centre[None, :]])
     c = cap.camera
     (tmp / "cameras" / f"{pose.name}.json").write_text(
         json.dumps(
@@ -297,6 +347,7 @@ def _write_pose(
     frame = {
         "file_path": f"images/{pose.name}.png",
         "depth_file_path": f"depth/{pose.name}.npy",
+        "mask_path": f"mask/{pose.name}.png",
         "semantic_file_path": f"semantic/{pose.name}.png",
         "transform_matrix": m.c2w_gl.tolist(),
         "fl_x": float(fx),
@@ -307,7 +358,7 @@ def _write_pose(
         "h": c.height,
         "camera_angle_x": 2.0 * math.atan(c.width / (2.0 * float(fx))),
     }
-    return camera_line, image_line, frame
+    return camera_line, image_line, frame, points
 
 
 def _write_indexes(
@@ -316,6 +367,8 @@ def _write_indexes(
     cameras_txt: list[str],
     images_txt: list[str],
     origin: Origin,
+    seen: list[NDArray[np.float64]],
+    depth_invalid: str,
 ) -> None:
     """The dataset's indexes: NeRF's transforms.json, COLMAP's text model, and frame.json (the
     world frame, the units and the conventions)."""
@@ -327,6 +380,7 @@ def _write_indexes(
         "k2": 0.0,
         "p1": 0.0,
         "p2": 0.0,
+        **ngp_box(np.vstack(seen)),
         "frames": frames,
     }
     (tmp / "transforms.json").write_text(json.dumps(transforms, indent=1) + "\n")
@@ -349,9 +403,13 @@ def _write_indexes(
                 "origin": {"lon": origin.lon, "lat": origin.lat, "height": origin.height},
                 "height": "ellipsoidal (WGS84), metres",
                 "labels": {str(k): v for k, v in LABELS.items()},
-                "depth": "float32 metres along the optical axis; inf where nothing is drawn",
+                "depth": "float32 metres along the optical axis; "
+                f"{depth_invalid} where no measured surface is (sky, the no-data ellipsoid)",
+                "depth_invalid": depth_invalid,
                 "normals": "float32 unit vectors in the OpenCV camera frame "
-                "(x right, y down, z ahead), facing the camera; 0 where nothing is drawn",
+                "(x right, y down, z ahead), facing the camera; 0 where no measured surface is",
+                "mask": "uint8: 255 where a measured surface is drawn, 0 elsewhere",
+                "instant_ngp": "world * scale + offset in its unit cube (before its axis cycle)",
                 "opencv": "x_cam = R @ x_world + t; pixel centres at whole numbers",
                 "colmap": "PINHOLE; pixel centres at half-integers",
                 "nerf": "transform_matrix: camera to world, OpenGL camera axes",
@@ -368,10 +426,36 @@ def _num(*values: float) -> str:
     return " ".join(repr(float(v)) for v in values)
 
 
-def default_origin(scene: Any) -> Origin:
-    """The data's centre at height 0 (a city without terrain: the city's own origin)."""
+def ngp_box(points: NDArray[np.float64]) -> dict[str, Any]:
+    """instant-ngp's ``scale``, ``offset`` and ``aabb_scale`` for world points (the cameras'
+    centres and samples of what they see): the middle 96 % of them fill its unit cube, world ×
+    scale + offset (before its axis cycle, which keeps the cube); ``aabb_scale``, the power of
+    two (1..128) whose box reaches the farthest of them."""
+    p = np.asarray(points, np.float64)
+    lo, hi = np.percentile(p, 2, axis=0), np.percentile(p, 98, axis=0)
+    centre = (lo + hi) / 2.0
+    scale = 1.0 / max(float((hi - lo).max()) * 1.1, 1e-6)
+    reach = float(np.abs(p - centre).max()) * scale * 2.0  # the box side that holds them all
+    aabb = int(np.clip(2 ** math.ceil(math.log2(max(reach, 1.0))), 1, 128))
+    return {
+        "aabb_scale": aabb,
+        "scale": scale,
+        "offset": (0.5 - centre * scale).tolist(),
+    }
+
+
+def default_origin(scene: Any, cameras: Sequence[Camera] = ()) -> Origin:
+    """The data's centre at height 0 (a city without terrain: the city's own origin); where the
+    data spans more than 10° (a server's whole-world bounds, say) the cameras' centre, so the
+    frame's "up" is up where they look."""
+    from lodscape.geo.frames import ecef_to_geodetic
     from lodscape.geo.tiles import merc_to_lonlat
 
     b = scene.source.bounds_merc
+    (w, e), (s, n) = merc_to_lonlat([b.left, b.right], [b.bottom, b.top])
+    if (e - w > 10.0 or n - s > 10.0) and len(cameras):
+        mean = np.mean([c.position for c in cameras], axis=0)
+        lon, lat, _h = ecef_to_geodetic(mean)
+        return Origin(round(float(lon), 7), round(float(lat), 7), 0.0)
     lon, lat = merc_to_lonlat((b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0)
     return Origin(round(float(lon), 7), round(float(lat), 7), 0.0)
