@@ -118,7 +118,7 @@ def test_gpu_mode_draws_the_cpu_terrain_without_cracks(dem: str) -> None:
                 assert scene.view.previous is not None
                 assert scene.renderer is not None
                 items = [replace(i, skirt=0.0) for i in draw_items(scene.view.previous)]
-                rgb, _ = scene.renderer.draw(cam, items, background=MAGENTA)
+                rgb, _ = scene.on_gl(scene.renderer.draw, cam, items, background=MAGENTA)
                 assert _cracks(rgb) > 0
     # the same terrain: distances within a fraction of a percent, colours within a few levels
     for name in ("down", "oblique", "low", "steep-near"):

@@ -181,3 +181,38 @@ def test_a_scene_without_the_extra_says_what_to_install(scene, monkeypatch) -> N
     monkeypatch.delitem(sys.modules, "lodscape.widget", raising=False)
     with pytest.raises(LodscapeError, match=r"lodscape\[jupyter\]"):
         scene.widget()
+
+
+def test_comm_messages_from_other_threads_draw(scene) -> None:  # type: ignore[no-untyped-def]
+    """ipykernel 7 hands comm messages to the widget on another thread than the cell's that
+    drew the first frame; the scene's GL work goes to its own thread, so every message draws
+    (it raised "a Renderer must be used from the thread that created it" and the view froze,
+    with no error shown). Two threads at once, as a key held while the cell runs on."""
+    import threading
+
+    w = scene.widget(width=160, height=100)
+    first = w.frame
+    errors: list[BaseException] = []
+
+    def send(keys: list[str], n: int) -> None:
+        try:
+            for _ in range(n):
+                w._on_msg(w, {"type": "input", "keys": keys, "dt": 0.05}, [])
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [
+        threading.Thread(target=send, args=(["w"], 4)),
+        threading.Thread(target=send, args=(["ArrowLeft"], 4)),
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert not errors, errors
+    assert w.frame_id == 1 + 8  # the first frame and one per message
+    assert "!" not in w.status
+    assert w.frame != first
+    # and the cell's thread still renders the same scene
+    rgb, _ = scene.render(w.camera)
+    np.testing.assert_array_equal(rgb, w.picture.rgb)

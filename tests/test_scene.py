@@ -74,7 +74,8 @@ def test_cracks_would_show_without_skirts(scene: lodscape.Scene) -> None:
     renderer = scene.renderer
     assert renderer is not None
     items = [replace(item, skirt=0.0) for item in draw_items(sel)]
-    rgb, _ = renderer.draw(cam, items, background=MAGENTA)
+    # on the scene's GL thread, where its renderer lives
+    rgb, _ = scene.on_gl(renderer.draw, cam, items, background=MAGENTA)
     assert _cracks(rgb) > 0
 
 
@@ -149,7 +150,7 @@ def test_no_gl_object_leaks_over_1000_renders(dem: str) -> None:
         renderer = s.renderer
         assert renderer is not None
         counts.append(renderer.live_objects())
-        assert renderer.ctx.error == "GL_NO_ERROR"
+        assert s.on_gl(lambda r=renderer: r.ctx.error) == "GL_NO_ERROR"
     # bounded by the budget: what a lap holds, the next lap holds too
     assert max(counts[750:]) <= max(counts[:500]) + 8
     renderer = s.renderer

@@ -14,10 +14,12 @@ the byte budget cannot keep, never a tile drawn in the last frame.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from os import PathLike
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,6 +49,38 @@ __all__ = ["SKY", "Capture", "FrameStats", "Picture", "Scene", "SceneOptions"]
 
 def _everything(key: int) -> bool:
     return True
+
+
+_T = TypeVar("_T")
+
+
+class GLThread:
+    """One thread that does every GL call of a context: an OpenGL context is current in one
+    thread, and a ``Renderer`` refuses any other. Work handed to it from any thread runs there,
+    one call at a time, its result or its exception handed back; from the thread itself it
+    runs at once. Started on the first call."""
+
+    def __init__(self, name: str = "lodscape-gl") -> None:
+        self._name = name
+        self._lock = threading.Lock()
+        self._pool: ThreadPoolExecutor | None = None
+        self._ident: int | None = None
+
+    def call(self, fn: Callable[..., _T], *args: Any, **kwargs: Any) -> _T:
+        if threading.get_ident() == self._ident:
+            return fn(*args, **kwargs)
+        with self._lock:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix=self._name)
+                self._ident = self._pool.submit(threading.get_ident).result()
+            pool = self._pool
+        return pool.submit(fn, *args, **kwargs).result()
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool, self._ident = self._pool, None, None
+        if pool is not None:
+            pool.shutdown(wait=True)
 
 
 class Scene:
@@ -83,6 +117,8 @@ class Scene:
         self._terrain = TerrainLayer(self.view, self.prepare, self.ground_height)
         self._loop: FrameLoop | None = None
         self._renderer: Renderer | None = None
+        #: The thread that does the GL work of a context of the scene's own.
+        self._gl = GLThread()
         self._loader: Loader | None = None
         #: A context to draw in (a viewer's window) instead of a headless one of its own.
         self._ctx: Any = None
@@ -212,9 +248,10 @@ class Scene:
 
     def drain(self) -> list[NDArray[np.uint8]]:
         """The pictures ``render_behind`` has not returned yet, oldest first."""
-        if self._renderer is None:
+        renderer = self._renderer
+        if renderer is None:
             return []
-        return self._renderer.target.drain()
+        return self.on_gl(renderer.target.drain)
 
     def _render(
         self,
@@ -226,12 +263,42 @@ class Scene:
         before: Sequence[tuple[Layer, Pass]] = (),
         background: tuple[float, float, float] | None = None,
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32] | None]:
-        """One frame through the loop: ``before`` (layer, pass) stages first (the globe's)."""
+        """One frame through the loop: ``before`` (layer, pass) stages first (the globe's). In a
+        context of the scene's own, on its GL thread, whichever thread asks (a notebook's
+        comm messages come on another thread than the cell's)."""
         if not isinstance(camera, Camera):
             raise LodscapeError(
                 f"render: expected a lodscape.Camera, got {type(camera).__name__} "
                 "(lodscape.Camera(lon=…, lat=…, alt=…, heading=…, pitch=…))"
             )
+        return self.on_gl(
+            self._render_here,
+            camera,
+            depth=depth,
+            ring=ring,
+            labels=labels,
+            before=before,
+            background=background,
+        )
+
+    def on_gl(self, fn: Callable[..., _T], *args: Any, **kwargs: Any) -> _T:
+        """``fn(*args, **kwargs)`` where this scene's GL work is done (what touches its
+        ``renderer``): its GL thread for a headless context of its own, the caller's for a
+        window's (the viewer's, a globe's)."""
+        if self._ctx is not None:
+            return fn(*args, **kwargs)
+        return self._gl.call(fn, *args, **kwargs)
+
+    def _render_here(
+        self,
+        camera: Camera,
+        *,
+        depth: bool,
+        ring: int,
+        labels: bool,
+        before: Sequence[tuple[Layer, Pass]],
+        background: tuple[float, float, float] | None,
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.float32] | None]:
         if self._renderer is None:
             self.prepare(camera)  # a camera under the ground is refused before any GL
         renderer = self._renderer_for(camera)
@@ -331,24 +398,35 @@ class Scene:
                 self.heights,
                 packing=options.packing,
             )
-        if self._city_pass is not None:
-            self._city_pass.release()
-            self._city_pass = None
+        self._drop_city_pass()
         self.city = model
         self.city_options = options
         return model
+
+    def _drop_city_pass(self, reset: bool = False) -> None:
+        """The city pass released (made again at the next frame), or only ``reset``, in its
+        renderer's context on the scene's GL thread."""
+        if self._city_pass is None:
+            return
+
+        def drop() -> None:
+            if self._renderer is not None:
+                self._renderer._use()
+            if reset:
+                self._city_pass.reset()
+            else:
+                self._city_pass.release()
+                self._city_pass = None
+
+        self.on_gl(drop)
 
     def set_city_options(self, options: Any) -> None:
         """Change how the city is drawn (``CityOptions``); occlusion culling starts afresh."""
         old = self.city_options
         rebuild = old is not None and options.buffers != old.buffers
         self.city_options = options
-        if self._city_pass is not None and rebuild:
-            # the buffers' path is made with the pass: made again at the next frame
-            self._city_pass.release()
-            self._city_pass = None
-        elif self._city_pass is not None:
-            self._city_pass.reset()
+        # the buffers' path is made with the pass: made again at the next frame
+        self._drop_city_pass(reset=not rebuild)
 
     def heights(self, lon: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
         """Ground heights at many points (NaN outside the data)."""
@@ -457,15 +535,22 @@ class Scene:
             self._loader.close()
             self._loader = None
         if self._renderer is not None:
-            if self._city_pass is not None:
-                self._renderer._use()
-                self._city_pass.release()
-                self._city_pass = None
-            self._renderer.close()
-            self._renderer = None
+            self.on_gl(self._release_gl)
+        self._gl.close()
         if self._owns:
             self.provider.close()
             self._owns = False
+
+    def _release_gl(self) -> None:
+        renderer = self._renderer
+        if renderer is None:
+            return
+        if self._city_pass is not None:
+            renderer._use()
+            self._city_pass.release()
+            self._city_pass = None
+        renderer.close()
+        self._renderer = None
 
     def __enter__(self) -> Scene:
         return self

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import io
 import math
+import threading
 from collections.abc import Iterable
 from typing import Any
 
@@ -130,6 +131,8 @@ class SceneWidget(anywidget.AnyWidget):  # type: ignore[misc]
         self.picture: Any = None
         ground = scene.ground_height(self._camera.lon, self._camera.lat)
         self.speed = max(self._camera.alt - (ground if ground is not None else 0.0), 20.0)
+        #: One input (or draw) at a time, whichever thread a message comes on.
+        self._lock = threading.RLock()
         self.on_msg(self._on_msg)
         self.draw()
 
@@ -154,14 +157,22 @@ class SceneWidget(anywidget.AnyWidget):  # type: ignore[misc]
         names: "w", "ArrowLeft"…), a drag of (dx, dy) pixels, ``wheel`` notches; then draw."""
         if not 0.0 <= dt <= 10.0:
             raise ValueError(f"Expected 0 <= dt <= 10 seconds, got {dt}")
-        self.speed = faster(self.speed, wheel)
-        cam = look(self._camera, dx, dy) if dx or dy else self._camera
-        self._camera = fly_step(cam, Motion.of_keys(keys), self.speed, dt, self.scene.ground_height)
-        self.draw()
-        return self._camera
+        with self._lock:
+            self.speed = faster(self.speed, wheel)
+            cam = look(self._camera, dx, dy) if dx or dy else self._camera
+            self._camera = fly_step(
+                cam, Motion.of_keys(keys), self.speed, dt, self.scene.ground_height
+            )
+            self.draw()
+            return self._camera
 
     def draw(self) -> None:
-        """Render the camera and send the picture (and the status line) to the browser."""
+        """Render the camera and send the picture (and the status line) to the browser (the
+        scene's GL work on its own thread: any thread may call this)."""
+        with self._lock:
+            self._draw()
+
+    def _draw(self) -> None:
         from PIL import Image
 
         message = ""
