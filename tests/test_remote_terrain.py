@@ -597,3 +597,34 @@ def test_a_terrain_layer_is_known_by_what_it_answers_not_its_path(tmp_path: Path
         assert abs(g[0] - float(_height(np.array(8.0), np.array(46.0)))) < 30.0
     finally:
         server.close()
+
+
+@pytest.mark.parametrize("tiling", ["mercator", "geographic"])
+def test_heights_over_a_server_are_not_biased(site: Path, tiling: str) -> None:
+    """Heights read over ``lodscape serve`` at the data's levels scatter around the tileset's
+    own finest surface with no bias (a +5..+9 m bias was reported against the DEM: it is not
+    in what the server gives or how it is read); coarser levels scatter more. (Above the
+    data's roots the server gives Cesium's filler tiles of the ellipsoid, height 0, as
+    CesiumJS draws them: a view far enough to ask for those levels draws the ellipsoid.)"""
+    from lodscape.store.tileset import TilesetProvider
+
+    provider = TilesetProvider(site)
+    b = provider.bounds_merc
+    rng = np.random.default_rng(6)
+    xm = rng.uniform(b.left + 0.1 * (b.right - b.left), b.right - 0.1 * (b.right - b.left), 2000)
+    ym = rng.uniform(b.bottom + 0.1 * (b.top - b.bottom), b.top - 0.1 * (b.top - b.bottom), 2000)
+    want = provider.heights(*merc_to_lonlat(xm, ym))
+    provider.close()
+    spread = []
+    with serve_tileset(site, tiling=tiling) as url:
+        heights, _tree = open_server(url + "/layer.json")
+        try:
+            for spacing in (heights.resolution_merc, 20.0, 40.0):
+                h, ok = heights.sample(xm, ym, spacing)
+                assert ok.all()
+                d = h - want
+                assert abs(float(np.mean(d))) < 0.5, (spacing, float(np.mean(d)))
+                spread.append(float(np.percentile(np.abs(d), 95)))
+        finally:
+            heights.close()
+    assert spread[0] <= spread[-1]
