@@ -377,7 +377,8 @@ def fly_step(
     ground_height: Any = None,
 ) -> Camera:
     """The camera after ``dt`` seconds of ``motion`` at ``speed`` m/s (turning 60°/s, tilting
-    40°/s), kept 2 m above ``ground_height(lon, lat)`` where that gives a height."""
+    40°/s), kept 2 m above ``ground_height(lon, lat)``, or above the ellipsoid where that
+    gives none."""
     c = camera
     h, p = math.radians(c.heading), math.radians(c.pitch)
     fwd = np.array([math.sin(h) * math.cos(p), math.cos(h) * math.cos(p), math.sin(p)])
@@ -390,9 +391,11 @@ def fly_step(
     lon = c.lon + math.degrees(step[0] / (6_371_000.0 * max(math.cos(math.radians(c.lat)), 1e-6)))
     lat = float(np.clip(lat, -85.0, 85.0))
     alt = c.alt + step[2]
-    g = ground_height(lon, lat) if ground_height is not None else None
-    if g is not None:
-        alt = max(alt, g + 2.0)
+    if ground_height is not None:
+        # outside the data the ellipsoid is drawn: kept above it too (a held key flew the
+        # notebook's view 27 km under it)
+        g = ground_height(lon, lat)
+        alt = max(alt, (0.0 if g is None else g) + 2.0)
     return c.moved(
         lon=(lon + 180.0) % 360.0 - 180.0,
         lat=lat,
