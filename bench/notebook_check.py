@@ -41,7 +41,8 @@ const { chromium } = require(process.argv[2] + "/playwright-core");
   const img = await page.waitForSelector("img.lodscape-view[src]", { timeout: 180000 })
     .catch(async (e) => {
       await page.screenshot({ path: process.argv[5] });
-      const out = await page.$$eval(".jp-OutputArea-output", (els) => els.map((x) => x.textContent));
+      const out = await page.$$eval(".jp-OutputArea-output",
+                                    (els) => els.map((x) => x.textContent));
       console.log(JSON.stringify({ failed: String(e), outputs: out, errors }));
       throw e;
     });
