@@ -22,11 +22,12 @@ from numpy.typing import ArrayLike, NDArray
 from lodscape.geo.frames import WGS84_A
 from lodscape.geo.tiles import ORIGIN, Bbox, Tile, bounds, merc_to_lonlat, xy_bounds
 from lodscape.imagery import TintImagery
+from lodscape.imagery.pyramid import halve_rgba
 from lodscape.imagery.sources import ImageryError
 from lodscape.store.quantized_mesh import QUANTIZED_MAX, decode, encode, quantize
 from lodscape.store.tileset import TIN_GRID, TileRecord
 from lodscape.terrain.greedy import barycentric, greedy_mesh, tin_sample_errors
-from lodscape.terrain.mesh import grid_coordinates, vertex_normals
+from lodscape.terrain.mesh import grid_coordinates, vertex_normals, without_holes
 from lodscape.terrain.rtin import Rtin
 from lodscape.terrain.source import FilledSource, HeightSource, open_rasters, parse_fill
 
@@ -263,13 +264,10 @@ def _surface_tile(
         # so the mesh's rim follows the data's within a cell; then triangles touching a point
         # without data are left out, and the vertices only they used
         rtin, verts, tris = _mesh(job, np.where(valid, heights, heights + _RIM), budget)
-        keep = valid[verts[:, 1], verts[:, 0]][tris].all(axis=1)
-        if not keep.any():
+        kept = without_holes(verts, tris, valid)
+        if kept is None:
             return None
-        used = np.unique(tris[keep])
-        renumber = np.full(len(verts), -1, np.int64)
-        renumber[used] = np.arange(used.size)
-        verts, tris = verts[used], renumber[tris[keep]].astype(np.int32)
+        verts, tris = kept
     else:
         rtin, verts, tris = _mesh(job, heights, budget)
     vh = heights[verts[:, 1], verts[:, 0]].astype(np.float64)
@@ -596,18 +594,7 @@ def _downsample(images: Sequence[bytes | None], size: int) -> bytes | None:
             raise ValueError(f"a child's imagery is {img.shape[1]}×{img.shape[0]}, not {size}")
         dx, dy = i & 1, i >> 1
         big[dy * size : (dy + 1) * size, dx * size : (dx + 1) * size] = img
-    a = big[..., 3:4] / 255.0
-    pm = big[..., :3] * a
-
-    def quad(v: NDArray[np.float64]) -> NDArray[np.float64]:
-        out: NDArray[np.float64] = v[0::2, 0::2] + v[1::2, 0::2] + v[0::2, 1::2] + v[1::2, 1::2]
-        return out
-
-    asum = quad(a)
-    rgb = np.where(asum > 0.0, quad(pm) / np.maximum(asum, 1e-12), quad(big[..., :3]) / 4.0)
-    alpha = asum / 4.0 * 255.0
-    out = np.dstack([rgb, alpha])
-    return _png(np.floor(np.clip(out, 0.0, 255.0) + 0.5).astype(np.uint8))
+    return _png(halve_rgba(big))
 
 
 def _mesh(

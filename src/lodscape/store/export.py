@@ -26,11 +26,11 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
 
 from lodscape._tmp import temp_beside
 from lodscape.geo.frames import up_vector
 from lodscape.geo.tiles import Bbox, Tile, bounds, lonlat_to_merc, merc_to_lonlat, tiles_array
+from lodscape.imagery.pyramid import halve_rgba
 from lodscape.store.geographic import TILINGS, available_tiles, geographic_tile
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import encode, ungzip
@@ -386,7 +386,7 @@ class ImageryTiles:
 
 def _overview(children: Sequence[bytes | None], size: int) -> bytes:
     """A tile from its four children's PNGs (west-north, east-north, west-south, east-south;
-    None: transparent): each texel the alpha-weighted mean of the four beneath it."""
+    None: transparent), halved (``imagery.pyramid.halve_rgba``)."""
     from PIL import Image
 
     big = np.zeros((2 * size, 2 * size, 4), np.float64)
@@ -398,18 +398,8 @@ def _overview(children: Sequence[bytes | None], size: int) -> bytes:
             img = img.resize((size, size), Image.Resampling.BILINEAR)
         dx, dy = i % 2, i // 2
         big[dy * size : (dy + 1) * size, dx * size : (dx + 1) * size] = np.asarray(img)
-    a = big[..., 3:4] / 255.0
-    rgb = big[..., :3] * a
-
-    def quad(v: NDArray[np.float64]) -> NDArray[np.float64]:
-        out: NDArray[np.float64] = v[0::2, 0::2] + v[1::2, 0::2] + v[0::2, 1::2] + v[1::2, 1::2]
-        return out
-
-    asum = quad(a)
-    colour = quad(rgb) / np.maximum(asum, 1e-12)
-    out = np.dstack([colour, asum / 4.0 * 255.0])
     buf = io.BytesIO()
-    rgba = np.floor(np.clip(out, 0.0, 255.0) + 0.5).astype(np.uint8)
+    rgba = halve_rgba(big)
     Image.fromarray(rgba, "RGBA").save(buf, "PNG", compress_level=6)
     return buf.getvalue()
 

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from lodscape.geo.frames import up_vector
 from lodscape.geo.tiles import ORIGIN, lonlat_to_merc, merc_to_lonlat, tiles_array
 from lodscape.store.quantized_mesh import encode
-from lodscape.terrain.mesh import grid_indices, vertex_normals
+from lodscape.terrain.mesh import grid_indices, vertex_normals, without_holes
 from lodscape.terrain.rtin import Rtin
 
 __all__ = [
@@ -123,16 +123,10 @@ def geographic_tile(provider: Any, z: int, x: int, tms: int, zmax: int) -> bytes
         rtin = Rtin(h)
         verts, tris = rtin.mesh(error)
     else:
-        # a triangle over data and hole has a huge error: it splits down to the grid, so the
-        # mesh's rim follows the data's within a cell; then triangles touching the hole go
-        verts, tris = Rtin(np.where(valid, h, _RIM)).mesh(error)
-        keep = valid[verts[:, 1], verts[:, 0]][tris].all(axis=1)
-        if not keep.any():
+        kept = without_holes(*Rtin(np.where(valid, h, _RIM)).mesh(error), valid)
+        if kept is None:
             return None
-        used = np.unique(tris[keep])
-        renumber = np.full(len(verts), -1, np.int64)
-        renumber[used] = np.arange(used.size)
-        verts, tris = verts[used], renumber[tris[keep]].astype(np.int32)
+        verts, tris = kept
     vlon, vlat = lon_col[verts[:, 0]], lat_row[verts[:, 1]]
     vh = h[verts[:, 1], verts[:, 0]].astype(np.float64)
     normals = vertex_normals(vlon, vlat, vh, tris)

@@ -32,6 +32,7 @@ __all__ = [
     "ring_indices",
     "tin_mesh",
     "vertex_normals",
+    "without_holes",
 ]
 
 #: Segment counts a tile grid may have, coarsest first (grid k has 16·2^k segments). Finer detail
@@ -302,3 +303,23 @@ def vertex_normals(
     norm = np.linalg.norm(n, axis=1, keepdims=True)
     out: NDArray[np.float64] = n / np.where(norm > 0.0, norm, 1.0)
     return out
+
+
+def without_holes(
+    verts: NDArray[np.integer], tris: NDArray[np.integer], valid: NDArray[np.bool_]
+) -> tuple[NDArray[np.int32], NDArray[np.int32]] | None:
+    """A grid mesh (vertices as (column, row)) without the triangles that touch a grid point
+    without data (``valid`` False) nor the vertices only they used, renumbered; None where no
+    triangle is left. Meshed with the holes raised far up, a triangle over data and hole has a
+    huge error and splits down to the grid, so what is left follows the data's rim within a
+    cell."""
+    keep = valid[verts[:, 1], verts[:, 0]][tris].all(axis=1)
+    if not keep.any():
+        return None
+    used = np.unique(tris[keep])
+    renumber = np.full(len(verts), -1, np.int64)
+    renumber[used] = np.arange(used.size)
+    return (
+        np.asarray(verts[used], np.int32),
+        renumber[tris[keep]].astype(np.int32),
+    )
