@@ -7,7 +7,7 @@ from __future__ import annotations
 import io
 import math
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
@@ -154,10 +154,11 @@ def _terrarium_png(z: int, x: int, y: int) -> bytes | None:
     return buf.getvalue()
 
 
-class _Terrarium:
-    """PNG height tiles on loopback; ``fail`` answers 500 to every tile."""
+class _PngServer:
+    """PNG height tiles on loopback: ``answer(path parts)`` gives a tile's bytes (None: 404; a
+    part that is not a number: 400); ``fail`` answers 500 to every tile."""
 
-    def __init__(self) -> None:
+    def __init__(self, answer: Callable[[list[str]], bytes | None]) -> None:
         self.fail = False
         self.requests = 0
         owner = self
@@ -168,16 +169,14 @@ class _Terrarium:
 
             def do_GET(self) -> None:
                 owner.requests += 1
-                parts = self.path.strip("/").split("/")
                 try:
-                    z, x, y = int(parts[-3]), int(parts[-2]), int(parts[-1].split(".")[0])
+                    body = answer(self.path.strip("/").split("/"))
                 except (ValueError, IndexError):
                     self.send_error(400)
                     return
                 if owner.fail:
                     self.send_error(500)
                     return
-                body = _terrarium_png(z, x, y) if z <= MAXZOOM else None
                 if body is None:
                     self.send_error(404)
                     return
@@ -196,15 +195,21 @@ class _Terrarium:
         self.httpd.server_close()
 
 
+def _zxy(parts: list[str]) -> bytes | None:
+    """…/{z}/{x}/{y}.png: the analytic terrain as Terrarium tiles, to MAXZOOM."""
+    z, x, y = int(parts[-3]), int(parts[-2]), int(parts[-1].split(".")[0])
+    return _terrarium_png(z, x, y) if z <= MAXZOOM else None
+
+
 @pytest.fixture
-def terrarium() -> Iterator[_Terrarium]:
-    server = _Terrarium()
+def terrarium() -> Iterator[_PngServer]:
+    server = _PngServer(_zxy)
     yield server
     server.close()
 
 
 def test_terrarium_heights_are_the_servers(
-    terrarium: _Terrarium, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    terrarium: _PngServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     spec = f"terrarium:{MAXZOOM}:{terrarium.url}/{{z}}/{{x}}/{{y}}.png"
     heights, tree = open_server(spec, cache_dir=tmp_path)
@@ -232,7 +237,7 @@ def test_terrarium_heights_are_the_servers(
         heights.close()
 
 
-def test_terrarium_renders_with_no_local_data(terrarium: _Terrarium, tmp_path: Path) -> None:
+def test_terrarium_renders_with_no_local_data(terrarium: _PngServer, tmp_path: Path) -> None:
     spec = f"terrarium:{MAXZOOM}:{terrarium.url}/{{z}}/{{x}}/{{y}}.png"
     g = float(_height(np.array(8.0), np.array(45.99)))
     cam = lodscape.Camera(8.0, 45.99, g + 1500.0, heading=0.0, pitch=-35.0, width=320, height=200)
@@ -254,7 +259,7 @@ def test_terrarium_renders_with_no_local_data(terrarium: _Terrarium, tmp_path: P
 
 
 def test_a_failing_terrain_server_is_one_line(
-    terrarium: _Terrarium, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    terrarium: _PngServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     terrarium.fail = True
     spec = f"terrarium:{MAXZOOM}:{terrarium.url}/{{z}}/{{x}}/{{y}}.png"
@@ -416,44 +421,16 @@ def _encoded(kind: str, side: int, border: int, z: int, x: int, y: int) -> bytes
     return buf.getvalue()
 
 
-class _SizedServer:
-    """PNG height tiles of one size on loopback: /{kind}/{side}/{border}/{z}/{x}/{y}.png."""
-
-    def __init__(self) -> None:
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args: object) -> None:
-                pass
-
-            def do_GET(self) -> None:
-                parts = self.path.strip("/").split("/")
-                try:
-                    kind, side, border = parts[0], int(parts[1]), int(parts[2])
-                    z, x, y = int(parts[3]), int(parts[4]), int(parts[5].split(".")[0])
-                except (ValueError, IndexError):
-                    self.send_error(400)
-                    return
-                body = _encoded(kind, side, border, z, x, y) if z <= MAXZOOM else None
-                if body is None:
-                    self.send_error(404)
-                    return
-                self.send_response(200)
-                self.send_header("Content-Type", "image/png")
-                self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                self.wfile.write(body)
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
-        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
-
-    def close(self) -> None:
-        self.httpd.shutdown()
-        self.httpd.server_close()
+def _sized(parts: list[str]) -> bytes | None:
+    """/{kind}/{side}/{border}/{z}/{x}/{y}.png: ``_encoded``'s tiles, to MAXZOOM."""
+    kind, side, border = parts[0], int(parts[1]), int(parts[2])
+    z, x, y = int(parts[3]), int(parts[4]), int(parts[5].split(".")[0])
+    return _encoded(kind, side, border, z, x, y) if z <= MAXZOOM else None
 
 
 @pytest.fixture(scope="module")
-def sized() -> Iterator[_SizedServer]:
-    server = _SizedServer()
+def sized() -> Iterator[_PngServer]:
+    server = _PngServer(_sized)
     yield server
     server.close()
 
@@ -469,7 +446,7 @@ def sized() -> Iterator[_SizedServer]:
     ],
 )
 def test_height_tiles_of_any_square_size_are_read_whole(
-    sized: _SizedServer, tmp_path: Path, kind: str, side: int, border: int
+    sized: _PngServer, tmp_path: Path, kind: str, side: int, border: int
 ) -> None:
     """rio-rgbify, MapTiler and Mapbox's @2x tiles are 512 pixels; some carry a border of
     their neighbours' pixels. Every size is read from the image: heights right everywhere
@@ -500,7 +477,7 @@ def test_height_tiles_of_any_square_size_are_read_whole(
 
 @pytest.mark.parametrize(("side", "border"), [(300, 0), (257, 0)])
 def test_a_height_tile_of_another_shape_is_refused_in_one_line(
-    sized: _SizedServer, tmp_path: Path, side: int, border: int
+    sized: _PngServer, tmp_path: Path, side: int, border: int
 ) -> None:
     from lodscape.imagery.sources import ImageryError
 

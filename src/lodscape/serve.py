@@ -483,34 +483,56 @@ def maplibre_source(maplibre_js: str | None) -> tuple[str, Path | None]:
     """``--maplibre-js`` as the MapLibre page's script base and the local folder to serve it
     from (None: a URL): a folder must hold ``maplibre-gl.mjs`` and ``maplibre-gl.css`` (the npm
     package's ``dist``, version 6 or later: an ES module)."""
-    if maplibre_js is None:
-        return MAPLIBRE_JS, None
-    if maplibre_js.startswith(("http://", "https://", "//")):
-        return maplibre_js if maplibre_js.endswith("/") else maplibre_js + "/", None
-    folder = Path(maplibre_js)
-    if not (folder / "maplibre-gl.mjs").is_file() or not (folder / "maplibre-gl.css").is_file():
-        raise LodscapeError(
-            f"--maplibre-js {maplibre_js}: not MapLibre GL JS's build (a folder holding "
-            "maplibre-gl.mjs and maplibre-gl.css, e.g. node_modules/maplibre-gl/dist) nor an "
-            "http(s) URL"
-        )
-    return "maplibre-js/", folder.resolve()
+    return _script_source(
+        "--maplibre-js",
+        maplibre_js,
+        MAPLIBRE_JS,
+        "maplibre-js/",
+        ("maplibre-gl.mjs", "maplibre-gl.css"),
+        "MapLibre GL JS's build",
+        "node_modules/maplibre-gl/dist",
+    )
 
 
 def viewer_source(viewer_js: str | None) -> tuple[str, Path | None]:
     """``--viewer-js`` as the page's script base and the local folder to serve it from (None:
     a URL): a folder must hold CesiumJS's build (``Cesium.js``, ``Widgets/``)."""
-    if viewer_js is None:
-        return VIEWER_JS, None
-    if viewer_js.startswith(("http://", "https://", "//")):
-        return viewer_js if viewer_js.endswith("/") else viewer_js + "/", None
-    folder = Path(viewer_js)
-    if not (folder / "Cesium.js").is_file() or not (folder / "Widgets").is_dir():
-        raise LodscapeError(
-            f"--viewer-js {viewer_js}: not CesiumJS's build (a folder holding Cesium.js and "
-            "Widgets/, e.g. node_modules/cesium/Build/Cesium) nor an http(s) URL"
-        )
-    return "viewer-js/", folder.resolve()
+    return _script_source(
+        "--viewer-js",
+        viewer_js,
+        VIEWER_JS,
+        "viewer-js/",
+        ("Cesium.js", "Widgets/"),
+        "CesiumJS's build",
+        "node_modules/cesium/Build/Cesium",
+    )
+
+
+def _script_source(
+    flag: str,
+    given: str | None,
+    default: str,
+    route: str,
+    needed: tuple[str, ...],
+    what: str,
+    example: str,
+) -> tuple[str, Path | None]:
+    """A page's script base (``default`` when not ``given``; a URL as given, ending in ``/``)
+    and the local folder to serve under ``route`` (None: a URL); a folder must hold ``needed``
+    (names ending in ``/`` are folders), else a one-line error naming ``flag``."""
+    if given is None:
+        return default, None
+    if given.startswith(("http://", "https://", "//")):
+        return given if given.endswith("/") else given + "/", None
+    folder = Path(given)
+    for name in needed:
+        there = folder / name.rstrip("/")
+        if not (there.is_dir() if name.endswith("/") else there.is_file()):
+            raise LodscapeError(
+                f"{flag} {given}: not {what} (a folder holding {' and '.join(needed)}, e.g. "
+                f"{example}) nor an http(s) URL"
+            )
+    return route, folder.resolve()
 
 
 def make_app(

@@ -35,6 +35,7 @@ __all__ = [
     "tile_from_id_array",
     "tile_id",
     "tile_id_array",
+    "tile_range",
     "tile_size",
     "tiles_array",
     "xy_bounds",
@@ -240,6 +241,13 @@ def tiles_array(
     tx = np.floor((np.asarray(xm, dtype=np.float64) + ORIGIN) / size).astype(np.int64)
     ty = np.floor((ORIGIN - np.asarray(ym, dtype=np.float64)) / size).astype(np.int64)
     return np.clip(tx, 0, n - 1), np.clip(ty, 0, n - 1)
+
+
+def tile_range(box: Bbox, z: int) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The first and last column, and first and last row (OSM), of level ``z`` that the Web
+    Mercator box touches (clamped to the square)."""
+    tx, ty = tiles_array([box.left, box.right], [box.top, box.bottom], z)
+    return (int(tx[0]), int(tx[1])), (int(ty[0]), int(ty[1]))
 
 
 def parent_array(

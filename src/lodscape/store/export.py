@@ -29,8 +29,9 @@ import numpy as np
 
 from lodscape._tmp import temp_beside
 from lodscape.geo.frames import up_vector
-from lodscape.geo.tiles import Bbox, Tile, bounds, lonlat_to_merc, merc_to_lonlat, tiles_array
+from lodscape.geo.tiles import Bbox, Tile, bounds, lonlat_to_merc, merc_to_lonlat, tile_range
 from lodscape.imagery.pyramid import halve_rgba
+from lodscape.store.city_tiles import city_tiles
 from lodscape.store.geographic import TILINGS, available_tiles, geographic_tile
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.quantized_mesh import encode, ungzip
@@ -41,7 +42,6 @@ __all__ = [
     "ImageryTiles",
     "Mapper",
     "cesium_layer",
-    "city_3dtiles",
     "ellipsoid_tile",
     "empty_png",
     "export_cesium",
@@ -136,12 +136,12 @@ def export_cesium(
         (tmp / "imagery.json").write_text(json.dumps(tilejson, indent=1))
         provider = TilesetProvider(tileset)
         try:
-            made = city_3dtiles(provider)
+            made = city_tiles(provider)  # as city add made and stored them
         finally:
             provider.close()
         if made is not None:
             (tmp / "3dtiles").mkdir()
-            (tmp / "3dtiles" / "tileset.json").write_text(json.dumps(made[0]))
+            (tmp / "3dtiles" / "tileset.json").write_bytes(made[0])
             for i, glb in enumerate(made[1]):
                 (tmp / "3dtiles" / f"{i}.glb").write_bytes(glb)
         if target.exists():
@@ -297,12 +297,12 @@ def imagery_range(db: sqlite3.Connection) -> tuple[int, int, tuple[float, float,
 def _range_at(
     box: tuple[float, float, float, float], z: int
 ) -> tuple[tuple[int, int], tuple[int, int]]:
-    """The columns and rows (OSM) of level z that the box touches, first and last."""
+    """The columns and rows (OSM) of level z that the (west, south, east, north) box touches,
+    first and last."""
     w, s, e, n = box
     edge = 85.05112878
-    xm, ym = lonlat_to_merc([w, e], [min(n, edge), max(s, -edge)])
-    tx, ty = tiles_array(xm, ym, z)
-    return (int(tx[0]), int(tx[1])), (int(ty[0]), int(ty[1]))
+    (x0, x1), (y0, y1) = lonlat_to_merc([w, e], [max(s, -edge), min(n, edge)])
+    return tile_range(Bbox(float(x0), float(y0), float(x1), float(y1)), z)
 
 
 class ImageryTiles:
@@ -433,17 +433,6 @@ def imagery_tilejson(db: sqlite3.Connection, name: str, tiles: str) -> dict[str,
         "bounds": [w, s, e, n],
         "center": [(w + e) / 2.0, (s + n) / 2.0, lo],
     }
-
-
-def city_3dtiles(provider: TilesetProvider) -> tuple[dict[str, Any], list[bytes]] | None:
-    """(tileset.json, glb contents) of the cities a tileset stores, standing on its ground (as
-    ``city add`` made and stored them); None without a city."""
-    from lodscape.store.city_tiles import city_tiles
-
-    made = city_tiles(provider)
-    if made is None:
-        return None
-    return json.loads(made[0]), made[1]
 
 
 def cesium_layer(

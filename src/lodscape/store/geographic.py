@@ -23,7 +23,6 @@ from collections import defaultdict
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from lodscape.geo.frames import up_vector
 from lodscape.geo.tiles import ORIGIN, lonlat_to_merc, merc_to_lonlat, tiles_array
@@ -87,8 +86,15 @@ def available_tiles(db: sqlite3.Connection) -> dict[int, set[tuple[int, int]]]:
         first = np.clip(np.floor((south + 90.0) / span), 0, top).astype(np.int64)
         # a tile whose north edge is a row's south edge does not reach into that row
         last = np.clip(np.ceil((north + 90.0) / span) - 1, 0, top).astype(np.int64)
-        for z, x, a, b in zip(zg.tolist(), xm.tolist(), first.tolist(), last.tolist(), strict=True):
-            out[z].update((x, r) for r in range(a, b + 1))
+        # every row each tile reaches (at most two: a Mercator tile is never taller in
+        # latitude than its geographic column is wide), then the distinct tiles per level
+        count = last - first + 1
+        at = np.repeat(np.arange(len(first)), count)
+        rows_of = first[at] + np.arange(at.size) - np.repeat(np.cumsum(count) - count, count)
+        tiles = np.unique(np.stack([zg[at], xm[at], rows_of], axis=1), axis=0)
+        for z in np.unique(tiles[:, 0]).tolist():
+            level = tiles[tiles[:, 0] == z]
+            out[z] = set(zip(level[:, 1].tolist(), level[:, 2].tolist(), strict=True))
     out[0].update({(0, 0), (1, 0)})
     for z in range(max(out), 0, -1):
         out[z - 1].update((x >> 1, r >> 1) for x, r in out.get(z, ()))
@@ -146,9 +152,3 @@ def _recorded_error(provider: Any, zm: int, w: float, s: float, e: float, n: flo
         if found is not None:
             return float(found)
     return 0.0
-
-
-def tiles_of(available: dict[int, set[tuple[int, int]]]) -> NDArray[np.int64]:
-    """(z, x, TMS row) of every available tile, as rows of an array."""
-    rows = [(z, x, r) for z, tiles in available.items() for x, r in tiles]
-    return np.array(sorted(rows), np.int64).reshape(-1, 3)

@@ -39,7 +39,7 @@ from pmtiles.tile import (
 
 from lodscape._tmp import temp_beside
 from lodscape.errors import LodscapeError
-from lodscape.geo.tiles import ORIGIN, Tile, merc_to_lonlat, xy_bounds
+from lodscape.geo.tiles import Tile, merc_to_lonlat, tile_range, xy_bounds
 from lodscape.store.export import ImageryTiles
 from lodscape.store.manifest import connect_readonly
 from lodscape.store.tileset import TilesetError, TilesetProvider
@@ -154,13 +154,7 @@ class TerrariumTiles:
         self.bounds = (float(w), float(s), float(e), float(n))
 
     def _range(self, z: int) -> tuple[int, int, int, int]:
-        b = self.provider.bounds_merc
-        size = 2.0 * ORIGIN / (1 << z)
-        top = (1 << z) - 1
-        x0 = min(max(int((b.left + ORIGIN) // size), 0), top)
-        x1 = min(max(int(np.ceil((b.right + ORIGIN) / size)) - 1, x0), top)
-        y0 = min(max(int((ORIGIN - b.top) // size), 0), top)
-        y1 = min(max(int(np.ceil((ORIGIN - b.bottom) / size)) - 1, y0), top)
+        (x0, x1), (y0, y1) = tile_range(self.provider.bounds_merc, z)
         return x0, x1, y0, y1
 
     def keys(self) -> list[tuple[int, int, int]]:
