@@ -96,3 +96,53 @@ def test_invalid_cameras_are_named(kwargs: dict[str, float], message: str) -> No
     base: dict[str, float] = {"lon": 0.0, "lat": 0.0, "alt": 100.0}
     with pytest.raises(CameraError, match=message):
         Camera(**{**base, **kwargs})  # type: ignore[arg-type]
+
+
+def test_box_scales_bound_the_projection_everywhere_in_the_box() -> None:
+    """A metre up (or along the ground, any direction) anywhere in a box that is on screen
+    moves its image no more than ``box_scales`` says, measured by projecting both ends."""
+    rng = np.random.default_rng(4)
+    worst_v = worst_g = 0.0
+    for _ in range(60):
+        cam = Camera(
+            -84.0, 36.5, float(rng.uniform(200, 5000)), heading=float(rng.uniform(0, 360)),
+            pitch=float(rng.uniform(-90, -5)), width=640, height=360,
+        ).with_clip(1.0, 1e6)  # fmt: skip
+        # a box on the ground somewhere ahead
+        ahead = cam.position + cam.forward * rng.uniform(300, 6000)
+        lon, lat, _ = ecef_to_geodetic(ahead)
+        basis = enu_basis(float(lon), float(lat))
+        centre = geodetic_to_ecef(float(lon), float(lat), 0.0) - cam.position
+        half = np.array([rng.uniform(20, 800), rng.uniform(20, 800), rng.uniform(1, 200)])
+        pick = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)]) * 2 - 1
+        corners = centre + (pick * half) @ basis
+        v, g = cam.box_scales(
+            corners[None], basis[2][None], basis[0][None], basis[1][None], [0.0], [0.0]
+        )
+        inner = centre + (rng.uniform(-1, 1, (400, 3)) * half) @ basis
+
+        def image(p: np.ndarray, cam: Camera = cam) -> np.ndarray:
+            q = p @ cam.rotation.T
+            out: np.ndarray = cam.scale * q[:, :2] / -q[:, 2:3]
+            return out
+
+        q = inner @ cam.rotation.T
+        ty = math.tan(math.radians(cam.fov_y) / 2)
+        seen = (-q[:, 2] > 1.0) & (np.abs(q[:, 0] / -q[:, 2]) <= ty * cam.aspect)
+        seen &= np.abs(q[:, 1] / -q[:, 2]) <= ty
+        if not seen.any():
+            continue
+        p = inner[seen]
+        step = 1e-3
+        up = np.linalg.norm(image(p + step * basis[2]) - image(p), axis=1) / step
+        turns = np.linspace(0, np.pi, 16)
+        along = max(
+            float(np.max(np.linalg.norm(image(p + step * d) - image(p), axis=1) / step))
+            for d in np.cos(turns)[:, None] * basis[0] + np.sin(turns)[:, None] * basis[1]
+        )
+        assert up.max() <= v[0] * (1 + 1e-6)
+        assert along <= g[0] * (1 + 1e-6)
+        worst_v, worst_g = max(worst_v, up.max() / v[0]), max(worst_g, along / g[0])
+    # and it is attained: some box comes close to its bound
+    assert worst_v > 0.8
+    assert worst_g > 0.8

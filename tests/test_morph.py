@@ -59,9 +59,9 @@ def _approach(dem: str, morph: bool, terrain_mode: str = "cpu") -> list[float]:
     and morph as a flight's do."""
     from lodscape.lod.select import SelectOptions
 
-    # a coarse bound (4 px) makes each split's step plain to see
+    # a coarse bound (8 px) makes each split's step plain to see
     opts = SceneOptions(
-        select=SelectOptions(max_sse=4.0), morph=morph, anisotropy=1.0, terrain_mode=terrain_mode
+        select=SelectOptions(max_sse=8.0), morph=morph, anisotropy=1.0, terrain_mode=terrain_mode
     )
     jumps: list[float] = []
     with lodscape.open(dem, opts) as scene:

@@ -16,7 +16,7 @@ import numpy as np
 from lodscape.geo.keys import grid_of, tile_id_of
 from lodscape.geo.tiles import Tile, tile_id
 from lodscape.lod.camera import Camera
-from lodscape.lod.select import Selection, SelectOptions, TreeLike
+from lodscape.lod.select import SLOPE_ROOM, Selection, SelectOptions, TreeLike
 
 _A = 6378137.0  # WGS84 semi-major axis
 _E2 = (1.0 / 298.257223563) * (2.0 - 1.0 / 298.257223563)  # first eccentricity squared
@@ -40,9 +40,10 @@ def _ecef(lon: np.ndarray, lat: np.ndarray, h: np.ndarray | float) -> np.ndarray
 
 def _box(
     camera: Camera, z: int, x: int, y: int, lo_h: float, hi_h: float
-) -> tuple[bool, float, float]:
-    """(in the view, distance to the nearest point of the box, ground size) of one tile: its
-    lattice at both heights, boxed with a margin in the ENU frame at the tile's centre."""
+) -> tuple[bool, float, float, np.ndarray, np.ndarray]:
+    """(in the view, distance to the nearest point of the box, ground size, the box's corners
+    relative to the camera, the ENU rows) of one tile: its lattice at both heights, boxed with
+    a margin in the ENU frame at the tile's centre."""
     side = 2.0 * _HALF / 2**z
     left, top = -_HALF + x * side, _HALF - y * side
     right, bottom = left + side, top - side
@@ -75,7 +76,42 @@ def _box(
     outside = any(
         bool(np.all(w + sign * clip[:, axis] < 0.0)) for axis in range(3) for sign in (1.0, -1.0)
     )
-    return not outside, dist, ground
+    return not outside, dist, ground, corners @ enu, enu
+
+
+def _scales(
+    camera: Camera, corners: np.ndarray, enu: np.ndarray, ground: float, dist: float
+) -> tuple[float, float]:
+    """Pixels per metre of height error and along the ground at the box's worst point, written
+    out per corner of the image rectangle (the projection's first derivative, as the selection's
+    ``Camera.box_scales``)."""
+    d = camera.scale
+    rot = camera.rotation
+    view = corners @ rot.T
+    depth = -view[:, 2]
+    floor = max(camera.near or 0.0, 1e-3)
+    ty = math.tan(math.radians(camera.fov_y) / 2.0)
+    tx = ty * camera.width / camera.height
+    if depth.min() < floor:
+        xs, ys = (-tx, tx), (-ty, ty)
+    else:
+        ra, rb = view[:, 0] / depth, view[:, 1] / depth
+        xs = (min(max(float(ra.min()), -tx), tx), min(max(float(ra.max()), -tx), tx))
+        ys = (min(max(float(rb.min()), -ty), ty), min(max(float(rb.max()), -ty), ty))
+    east, north, up = (rot @ v * np.array([1.0, 1.0, -1.0]) for v in enu)
+    turn = ground * math.sqrt(0.5) / 6.3e6
+    vertical = horizontal = 0.0
+    for a in xs:
+        for b in ys:
+            jac = np.array([[1.0, 0.0, -a], [0.0, 1.0, -b]])
+            slack = turn * math.sqrt(1.0 + a * a + b * b)
+            vertical = max(vertical, float(np.linalg.norm(jac @ up)) + slack)
+            plane = jac @ np.stack([east, north], axis=1)
+            horizontal = max(horizontal, float(np.linalg.svd(plane, compute_uv=False)[0]) + slack)
+    # a visible point is within the viewport's corner angle of the axis: no shallower than
+    # its distance times that angle's cosine
+    seen = max(float(depth.min()), dist / math.sqrt(1.0 + tx * tx + ty * ty), floor)
+    return d / seen * vertical, d / seen * horizontal
 
 
 __all__ = ["select_reference"]
@@ -86,8 +122,6 @@ def select_reference(
 ) -> list[tuple[int, int, int, int, int]]:
     """Drawn tiles as (z, x, y, grid index, levels up to the texture), in depth-first order."""
     assert camera.near is not None
-    near = camera.near
-    d = camera.scale
     t = tree.tile_size
     zmax = tree.zmax if options.max_level is None else min(tree.zmax, options.max_level)
     ztex = tree.zmax if tree.texture_zmax is None else tree.texture_zmax
@@ -113,16 +147,17 @@ def select_reference(
         st = tree.level(z).stats(np.array([x]), np.array([y]))
         if not st.exists[0]:
             return None
-        inside, dist, ground = _box(camera, z, x, y, float(st.min_h[0]), float(st.max_h[0]))
-        eff = max(dist, near)
-        return inside, True, ground * d / eff, st.error[:, 0], ground
+        inside, dist, ground, corners, enu = _box(
+            camera, z, x, y, float(st.min_h[0]), float(st.max_h[0])
+        )
+        vertical, horizontal = _scales(camera, corners, enu, ground, dist)
+        return inside, True, ground * horizontal, st.error[:, 0], vertical
 
     def visit(z: int, x: int, y: int, parent_k: int = -1) -> None:
         m = metrics(z, x, y)
         if m is None or not m[0]:
             return
-        _, _, px, err, ground = m
-        scale = px / ground
+        _, _, px, err, scale = m
         k = next((i for i, e in enumerate(err) if e * scale <= options.max_sse), None)
         big = px > options.split * t and z < ztex
         refine = z < zmax and (big or k is None)
@@ -155,7 +190,7 @@ def select_reference(
             if options.hold_parent_grid:
                 k = min(max(k, parent_k - 1), len(err) - 1)
             up = max(0, z - ztex)
-            while up < z - tree.zmin and px * 2**up < options.merge * t:
+            while up < z - tree.zmin and px * 2 ** (up + 1) <= options.split / SLOPE_ROOM * t:
                 up += 1
             before = tex_before.get(tile_id(Tile(x, y, z)))
             if before is not None and options.merge * t <= px * 2**before <= options.split * t:

@@ -18,10 +18,13 @@ from numpy.typing import ArrayLike, NDArray
 from lodscape.errors import CameraError
 from lodscape.geo.frames import ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
-__all__ = ["MIN_DISTANCE", "Camera"]
+__all__ = ["EARTH_MIN_RADIUS", "MIN_DISTANCE", "Camera"]
 
 #: Metres: the closest distance a screen-space formula sees (below it, a point is on the eye).
 MIN_DISTANCE = 1e-3
+#: Metres: the ellipsoid's smallest radius of curvature (WGS84's meridian radius at the equator,
+#: rounded down): over a ground distance s its normal turns by at most s / this.
+EARTH_MIN_RADIUS = 6.3e6
 
 
 @dataclass(frozen=True)
@@ -137,9 +140,75 @@ class Camera:
         return np.asarray(size, np.float64) * self.pixels_per_metre(distance)
 
     def screen_error(self, error: ArrayLike, distance: ArrayLike) -> NDArray[np.float64]:
-        """Screen-space error in pixels of a geometric error (metres) seen at ``distance``: the
-        quadtree, the globe and the city all refine by this one formula."""
+        """Screen-space error in pixels of a geometric error (metres) seen at ``distance``, in
+        any direction: the globe and the city refine by it (the quadtree by ``box_scales``,
+        the projection's own measure over a tile's box)."""
         return self.screen_size(error, distance)
+
+    def box_scales(
+        self,
+        corners: ArrayLike,
+        up: ArrayLike,
+        east: ArrayLike,
+        north: ArrayLike,
+        spread: ArrayLike,
+        nearest: ArrayLike,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The most pixels a metre covers anywhere in N boxes, as the projection draws it: along
+        the vertical (a height error) and along the ground (a texel's side).
+
+        ``corners`` (N, 8, 3) are each box's corners relative to the camera (ECEF metres),
+        ``up``/``east``/``north`` (N, 3) the frame at each box's centre, ``spread`` (N) radians
+        the normal turns by within a box, ``nearest`` (N) the distance from the eye to each
+        box. A displacement v at a point of depth Z whose image is d·(a, b) = d·(X/Z, Y/Z)
+        moves it d/Z·(v_x − a·v_z, v_y − b·v_z) pixels (first order, v_z along the view axis):
+        a vertical error seen along the line of sight does not show, one across it shows whole,
+        and off the axis the image stretches. The bound takes the smallest depth of the box's
+        visible part (its corners' where all are in front; never nearer than the near plane,
+        nor than its distance times the cosine of the viewport's corner angle, since a visible
+        point is within that angle of the axis) and the worst of (a, b) over the box's image
+        clipped to the viewport (a linear-fractional map: its extremes are at corners), so it
+        holds at every point of the box that is on screen.
+        """
+        pts = np.asarray(corners, np.float64)
+        rot = self.rotation
+        cam = pts @ rot.T
+        depth = -cam[..., 2]
+        floor = max(self.near or 0.0, MIN_DISTANCE)
+        zmin = depth.min(axis=-1)
+        crosses = zmin < floor
+        ty = math.tan(math.radians(self.fov_y) / 2.0)
+        tx = ty * self.aspect
+        zs = np.maximum(depth, floor)
+        a, b = cam[..., 0] / zs, cam[..., 1] / zs
+        # a box reaching behind the near plane may cover the whole viewport
+        a0 = np.where(crosses, -tx, np.clip(a.min(axis=-1), -tx, tx))
+        a1 = np.where(crosses, tx, np.clip(a.max(axis=-1), -tx, tx))
+        b0 = np.where(crosses, -ty, np.clip(b.min(axis=-1), -ty, ty))
+        b1 = np.where(crosses, ty, np.clip(b.max(axis=-1), -ty, ty))
+        u, e, n = (np.asarray(v, np.float64) @ rot.T for v in (up, east, north))
+        # view-space components: x right, y up, f along the view axis (GL looks down -z)
+        uf, ef, nf = -u[..., 2], -e[..., 2], -n[..., 2]
+        vertical = np.zeros(zmin.shape)
+        ground = np.zeros(zmin.shape)
+        stretch = np.zeros(zmin.shape)
+        for ca in (a0, a1):
+            for cb in (b0, b1):
+                vertical = np.maximum(vertical, np.hypot(u[..., 0] - ca * uf, u[..., 1] - cb * uf))
+                # the largest singular value of the ground's 2×2 image
+                m00, m01 = e[..., 0] - ca * ef, n[..., 0] - ca * nf
+                m10, m11 = e[..., 1] - cb * ef, n[..., 1] - cb * nf
+                sq = m00 * m00 + m01 * m01 + m10 * m10 + m11 * m11
+                det = m00 * m11 - m01 * m10
+                sigma = np.sqrt((sq + np.sqrt(np.maximum(sq * sq - 4.0 * det * det, 0.0))) / 2.0)
+                ground = np.maximum(ground, sigma)
+                # the most any unit direction stretches: what a turned normal may add
+                stretch = np.maximum(stretch, np.sqrt(1.0 + ca * ca + cb * cb))
+        slack = np.asarray(spread, np.float64) * stretch
+        corner = 1.0 / math.sqrt(1.0 + tx * tx + ty * ty)
+        seen = np.maximum(np.maximum(zmin, np.asarray(nearest, np.float64) * corner), floor)
+        per_metre = self.scale / seen
+        return per_metre * (vertical + slack), per_metre * (ground + slack)
 
     # --- clip space --------------------------------------------------------------------
 

@@ -4,19 +4,26 @@
 visitTile): it walks the quadtree one level per step with numpy, returns the render list, the load
 requests and the counters, and touches no IO and no GPU.
 
-The rules, per tile, with H = h·d/dist (paper 000) the pixels its side covers on screen and T the
-texels per tile side:
+The rules, per tile, with T the texels per tile side, and both screen measures taken as the
+projection draws them over the tile's box (``Camera.box_scales``: the depth along the view axis
+at its nearest point, never nearer than the near plane, and the worst place of its image):
+H = h·d/Z·σ (paper 000's h·d/dist, σ the most a ground direction stretches there) the most
+pixels its side covers, and a height error e seen as e·d/Z·γ pixels (γ the part of the vertical
+across the line of sight, off-axis stretch included: Lindstrom's projected error, as a bound):
 - culled when its box (its min/max heights included) lies outside a frustum plane;
 - split when H > split·T; kept split while the previous frame had it split and every child still
   covers merge·T pixels or more (hysteresis, no flicker);
 - split when even its finest grid cannot keep the screen-space error within ``max_sse``;
-- otherwise drawn, with the coarsest grid whose error stays within ``max_sse`` at the larger of its
-  real screen scale and the top of the pixel band, so the mesh follows the terrain's roughness.
+- otherwise drawn, with the coarsest grid whose error stays within ``max_sse``, so the mesh
+  follows the terrain's roughness.
+Tiles kept all round by distance (``reach``: paper 004's areas, whatever the view's direction)
+are measured as if the camera looked at them: pixels per metre at their nearest point.
 
-Textures are chosen apart from meshes. A drawn tile covering H < merge·T pixels (a far sibling of a
-tile that had to split) takes the texture of the ancestor k levels up for the smallest k with
-H·2^k >= merge·T: it covers the tile with T/2^k texels, so every drawn texture stays inside the
-band (paper 000's 128..384 px for 256 px tiles) instead of being minified.
+Textures are chosen apart from meshes. A drawn tile takes the texture of the ancestor k levels
+up for the largest k with H·2^k <= split·T / ``SLOPE_ROOM``: the coarsest whose texels stay
+under 1.25 px where the tile is largest on screen (a far sibling of a tile that had to split
+takes an ancestor's), so drawn texels stay inside the band (paper 000's 128..384 px for 256 px
+tiles) where the tile is farther or seen edge-on, with room for slopes facing the camera.
 
 Imagery layers (the user's orthophotos and tile servers) are chosen the same way, each capped by
 its own finest level rather than the terrain's: a tile keeps splitting for its texture down to
@@ -53,7 +60,7 @@ from lodscape.geo.tiles import (
     tile_from_id_array,
     tile_id_array,
 )
-from lodscape.lod.camera import Camera
+from lodscape.lod.camera import EARTH_MIN_RADIUS, Camera
 from lodscape.lod.region import region_view
 
 __all__ = [
@@ -78,6 +85,9 @@ _EMPTY_U = np.zeros(0, dtype=np.uint64)
 UNDER_LAYERS = 2
 #: An imagery layer's key where a tile has none of its tiles to draw (``Selection.layer_keys``).
 NO_TEXTURE = np.uint64(0xFFFF_FFFF_FFFF_FFFF)
+#: A tile's texture is taken with its texels at most split / SLOPE_ROOM pixels where its box is
+#: largest on screen: room for slopes facing the camera (measured: tests/test_screen_error.py).
+SLOPE_ROOM = 1.2
 #: Slack around each tile's box, as a share of its side.
 _MARGIN = 1e-3
 #: Fewer children than this go straight to their bounds (the region test would cost more).
@@ -310,6 +320,11 @@ class Boxes:
     ground: F64
     #: Box centres relative to the camera, ECEF metres (N, 3).
     centre: F64
+    #: The most pixels a metre of height error covers anywhere in the box on screen
+    #: (``Camera.box_scales``): what a tile's geometric error is charged at.
+    vertical: F64
+    #: The most pixels a metre along the ground covers anywhere in the box on screen.
+    horizontal: F64
 
 
 def tile_boxes(
@@ -319,11 +334,15 @@ def tile_boxes(
     y: I64,
     min_h: NDArray[np.floating],
     max_h: NDArray[np.floating],
+    all_round: bool = False,
 ) -> Boxes:
     """Frustum test and distances for N tiles of one level, each boxed in its local ENU frame.
 
     The box holds an n×n lattice of the tile at its min and max height, with n chosen per level so
-    that the Earth's curve bulges less between lattice points than the box's margin.
+    that the Earth's curve bulges less between lattice points than the box's margin. Its scales
+    are the projection's (``Camera.box_scales``); ``all_round`` (tiles kept by distance all
+    round, paper 004's areas, whatever the view's direction) takes them as if the camera looked
+    at the box's nearest point instead: pixels per metre there.
     """
     left, bottom, right, top = bounds_array(z, x, y)
     side = 2.0 * ORIGIN / (1 << z)
@@ -358,7 +377,16 @@ def tile_boxes(
     s = centre @ planes[:, :3].T + planes[:, 3]
     r = np.einsum("ni,npi->np", half, np.abs(np.einsum("pj,nij->npi", planes[:, :3], basis)))
     inside = np.all(s + r >= 0.0, axis=1)
-    return Boxes(inside, dist_near, dist_far, ground, centre)
+    pick = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], bool)
+    corners = np.einsum("nci,nij->ncj", np.where(pick, hi[:, None, :], lo[:, None, :]), basis)
+    spread = ground * math.sqrt(0.5) / EARTH_MIN_RADIUS
+    if all_round:
+        vertical = horizontal = camera.pixels_per_metre(dist_near)
+    else:
+        vertical, horizontal = camera.box_scales(
+            corners, basis[:, 2], basis[:, 0], basis[:, 1], spread, dist_near
+        )
+    return Boxes(inside, dist_near, dist_far, ground, centre, vertical, horizontal)
 
 
 @dataclass(frozen=True, eq=False)
@@ -368,18 +396,20 @@ class _Metrics:
     boxes: Boxes
     #: (len(grids), N) geometric error of each grid, metres.
     err: NDArray[np.float32]
-    #: Pixels per metre at each tile's nearest point.
+    #: The most pixels a metre of height error covers in each tile's box.
     scale: F64
 
     @property
     def px(self) -> F64:
-        return self.boxes.ground * self.scale
+        """The most pixels the tile's side would cover anywhere in its box (H, as projected)."""
+        return self.boxes.ground * self.boxes.horizontal
 
 
-def _metrics(camera: Camera, z: int, x: I64, y: I64, st: TileStats) -> _Metrics:
-    box = tile_boxes(camera, z, x, y, st.min_h, st.max_h)
-    scale = camera.pixels_per_metre(box.dist_near)
-    return _Metrics(box, np.asarray(st.error, dtype=np.float32), scale)
+def _metrics(
+    camera: Camera, z: int, x: I64, y: I64, st: TileStats, all_round: bool = False
+) -> _Metrics:
+    box = tile_boxes(camera, z, x, y, st.min_h, st.max_h, all_round)
+    return _Metrics(box, np.asarray(st.error, dtype=np.float32), box.vertical)
 
 
 def _grid_choice(
@@ -439,11 +469,9 @@ def select(
     # magnified: the finest texture a tile wears is above the band (no finer one exists)
     finest_up = np.min(np.vstack([tex_up - under, *layer_up]), axis=0) if t.z.size else tex_up
     magnified = int((t.px * np.exp2(finest_up) > options.split * tsize).sum())
-    # a neighbour's edge may sit up to its own error away: at most max_sse pixels seen from
-    # no farther than our far side, or a fallback tile's whole error
-    back = t.fallback > 0
-    worst = float(t.err[back].max()) if back.any() else 0.0
-    skirt = t.err + np.maximum(options.max_sse * t.dist_far / camera.scale, worst)
+    # a neighbour's edge may sit up to its own error away (a bound seen at an angle allows
+    # metres of error that a distance alone would not: the skirt hangs the drawn ones' own)
+    skirt = t.err + _neighbour_error(t)
     return Selection(
         z=t.z,
         x=t.x,
@@ -506,13 +534,13 @@ def _walk(
         if x.size == 0:
             break
         st = st.take(ok)
-        m = _metrics(camera, z, x, y, st)
+        m = _metrics(camera, z, x, y, st, reach is not None)
         keep = m.boxes.inside if reach is None else reach(m.boxes.centre, m.boxes.dist_near)
         culled += int((~keep).sum())
         x, y, parent_k = x[keep], y[keep], parent_k[keep]
         lo_h, hi_h = st.min_h[keep], st.max_h[keep]
-        ground, scale, err = m.boxes.ground[keep], m.scale[keep], m.err[:, keep]
-        px = ground * scale
+        scale, err = m.scale[keep], m.err[:, keep]
+        px = m.px[keep]
         k, too_rough = _grid_choice(options, err, scale)
         ids = tile_id_array(z, x, y)
         leaf = st.leaf[keep] if st.leaf is not None else None
@@ -675,14 +703,18 @@ _DRAWN_FIELDS = tuple(_Drawn.__dataclass_fields__)
 def _band_levels(
     options: SelectOptions, tree: TreeLike, t: _Drawn, previous: Selection | None
 ) -> I64:
-    """Levels up to each tile's texture for the pixel band: the fewest that bring it to merge·T
-    pixels or more, before any texture's finest level caps them.
+    """Levels up to each tile's texture for the pixel band: the most that keep its texels
+    within split / ``SLOPE_ROOM`` pixels where the tile is largest on screen (so where it is
+    farther or seen edge-on they stay above ``merge`` as far as one texture can, and a slope
+    facing the camera, which the box does not measure, has room under ``split``), before any
+    texture's finest level caps them.
 
     Last frame's choice stands while it is still inside the band, so textures do not flicker.
     """
     low = options.merge * tree.tile_size
-    # smallest k >= 0 with px·2^k >= low (px is positive for every drawn tile)
-    up = np.ceil(np.log2(low / np.maximum(t.px, 1e-300))).clip(min=0.0).astype(np.int64)
+    high = options.split / SLOPE_ROOM * tree.tile_size
+    # largest k >= 0 with px·2^k <= high (px is positive for every drawn tile)
+    up = np.floor(np.log2(high / np.maximum(t.px, 1e-300))).clip(min=0.0).astype(np.int64)
     if previous is None or previous.count == 0 or previous.band_up is None:
         return up
     pid = tile_id_array(previous.z, previous.x, previous.y)
@@ -695,6 +727,54 @@ def _band_levels(
     ratio = t.px * np.exp2(before)
     stays = hit & (ratio >= low) & (ratio <= options.split * tree.tile_size)
     out: I64 = np.where(stays, before, up)
+    return out
+
+
+def _neighbour_error(t: _Drawn) -> F64:
+    """Per drawn tile, the largest error (metres) of the drawn tiles whose squares touch it, at
+    any level (a coarser neighbour found as its covering ancestor, finer ones by the largest
+    error under each of the tile's eight neighbours): one numpy pass per pair of levels."""
+    out = np.zeros(t.z.size)
+    if not t.z.size:
+        return out
+    levels = np.unique(t.z)
+    ids = tile_id_array(t.z, t.x, t.y)
+    # per level m: the largest error of the drawn tiles at or under each tile of level m
+    under: dict[int, tuple[U64, F64]] = {}
+    for m in levels.tolist():
+        deep = t.z >= m
+        s = t.z[deep] - m
+        anc = tile_id_array(np.full(s.size, m), t.x[deep] >> s, t.y[deep] >> s)
+        uid, inv = np.unique(anc, return_inverse=True)
+        worst = np.zeros(uid.size)
+        np.maximum.at(worst, inv, t.err[deep])
+        under[m] = (uid, worst)
+    step = np.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy])
+    for lvl in levels.tolist():
+        mine = np.flatnonzero(t.z == lvl)
+        nx = (t.x[mine, None] + step[:, 0]) % (1 << lvl)
+        ny = t.y[mine, None] + step[:, 1]
+        ok = (ny >= 0) & (ny < 1 << lvl)
+        nx, ny = nx[ok], np.where(ok, ny, 0)[ok]
+        row = np.broadcast_to(np.arange(mine.size)[:, None], ok.shape)[ok]
+        best = np.zeros(row.size)
+        for m in levels.tolist():
+            if m > lvl:
+                continue
+            s = lvl - m
+            if m == lvl:
+                uid, worst = under[m]
+            else:
+                at = t.z == m
+                order = np.argsort(ids[at])
+                uid, worst = ids[at][order], t.err[at][order]
+            want = tile_id_array(np.full(nx.size, m), nx >> s, ny >> s)
+            pos = np.clip(np.searchsorted(uid, want), 0, max(uid.size - 1, 0))
+            hit = uid[pos] == want if uid.size else np.zeros(want.size, bool)
+            best = np.where(hit, np.maximum(best, worst[pos]), best)
+        agg = np.zeros(mine.size)
+        np.maximum.at(agg, row, best)
+        out[mine] = agg
     return out
 
 
