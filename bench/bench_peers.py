@@ -22,9 +22,12 @@ offscreen on EGL as lodscape is:
 Measured error per pixel, the same for all three: each drawn pixel's surface point (Panda3D: a
 second draw writing world positions into a float target; lodscape: its distance read back,
 through geodetic coordinates and the DEM's CRS) against the DEM's bilinear surface there: the
-vertical difference projected at the pixel's distance, its largest value over the pixels on
-the DEM. The full-resolution mesh itself measures up to about 0.8 px this way (a triangle is not
-the bilinear patch).
+point and the DEM's point above or below it both projected with the camera, and the pixels
+between them counted (a height error seen along the line of sight does not show; seen across
+it, whole), as the 99.9th percentile and the largest value over the pixels on the DEM. The
+older measure (the vertical difference at the pixel's distance, h·d/dist, whatever the
+direction) is kept in the JSON as ``vertical_*``. The full-resolution mesh itself measures up
+to about 0.8 px this way (a triangle is not the bilinear patch).
 
 DEMs: the sample (``jacksboro.tif``, 403×344 geographic) and a 4097² spectral fBm (5 m, UTM
 17N, ``bench_spine``'s). Panda3D gets the DEM's own grid in metres (a geographic grid by its
@@ -94,10 +97,10 @@ def peak_rss_mb() -> float:
 # --- the data ---------------------------------------------------------------------------------
 
 
-def prepare(dem: Path, out: Path) -> dict[str, Any]:
-    """The DEM's heights, its grid in metres, the shared texture and the cameras."""
+def read_dem(dem: Path) -> tuple[np.ndarray, float, float, np.ndarray, Any, Any]:
+    """What a peer's user does first: the DEM's heights, its grid in metres (dx, dy), the shared
+    texture (lodscape's tint of the whole DEM), its transform and CRS."""
     import rasterio
-    from rasterio.warp import transform as warp
 
     from lodscape.imagery.tint import tint
 
@@ -120,8 +123,18 @@ def prepare(dem: Path, out: Path) -> dict[str, Any]:
     n = max(rows, cols)
     sq = np.pad(bordered, ((0, n - rows), (0, n - cols)), mode="edge")
     rgb = tint(sq, np.ones(sq.shape, bool), math.sqrt(dx * dy), (lo, hi))[:rows, :cols]
+    return z, dx, dy, np.ascontiguousarray(rgb), tr, crs
+
+
+def prepare(dem: Path, out: Path) -> dict[str, Any]:
+    """The DEM's heights, its grid in metres, the shared texture and the cameras."""
+    from rasterio.warp import transform as warp
+
+    z, dx, dy, rgb, tr, crs = read_dem(dem)
+    rows, cols = z.shape
+    lo, hi = float(z.min()), float(z.max())
     np.save(out / "heights.npy", z)
-    np.save(out / "texture.npy", np.ascontiguousarray(rgb))
+    np.save(out / "texture.npy", rgb)
     extent = max(rows * dy, cols * dx)
     cams = {}
     for name, (fx, fy, fa, heading, pitch) in CAMERAS.items():
@@ -159,18 +172,47 @@ def _dem_at(z: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     return np.where(inside, top * (1 - fr) + bottom * fr, np.nan)
 
 
-def pixel_sse(dh: np.ndarray, dist: np.ndarray) -> dict[str, float]:
-    """Per pixel on the DEM: the drawn surface's vertical distance to the DEM's, projected at
-    the pixel's distance (H = h·d/dist); its largest value and its 99.9th percentile."""
+def screen_shift(
+    world: np.ndarray,
+    normal: np.ndarray,
+    dh: np.ndarray,
+    eye: np.ndarray,
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """Pixels between each drawn point and the DEM's point above or below it (``dh`` metres
+    along its ``normal``, the vertical), both projected with the camera at ``eye`` whose
+    ``axes`` are (right, up, forward): the error as the picture shows it."""
     d = H / (2 * math.tan(math.radians(FOV_Y / 2)))
-    ok = np.isfinite(dh) & np.isfinite(dist) & (dist > 0)
-    sse = np.abs(dh[ok]) * d / dist[ok]
-    if not sse.size:
-        return {"pixel_sse_max": float("nan"), "pixel_sse_p999": float("nan"), "pixels": 0}
+    right, up, fwd = axes
+
+    def image(p: np.ndarray) -> np.ndarray:
+        rel = p - eye
+        z = rel @ fwd
+        return d * np.stack([rel @ right / z, rel @ up / z], axis=-1)
+
+    with np.errstate(invalid="ignore"):
+        there = world - dh[:, None] * normal
+        out: np.ndarray = np.linalg.norm(image(world) - image(there), axis=-1)
+    return out
+
+
+def pixel_sse(dh: np.ndarray, dist: np.ndarray, shift: np.ndarray) -> dict[str, float]:
+    """Per pixel on the DEM: ``shift``, the pixels between the drawn point and the DEM's at the
+    same place, both projected (``screen_shift``); its largest value and its 99.9th
+    percentile. Beside it (``vertical_*``) the older measure: the vertical difference ``dh``
+    taken at the pixel's distance (h·d/dist), whatever the direction it is seen from."""
+    d = H / (2 * math.tan(math.radians(FOV_Y / 2)))
+    ok = np.isfinite(dh) & np.isfinite(dist) & (dist > 0) & np.isfinite(shift)
+    if not ok.any():
+        nan = float("nan")
+        return {"pixel_sse_max": nan, "pixel_sse_p999": nan, "vertical_p999": nan, "pixels": 0}
+    vertical = np.abs(dh[ok]) * d / dist[ok]
     return {
-        "pixel_sse_max": float(sse.max()),
-        "pixel_sse_p999": float(np.percentile(sse, 99.9)),
-        "pixels": int(sse.size),
+        "pixel_sse_max": float(shift[ok].max()),
+        "pixel_sse_p999": float(np.percentile(shift[ok], 99.9)),
+        "vertical_max": float(vertical.max()),
+        "vertical_p999": float(np.percentile(vertical, 99.9)),
+        "pixels": int(ok.sum()),
     }
 
 
@@ -204,7 +246,12 @@ def _lodscape_error(
     dh = np.full(depth.size, np.nan)
     dh[ok] = h - _dem_at(z, np.asarray(col) - 0.5, np.asarray(row) - 0.5)
     dist = np.linalg.norm(world - cam.position, axis=1)
-    return pixel_sse(dh, dist)
+    lam, phi = np.radians(lon), np.radians(lat)
+    normal = np.zeros((depth.size, 3))
+    normal[ok] = np.stack([np.cos(phi) * np.cos(lam), np.cos(phi) * np.sin(lam), np.sin(phi)], -1)
+    rot = cam.rotation
+    shift = screen_shift(world, normal, dh, cam.position, (rot[0], rot[1], -rot[2]))
+    return pixel_sse(dh, dist, shift)
 
 
 def _camera(c: dict[str, float]) -> Any:
@@ -240,8 +287,20 @@ def run_lodscape(data: Path, repeat: int) -> dict[str, Any]:
         assert depth.shape == (H, W)
         assert rgb.shape == (H, W, 3)
         st = scene.frame_stats()
+        # the same frame without the ellipsoid: the peers leave those pixels the clear colour
+        renderer = scene.renderer
+        assert renderer is not None
+        renderer.ellipsoid = False
+        bare = []
+        for k in range(2 + repeat):
+            t = time.perf_counter()
+            scene.render(cam)
+            if k >= 2:
+                bare.append(time.perf_counter() - t)
+        renderer.ellipsoid = True
         out["cameras"][name] = {
             "frame_ms": statistics.median(times) * 1e3,
+            "bare_ms": statistics.median(bare) * 1e3,
             "triangles": int(st["triangles"]),
             "max_sse": float(st["max_sse_px"]),
             "draw_calls": int(st["draw_calls"]),
@@ -262,6 +321,7 @@ def run_lodscape(data: Path, repeat: int) -> dict[str, Any]:
         for _ in range(10):
             mid = math.sqrt(loose * tight)
             scene.view.options = replace(base_options, max_sse=mid)
+            scene.view.previous = None  # a fresh selection: no hysteresis from another bound
             _, depth = scene.render(cam)
             got = _lodscape_error(meta, z, scene.prepare(cam), depth)
             if got["pixel_sse_p999"] <= MAX_SSE:
@@ -271,6 +331,7 @@ def run_lodscape(data: Path, repeat: int) -> dict[str, Any]:
             if loose / tight < 1.05:
                 break
         scene.view.options = replace(base_options, max_sse=tight)
+        scene.view.previous = None
         for _ in range(3):
             scene.render(cam)
         times = []
@@ -383,7 +444,11 @@ class _Probe:
         row = (size - 1) - world[:, 1] / meta["dy"]
         dh = np.where(drawn, world[:, 2] - _dem_at(z, col, row), np.nan)
         eye = np.array(base.camera.getPos(base.render))
-        return pixel_sse(dh, np.linalg.norm(world - eye, axis=1))
+        mat = base.camera.getMat(base.render)  # rows: right, forward, up (Panda3D is Z-up)
+        axes = (np.array(mat.getRow3(0)), np.array(mat.getRow3(2)), np.array(mat.getRow3(1)))
+        axes = tuple(a / np.linalg.norm(a) for a in axes)
+        shift = screen_shift(world, np.array([0.0, 0.0, 1.0]), dh, eye, axes)  # type: ignore[arg-type]
+        return pixel_sse(dh, np.linalg.norm(world - eye, axis=1), shift)
 
 
 _PROBE_VERTEX = """
@@ -450,8 +515,11 @@ def _geoms(root: Any) -> list[tuple[np.ndarray, np.ndarray]]:
             col = fmt.getColumn("vertex")
             stride = fmt.getStride() // 4
             raw = np.frombuffer(memoryview(vdata.getArray(0)), np.float32)
-            v = raw.reshape(-1, stride)[:, col.getStart() // 4 : col.getStart() // 4 + 3]
-            v = np.c_[v.astype(np.float64), np.ones(len(v))] @ mat[:, :3]
+            rows = raw.reshape(-1, stride)[: vdata.getNumRows()]
+            v = rows[:, col.getStart() // 4 : col.getStart() // 4 + 3].astype(np.float64)
+            # rows a geom holds but no triangle uses may be unset: never read as a vertex
+            good = np.isfinite(v).all(axis=1)
+            v = np.c_[np.where(good[:, None], v, 0.0), np.ones(len(v))] @ mat[:, :3]
             for p in range(geom.getNumPrimitives()):
                 prim = geom.getPrimitive(p).decompose()
                 if prim.isIndexed():
@@ -460,7 +528,10 @@ def _geoms(root: Any) -> list[tuple[np.ndarray, np.ndarray]]:
                 else:
                     first = prim.getFirstVertex()
                     idx = np.arange(first, first + prim.getNumVertices(), dtype=np.int64)
-                out.append((v, idx.reshape(-1, 3)))
+                tris = idx.reshape(-1, 3)
+                if not good[tris].all():
+                    raise RuntimeError("GeoMipTerrain drew a vertex that is not a number")
+                out.append((v, tris))
     return out
 
 
@@ -582,8 +653,46 @@ def _hf_image(hf: np.ndarray) -> Any:
     return img
 
 
+def geomip_heights(z: np.ndarray, size: int) -> np.ndarray:
+    """The heightfield GeoMipTerrain gets: 0..1 over the DEM's range, padded with its edge to
+    size², as its 16-bit image holds it."""
+    rows, cols = z.shape
+    lo, hi = float(z.min()), float(z.max())
+    hf = np.pad((z - lo) / (hi - lo), ((0, size - rows), (0, size - cols)), mode="edge")
+    out: np.ndarray = np.rint(hf * 65535) / 65535
+    return out
+
+
+def geomip_terrain(
+    base: Any,
+    hf: np.ndarray,
+    tex: Any,
+    grid: tuple[float, float, float, float],
+    block: int,
+    factor: float,
+    flatten: bool,
+) -> Any:
+    """A GeoMipTerrain of ``hf`` placed in metres (``grid``: dx, dy, lo, hi), not generated."""
+    from panda3d.core import GeoMipTerrain
+
+    dx, dy, lo, hi = grid
+    t = GeoMipTerrain("terrain")
+    t.setHeightfield(_hf_image(hf))
+    t.setBlockSize(block)
+    t.setMinLevel(0)
+    t.setBruteforce(False)
+    t.setFactor(factor)
+    t.setFocalPoint(base.camera)
+    t.setAutoFlatten(GeoMipTerrain.AFM_strong if flatten else GeoMipTerrain.AFM_off)
+    root = t.getRoot()
+    root.setScale(dx, dy, hi - lo)
+    root.setZ(lo)
+    root.setTexture(tex)
+    return t
+
+
 def run_geomip(data: Path, repeat: int) -> dict[str, Any]:
-    from panda3d.core import GeoMipTerrain, Shader
+    from panda3d.core import Shader
 
     meta, z, z64, rgb = _load(data)
     lo, hi, dx, dy = meta["lo"], meta["hi"], meta["dx"], meta["dy"]
@@ -591,26 +700,13 @@ def run_geomip(data: Path, repeat: int) -> dict[str, Any]:
     size = 2 ** math.ceil(math.log2(max(rows, cols) - 1)) + 1
     base = _panda()
     colour, depth = _readback(base)
-    hf = np.pad((z - lo) / (hi - lo), ((0, size - rows), (0, size - cols)), mode="edge")
-    hf = np.rint(hf * 65535) / 65535  # what the 16-bit heightfield holds
+    hf = geomip_heights(z, size)
     tex = _texture(rgb, size)
     probe = _Probe(base)
     probe_shader = Shader.make(Shader.SL_GLSL, _PROBE_VERTEX, _PROBE_FRAGMENT)
 
     def terrain(block: int, factor: float, flatten: bool) -> Any:
-        t = GeoMipTerrain("terrain")
-        t.setHeightfield(_hf_image(hf))
-        t.setBlockSize(block)
-        t.setMinLevel(0)
-        t.setBruteforce(False)
-        t.setFactor(factor)
-        t.setFocalPoint(base.camera)
-        t.setAutoFlatten(GeoMipTerrain.AFM_strong if flatten else GeoMipTerrain.AFM_off)
-        root = t.getRoot()
-        root.setScale(dx, dy, hi - lo)
-        root.setZ(lo)
-        root.setTexture(tex)
-        return t
+        return geomip_terrain(base, hf, tex, (dx, dy, lo, hi), block, factor, flatten)
 
     cache: dict[Any, Any] = {}
 
@@ -845,6 +941,77 @@ def run_stm(data: Path, repeat: int) -> dict[str, Any]:
 ENGINES = {"lodscape": run_lodscape, "geomip": run_geomip, "stm": run_stm}
 
 
+# --- the first picture from the file ----------------------------------------------------------
+
+
+def first_lodscape(data: Path, params: dict[str, Any]) -> dict[str, Any]:
+    """From the DEM's file to the first camera's picture read back: lodscape's open (reading,
+    its tile tree, tint, GL context) and render."""
+    meta = json.loads((data / "meta.json").read_text())
+    cam_spec = next(iter(meta["cameras"].values()))
+    t0 = time.perf_counter()
+    import lodscape
+
+    scene = lodscape.open(meta["dem"], lodscape.SceneOptions(anisotropy=1.0))
+    scene.render(_camera(cam_spec))
+    first = time.perf_counter() - t0
+    scene.close()
+    return {"first_picture_s": first}
+
+
+def first_geomip(data: Path, params: dict[str, Any]) -> dict[str, Any]:
+    """The same for GeoMipTerrain at its tuned settings for that camera: reading the DEM and
+    tinting it (as ``prepare``), Panda3D's window and context, the terrain, one frame."""
+    meta = json.loads((data / "meta.json").read_text())
+    c = next(iter(meta["cameras"].values()))
+    t0 = time.perf_counter()
+    z, dx, dy, rgb, _, _ = read_dem(Path(meta["dem"]))
+    rows, cols = z.shape
+    size = 2 ** math.ceil(math.log2(max(rows, cols) - 1)) + 1
+    base = _panda()
+    colour, depth = _readback(base)
+    grid = (dx, dy, float(z.min()), float(z.max()))
+    t = geomip_terrain(
+        base, geomip_heights(z, size), _texture(rgb, size), grid,
+        int(params["block"]), float(params["factor"]), bool(params["flattened"]),
+    )  # fmt: skip
+    t.getRoot().reparentTo(base.render)
+    _place(base, c, size, dx, dy)
+    t.generate()
+    _frame(base, colour, depth)
+    return {"first_picture_s": time.perf_counter() - t0}
+
+
+def first_stm(data: Path, params: dict[str, Any]) -> dict[str, Any]:
+    """The same for ShaderTerrainMesh at its tuned width for that camera."""
+    meta = json.loads((data / "meta.json").read_text())
+    c = next(iter(meta["cameras"].values()))
+    t0 = time.perf_counter()
+    z, dx, dy, rgb, _, _ = read_dem(Path(meta["dem"]))
+    rows, cols = z.shape
+    size = max(64, 2 ** math.ceil(math.log2(max(rows, cols) - 1)))
+    base = _panda()
+    colour, depth = _readback(base)
+    stm, _ = stm_terrain(base, z, rgb, size, dx, dy)
+    stm.setTargetTriangleWidth(float(params["target_px"]))
+    _place(base, c, size, dx, dy)
+    _frame(base, colour, depth)
+    return {"first_picture_s": time.perf_counter() - t0}
+
+
+FIRST = {"lodscape": first_lodscape, "geomip": first_geomip, "stm": first_stm}
+
+
+def first_params(engine: str, got: dict[str, Any]) -> dict[str, Any]:
+    """What a first-picture worker needs of its engine's run: the first camera's settings."""
+    c = next(iter(got["cameras"].values()))
+    if engine == "geomip":
+        return {"block": c["block"], "factor": c["factor"], "flattened": c["flattened"]}
+    if engine == "stm":
+        return {"target_px": c["target_px"]}
+    return {}
+
+
 # --- the comparison ---------------------------------------------------------------------------
 
 
@@ -852,8 +1019,11 @@ def _px(c: dict[str, float]) -> str:
     return f"{c['pixel_sse_p999']:4.2f}/{c['pixel_sse_max']:4.2f}"
 
 
-def worker(engine: str, data: Path, repeat: int) -> dict[str, Any]:
-    """``engine`` on ``data`` in a fresh process; its figures."""
+def worker(
+    engine: str, data: Path, repeat: int, params: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """``engine`` on ``data`` in a fresh process (``first-<engine>``: its first picture from
+    the file, with ``params``); its figures."""
     res = subprocess.run(
         [
             sys.executable,
@@ -864,6 +1034,8 @@ def worker(engine: str, data: Path, repeat: int) -> dict[str, Any]:
             str(data),
             "--repeat",
             str(repeat),
+            "--params",
+            json.dumps(params or {}),
         ],
         capture_output=True,
         text=True,
@@ -924,6 +1096,24 @@ def compare(
                 continue
             runs[e].append(worker(e, data, repeat))
             kept.write_text(json.dumps(runs[e][-1]))
+    # the first picture from the file, every engine in a fresh process, alternating
+    first: dict[str, list[float]] = {e: [] for e in engines}
+    for r in range(rounds):
+        order = [*engines[r % len(engines) :], *engines[: r % len(engines)]]
+        for e in order:
+            kept = data / f"first-{e}.{r}.json"
+            if kept.exists():
+                got = json.loads(kept.read_text())
+            else:
+                got = worker(f"first-{e}", data, repeat, first_params(e, runs[e][r]))
+                kept.write_text(json.dumps(got))
+            runs[e][r].setdefault("warnings", []).extend(got.get("warnings", []))
+            first[e].append(got["first_picture_s"])
+    print(
+        "first picture from the file (reading, tint, context, tree, one frame read back), "
+        "s per round: "
+        + "; ".join(f"{e} " + "/".join(f"{v:.2f}" for v in vs) for e, vs in first.items())
+    )
     for e, rs in runs.items():
         said = sorted({w for got in rs for w in got.get("warnings", [])})
         where = sorted({w for got in rs for w in got.get("environment", [])})
@@ -942,21 +1132,26 @@ def compare(
             cells = []
             for r in range(rounds):
                 a, g, st = (runs[e][r]["cameras"][name]["frame_ms"] for e in ENGINES)
-                cells.append(f"r{r + 1} {a:.1f}/{g:.1f}/{st:.1f} ×{g / a:.2f} ×{st / a:.2f}")
-            print(f"{name:>9} | lodscape/GeoMip/STM: " + " | ".join(cells))
-        for peer, title in (("geomip", "GeoMipTerrain"), ("stm", "ShaderTerrainMesh")):
-            meds = [
-                statistics.median(
-                    runs[peer][r]["cameras"][n]["frame_ms"]
-                    / runs["lodscape"][r]["cameras"][n]["frame_ms"]
-                    for n in CAMERAS
+                bare = runs["lodscape"][r]["cameras"][name].get("bare_ms", float("nan"))
+                cells.append(
+                    f"r{r + 1} {a:.1f} ({bare:.1f})/{g:.1f}/{st:.1f} ×{g / a:.2f} ×{st / a:.2f}"
                 )
-                for r in range(rounds)
-            ]
-            print(
-                f"{title}: median ratio per round {', '.join(f'×{m:.2f}' for m in meds)} "
-                f"(range ×{min(meds):.2f}–×{max(meds):.2f})"
-            )
+            print(f"{name:>9} | lodscape (no ellipsoid)/GeoMip/STM: " + " | ".join(cells))
+        for peer, title in (("geomip", "GeoMipTerrain"), ("stm", "ShaderTerrainMesh")):
+            for key, how in (("frame_ms", ""), ("bare_ms", ", lodscape without the ellipsoid")):
+                meds = [
+                    statistics.median(
+                        runs[peer][r]["cameras"][n]["frame_ms"]
+                        / runs["lodscape"][r]["cameras"][n].get(key, float("nan"))
+                        for n in CAMERAS
+                    )
+                    for r in range(rounds)
+                ]
+                print(
+                    f"{title}{how}: median ratio per round "
+                    f"{', '.join(f'×{m:.2f}' for m in meds)} "
+                    f"(range ×{min(meds):.2f}–×{max(meds):.2f})"
+                )
     res = {e: rs[0] for e, rs in runs.items()}
     if set(engines) != set(ENGINES):
         for e, r in res.items():
@@ -970,10 +1165,12 @@ def compare(
     print(
         "per camera: frame ms (median), triangles, screen-space error in px (lodscape's bound; "
         "for all, measured per pixel: 99.9th percentile / largest), ratio = peer frame / "
-        "lodscape frame (> 1: lodscape faster); full mesh: the measure's floor"
+        "lodscape frame (> 1: lodscape faster); bare: lodscape without the ellipsoid (the "
+        "peers clear those pixels); full mesh: the measure's floor"
     )
     print(
-        f"{'camera':>9} | {'lodscape':>8} {'tris':>8} {'bound':>4} {'p99.9/max':>9} | "
+        f"{'camera':>9} | {'lodscape':>8} {'(bare)':>7} {'tris':>8} {'bound':>4} "
+        f"{'p99.9/max':>9} | "
         f"{'GeoMip':>7} {'tris':>8} {'p99.9/max':>9} {'ratio':>6} | {'STM':>6} {'width':>6} "
         f"{'p99.9/max':>9} {'ratio':>6} | full mesh"
     )
@@ -984,7 +1181,8 @@ def compare(
         ratios_g.append(rg)
         ratios_s.append(rs)
         print(
-            f"{name:>9} | {a['frame_ms']:8.1f} {a['triangles']:8,d} "
+            f"{name:>9} | {a['frame_ms']:8.1f} ({a.get('bare_ms', float('nan')):5.1f}) "
+            f"{a['triangles']:8,d} "
             f"{a['max_sse']:4.2f} {_px(a)} | "
             f"{g['frame_ms']:7.1f} {g['triangles']:8,d} {_px(g)} ×{rg:5.2f} | "
             f"{s['frame_ms']:6.1f} {s['target_px']:6.1f} {_px(s)} ×{rs:5.2f} | "
@@ -1041,7 +1239,8 @@ def main() -> None:
     )  # fmt: skip
     ap.add_argument("--size", type=int, default=4097)
     ap.add_argument("--dem", choices=("sample", "fbm", "both"), default="both")
-    ap.add_argument("--worker", choices=tuple(ENGINES))
+    ap.add_argument("--worker", choices=(*ENGINES, *(f"first-{e}" for e in FIRST)))
+    ap.add_argument("--params", default="{}", help="a first-picture worker's settings (JSON)")
     ap.add_argument("--data", type=Path)
     ap.add_argument(
         "--no-tune", action="store_true",
@@ -1061,7 +1260,11 @@ def main() -> None:
     if args.no_tune:
         os.environ["BENCH_PEERS_TUNE"] = "0"  # the workers inherit it
     if args.worker:
-        print(json.dumps(ENGINES[args.worker](args.data, args.repeat)))
+        if args.worker.startswith("first-"):
+            run = FIRST[args.worker.removeprefix("first-")]
+            print(json.dumps(run(args.data, json.loads(args.params))))
+        else:
+            print(json.dumps(ENGINES[args.worker](args.data, args.repeat)))
         return
     try:
         if set(args.engines) != {"lodscape"}:

@@ -1,7 +1,9 @@
 """Spine benchmark: a 4097×4097 DEM at 1280×720 with the default 2 px bound.
 
 Prints, per view and as medians:
-- triangles drawn as a share of the full-resolution mesh (2·4096² triangles; goal ≤ 3 %);
+- triangles drawn as a share of the full-resolution mesh (2·4096² triangles; goal ≤ 3 %), and
+  the error measured on the frame's pixels (``bench_peers``' measure: each drawn point and the
+  DEM's point at the same place, both projected; 99.9th percentile / largest, pixels);
 - selection time, vectorised against the naive recursive per-tile traversal of the same tree
   (``lodscape.lod._reference``), measured in this same process (goal ≥ 10× faster);
 - headless frame time (EGL) once every tile is resident (a software rasteriser gets no
@@ -90,6 +92,8 @@ def timed(fn, repeat: int) -> float:  # type: ignore[no-untyped-def]
 
 
 def main() -> None:
+    from bench_peers import _lodscape_error
+
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=4097)
     ap.add_argument("--repeat", type=int, default=15)
@@ -100,6 +104,7 @@ def main() -> None:
         path = Path(tmp) / "fbm.tif"
         t = time.perf_counter()
         write(path, n)
+        heights = spectral_fbm(n).astype(np.float64)
         print(f"DEM {n}x{n} written in {time.perf_counter() - t:.1f} s")
         t = time.perf_counter()
         scene = lodscape.open(path)
@@ -117,14 +122,16 @@ def main() -> None:
                 max(3, args.repeat // 5),
             )
             t = time.perf_counter()
-            scene.render(cam)
+            _, depth = scene.render(cam)
             first = time.perf_counter() - t
+            got = _lodscape_error({"dem": str(path)}, heights, scene.prepare(cam), depth)
             t_frame = timed(lambda cam=cam: scene.render(cam), max(3, args.repeat // 3))
             share = sel.triangles / full
             rows.append((name, sel.count, sel.triangles, share, t_vec, t_ref, first, t_frame))
             print(
                 f"{name:>9}: tiles {sel.count:4d}  triangles {sel.triangles:9,d} "
                 f"({100 * share:.2f} % of {full:,d})  max SSE {sel.max_sse:.2f} px  "
+                f"measured {got['pixel_sse_p999']:.2f}/{got['pixel_sse_max']:.2f} px  "
                 f"select {1e3 * t_vec:.2f} ms vs naive {1e3 * t_ref:.1f} ms "
                 f"(×{t_ref / t_vec:.0f})  first frame {first:.2f} s  frame {1e3 * t_frame:.0f} ms"
             )
