@@ -92,7 +92,7 @@ def timed(fn, repeat: int) -> float:  # type: ignore[no-untyped-def]
 
 
 def main() -> None:
-    from bench_peers import _lodscape_error
+    from bench_peers import _lodscape_error, ground_depth
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=4097)
@@ -124,11 +124,7 @@ def main() -> None:
             t = time.perf_counter()
             scene.render(cam)
             first = time.perf_counter() - t
-            # measured on the ground alone: where the data's edge lets the ellipsoid through,
-            # its points are not the terrain's
-            scene.renderer.ellipsoid = False
-            _, depth = scene.render(cam)
-            scene.renderer.ellipsoid = True
+            depth = ground_depth(scene, cam)
             got = _lodscape_error({"dem": str(path)}, heights, scene.prepare(cam), depth)
             t_frame = timed(lambda cam=cam: scene.render(cam), max(3, args.repeat // 3))
             share = sel.triangles / full

@@ -15,7 +15,7 @@ import numpy as np
 
 from lodscape.geo.keys import grid_of, tile_id_of
 from lodscape.geo.tiles import Tile, tile_id
-from lodscape.lod.camera import Camera
+from lodscape.lod.camera import EARTH_MIN_RADIUS, MIN_DISTANCE, Camera
 from lodscape.lod.select import SLOPE_ROOM, Selection, SelectOptions, TreeLike
 
 _A = 6378137.0  # WGS84 semi-major axis
@@ -89,7 +89,7 @@ def _scales(
     rot = camera.rotation
     view = corners @ rot.T
     depth = -view[:, 2]
-    floor = max(camera.near or 0.0, 1e-3)
+    floor = max(camera.near or 0.0, MIN_DISTANCE)
     ty = math.tan(math.radians(camera.fov_y) / 2.0)
     tx = ty * camera.width / camera.height
     if depth.min() < floor:
@@ -99,7 +99,7 @@ def _scales(
         xs = (min(max(float(ra.min()), -tx), tx), min(max(float(ra.max()), -tx), tx))
         ys = (min(max(float(rb.min()), -ty), ty), min(max(float(rb.max()), -ty), ty))
     east, north, up = (rot @ v * np.array([1.0, 1.0, -1.0]) for v in enu)
-    turn = ground * math.sqrt(0.5) / 6.3e6
+    turn = ground * math.sqrt(0.5) / EARTH_MIN_RADIUS
     vertical = horizontal = 0.0
     for a in xs:
         for b in ys:

@@ -206,8 +206,9 @@ class Camera:
                 stretch = np.maximum(stretch, np.sqrt(1.0 + ca * ca + cb * cb))
         slack = np.asarray(spread, np.float64) * stretch
         corner = 1.0 / math.sqrt(1.0 + tx * tx + ty * ty)
-        seen = np.maximum(np.maximum(zmin, np.asarray(nearest, np.float64) * corner), floor)
-        per_metre = self.scale / seen
+        per_metre = self.pixels_per_metre(
+            np.maximum(zmin, np.asarray(nearest, np.float64) * corner)
+        )
         return per_metre * (vertical + slack), per_metre * (ground + slack)
 
     # --- clip space --------------------------------------------------------------------

@@ -90,6 +90,8 @@ NO_TEXTURE = np.uint64(0xFFFF_FFFF_FFFF_FFFF)
 SLOPE_ROOM = 1.2
 #: Slack around each tile's box, as a share of its side.
 _MARGIN = 1e-3
+#: A box's eight corners: which of its low (False) or high (True) bounds each takes, per axis.
+_CORNERS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], bool)
 #: Fewer children than this go straight to their bounds (the region test would cost more).
 _REGION_MIN = 32
 
@@ -377,12 +379,13 @@ def tile_boxes(
     s = centre @ planes[:, :3].T + planes[:, 3]
     r = np.einsum("ni,npi->np", half, np.abs(np.einsum("pj,nij->npi", planes[:, :3], basis)))
     inside = np.all(s + r >= 0.0, axis=1)
-    pick = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], bool)
-    corners = np.einsum("nci,nij->ncj", np.where(pick, hi[:, None, :], lo[:, None, :]), basis)
-    spread = ground * math.sqrt(0.5) / EARTH_MIN_RADIUS
     if all_round:
         vertical = horizontal = camera.pixels_per_metre(dist_near)
     else:
+        corners = np.einsum(
+            "nci,nij->ncj", np.where(_CORNERS, hi[:, None, :], lo[:, None, :]), basis
+        )
+        spread = ground * math.sqrt(0.5) / EARTH_MIN_RADIUS
         vertical, horizontal = camera.box_scales(
             corners, basis[:, 2], basis[:, 0], basis[:, 1], spread, dist_near
         )
@@ -569,7 +572,6 @@ def _walk(
                 px[draw],
                 errd * scale[draw],
                 m.boxes.dist_near[keep][draw],
-                m.boxes.dist_far[keep][draw],
                 errd,
             )
         )
@@ -584,11 +586,11 @@ def _walk(
                 outside += int(x.size - hit.sum())
                 x, y, parent_k = x[hit], y[hit], parent_k[hit]
 
-    cols = [np.concatenate(c) for c in zip(*drawn, strict=True)] if drawn else [np.zeros(0)] * 9
+    cols = [np.concatenate(c) for c in zip(*drawn, strict=True)] if drawn else [np.zeros(0)] * 8
     ints = [a.astype(np.int64) for a in cols[:4]]
     floats = [a.astype(np.float64) for a in cols[4:]]
     i, f = ints, floats
-    t = _Drawn(i[0], i[1], i[2], i[3], f[0], f[1], f[2], f[3], f[4], np.zeros_like(i[0]))
+    t = _Drawn(i[0], i[1], i[2], i[3], f[0], f[1], f[2], f[3], np.zeros_like(i[0]))
     refined = np.unique(np.concatenate(refined_ids)) if refined_ids else _EMPTY_U
     return t, refined, (visited, culled, outside)
 
@@ -685,7 +687,6 @@ class _Drawn:
     px: F64
     sse: F64
     dist_near: F64
-    dist_far: F64
     err: F64
     fallback: I64
 
@@ -739,9 +740,14 @@ def _neighbour_error(t: _Drawn) -> F64:
         return out
     levels = np.unique(t.z)
     ids = tile_id_array(t.z, t.x, t.y)
-    # per level m: the largest error of the drawn tiles at or under each tile of level m
+    # per level m: the drawn tiles of level m, sorted (coarser neighbours are found there), and
+    # the largest error of the drawn tiles at or under each tile of level m (finer ones)
+    at: dict[int, tuple[U64, F64]] = {}
     under: dict[int, tuple[U64, F64]] = {}
     for m in levels.tolist():
+        mine = t.z == m
+        order = np.argsort(ids[mine])
+        at[m] = (ids[mine][order], t.err[mine][order])
         deep = t.z >= m
         s = t.z[deep] - m
         anc = tile_id_array(np.full(s.size, m), t.x[deep] >> s, t.y[deep] >> s)
@@ -755,19 +761,12 @@ def _neighbour_error(t: _Drawn) -> F64:
         nx = (t.x[mine, None] + step[:, 0]) % (1 << lvl)
         ny = t.y[mine, None] + step[:, 1]
         ok = (ny >= 0) & (ny < 1 << lvl)
-        nx, ny = nx[ok], np.where(ok, ny, 0)[ok]
+        nx, ny = nx[ok], ny[ok]
         row = np.broadcast_to(np.arange(mine.size)[:, None], ok.shape)[ok]
         best = np.zeros(row.size)
-        for m in levels.tolist():
-            if m > lvl:
-                continue
+        for m in levels[levels <= lvl].tolist():
             s = lvl - m
-            if m == lvl:
-                uid, worst = under[m]
-            else:
-                at = t.z == m
-                order = np.argsort(ids[at])
-                uid, worst = ids[at][order], t.err[at][order]
+            uid, worst = under[m] if m == lvl else at[m]
             want = tile_id_array(np.full(nx.size, m), nx >> s, ny >> s)
             pos = np.clip(np.searchsorted(uid, want), 0, max(uid.size - 1, 0))
             hit = uid[pos] == want if uid.size else np.zeros(want.size, bool)
@@ -889,15 +888,15 @@ def _metrics_many(
 ) -> _Drawn:
     """Screen metrics of tiles of mixed levels (the few fallback tiles), one numpy call a level."""
     n = z.size
-    px, sse, dn, df, err = (np.zeros(n) for _ in range(5))
+    px, sse, dn, err = (np.zeros(n) for _ in range(4))
     for lvl in np.unique(z):
         m = z == lvl
         st = tree.level(int(lvl)).stats(x[m], y[m])
         mt = _metrics(camera, int(lvl), x[m], y[m], st)
         e = mt.err[k[m], np.arange(int(m.sum()))].astype(np.float64)
         px[m], sse[m] = mt.px, e * mt.scale
-        dn[m], df[m], err[m] = mt.boxes.dist_near, mt.boxes.dist_far, e
-    return _Drawn(z, x, y, k, px, sse, dn, df, err, fallback)
+        dn[m], err[m] = mt.boxes.dist_near, e
+    return _Drawn(z, x, y, k, px, sse, dn, err, fallback)
 
 
 def _texture_fall_back(
