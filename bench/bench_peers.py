@@ -40,8 +40,8 @@ Cameras are given over the DEM's grid and converted for both.
 
 Per engine and DEM, a fresh process (its own GL context; peak RSS is ``VmHWM``): the time from
 opening the DEM to the first frame read back, then per camera 3 warm-up frames and the median
-of ``--repeat`` (20) frames at 1280×720, colour and depth read back by both (lodscape its RGB
-and float32 distance, Panda3D its RGBA and depth textures copied to RAM).
+of ``--repeat`` (20) frames at 1280×720 (``--resolution``), colour and depth read back by both
+(lodscape its RGB and float32 distance, Panda3D its RGBA and depth textures copied to RAM).
 
 The first picture from the file is timed apart, every engine in a fresh process per round
 (reading the DEM, the peers' tint, the GL context and the terrain inside the clock; the peers
@@ -76,7 +76,10 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-W, H, FOV_Y = 1280, 720, 60.0
+#: The frames' size: 1280×720, or ``--resolution`` (``BENCH_PEERS_SIZE``, which the workers
+#: inherit), e.g. 1920x1080 on a GPU.
+W, H = (int(v) for v in os.environ.get("BENCH_PEERS_SIZE", "1280x720").split("x"))
+FOV_Y = 60.0
 MAX_SSE = 2.0
 #: ShaderTerrainMesh's chunk limit (Panda3D's default 2048 drops half of a 4097² terrain).
 STM_MAX_CHUNKS = int(os.environ.get("BENCH_STM_CHUNKS", "16384"))
@@ -1276,7 +1279,13 @@ def main() -> None:
         help="a subset (its figures alone, no table): e.g. lodscape, with PYTHONPATH on another "
         "checkout's src to compare two versions",
     )  # fmt: skip
+    ap.add_argument(
+        "--resolution", default=f"{W}x{H}", help="frame size, WIDTHxHEIGHT (default 1280x720)"
+    )
     args = ap.parse_args()
+    if args.resolution != f"{W}x{H}":
+        os.environ["BENCH_PEERS_SIZE"] = args.resolution
+        os.execv(sys.executable, [sys.executable, *sys.argv])  # this process at that size too
     if args.no_tune:
         os.environ["BENCH_PEERS_TUNE"] = "0"  # the workers inherit it
     if args.worker:

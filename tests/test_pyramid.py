@@ -104,18 +104,24 @@ def test_neighbour_meshes_share_their_edges() -> None:
 
 def test_blocks_give_the_tree_a_whole_walk_gives() -> None:
     """The finest levels walked in blocks (bounded memory) give every statistic the whole walk
-    gives: a Web Mercator source (no reprojection lattice), holes, ragged edges."""
+    gives: a Web Mercator source (no reprojection lattice), holes, ragged edges; blocks of 32
+    (the reference level the top block level) and 64 tiles (the reference level inside the
+    blocks, sampled whole for the levels above them)."""
     from affine import Affine
 
+    from lodscape.terrain.pyramid import REFERENCE_LEVELS
     from lodscape.terrain.source import ArraySource
 
-    h = fbm_heights(600, seed=4).astype(np.float64)
+    h = fbm_heights(2100, seed=4).astype(np.float64)
     h[200:260, 100:300] = np.nan
     src = ArraySource(
-        h[:, :530], Affine(9.0, 0, 1_000_123.0, 0, -9.0, 5_000_321.0), crs="EPSG:3857"
+        h[:, :2030], Affine(9.0, 0, 1_000_123.0, 0, -9.0, 5_000_321.0), crs="EPSG:3857"
     )
     whole = build_tree(src, block_tiles=1 << 20)
-    for tiles in (2, 8):
+    truth = whole.zmax + len(whole.grids) - 1
+    # levels above both the blocks and the reference level: the walk's every path is taken
+    assert whole.zmin < truth - REFERENCE_LEVELS - 1
+    for tiles in (32, 64):
         blocked = build_tree(src, block_tiles=tiles)
         assert blocked.height_range == whole.height_range
         assert blocked.roughness == pytest.approx(whole.roughness, rel=1e-9)
@@ -124,5 +130,6 @@ def test_blocks_give_the_tree_a_whole_walk_gives() -> None:
             assert (a.z, a.x0, a.y0) == (b.z, b.x0, b.y0)
             for f in ("exists", "min_h", "max_h", "error"):
                 np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
-    with pytest.raises(ValueError, match="power of two"):
-        build_tree(src, block_tiles=3)
+    for tiles in (3, 16):
+        with pytest.raises(ValueError, match="power of two"):
+            build_tree(src, block_tiles=tiles)

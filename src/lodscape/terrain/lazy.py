@@ -6,19 +6,20 @@ first time a selection asks for them, in *chunks*: a tile of level r = zmin + 3i
 descendants down to r + 2, from the source sampled over that tile alone at levels r .. r + 4
 (16·2^k + 1 points a side at level r + k, 257² at most; each level read from the overview
 whose pixels fit it, as the meshes are). Within a chunk the statistics
-are ``build_tree``'s, by the same bottom-up steps: a tile's 16-segment error is its deviation
-from its children's grids plus their largest error.
+are ``build_tree``'s, by the same steps: a tile's 16-segment error is measured against the
+chunk's finest sampled level (exactly: the finer triangles nest in the coarser), plus that
+level's own error (below), and saturated by its children's.
 
 What a chunk cannot see is the detail below its finest sampled level L = r + 4, where that is
 coarser than the truth (the level whose grid samples the data's own resolution). That *tail*
-is bounded by a measurement made once when the tree is opened: for every level k from the
-first chunk's L to the truth, the largest deviation D_k between level k's grid and level
-k + 1's over tiles of level k spread evenly over the data (``TAIL_SAMPLES`` of them, each a
-17² and a 33² sample); a tile's error below L is then taken as TAIL_MARGIN · Σ_{k ≥ L} D_k,
-the telescoping sum ``build_tree`` adds up exactly where it reads every pixel. It is a
-measured bound, not a proof: detail finer than L that is sharper anywhere than everywhere the
-samples fell (one cliff in a plain) is underestimated by it. Heights ranges are widened by it
-too. On DEMs whose chunks all reach the truth (small ones) the tree equals ``build_tree``'s.
+is bounded by a measurement made once when the tree is opened: for each such L, the largest
+deviation D(L, L') between level L's grid and the grid of L', the next such level below it (the
+two levels above the truth in steps of one: 33² samples at the data's resolution), over tiles of level L spread evenly over the data (``TAIL_SAMPLES`` of them, each a
+17² and a 129² sample at most; exact, as in a chunk); a tile's error below L is then taken as
+TAIL_MARGIN · D(L, L') plus the tail of L'. It is a measured bound, not a proof: detail finer
+than L that is sharper anywhere than everywhere the samples fell (one cliff in a plain) is
+underestimated by it. Heights ranges are widened by it too. On DEMs whose chunks all reach the
+truth (small ones) the tree equals ``build_tree``'s.
 """
 
 from __future__ import annotations
@@ -45,10 +46,12 @@ from lodscape.terrain.pyramid import (
     TileStats,
     _blocks,
     _level_grid,
+    _Reference,
     _upsample,
     build_tree,
     level_range,
     level_span,
+    measured_error,
     sag,
 )
 from lodscape.terrain.source import identity
@@ -315,7 +318,7 @@ class LazyTree:
         if ident is None:
             return None
         params = (
-            f"tree v1|tile {self.tile_size}|grids {self.grids}|chunk {CHUNK_LEVELS}|"
+            f"tree v3|tile {self.tile_size}|grids {self.grids}|chunk {CHUNK_LEVELS}|"
             f"tail {TAIL_SAMPLES}×{TAIL_MARGIN}"
         )
         # one sidecar per raster (its name leaves out size and time: a changed file finds and
@@ -470,13 +473,23 @@ class LazyTree:
         ex = np.asarray(_blocks(valid).any(axis=(2, 3)), bool)
         e16: F32 = np.where(ex, np.float32(tail), np.float32(0.0)).astype(np.float32)
         per_level: list[tuple[NDArray[np.bool_], F32, F32, F32]] = [(ex, lo, hi, e16)]
-        for k in range(len(grids) - 2, -1, -1):
+        last = len(grids) - 1
+        ref = _Reference(
+            r + last,
+            h,
+            (cx << last, cy << last, 1 << last, 1 << last),
+            ex,
+            e16,
+            valid if finest == self.truth else None,
+        )
+        for k in range(last - 1, -1, -1):
             hk, vk = grids[k]
-            hc = grids[k + 1][0]
             cex, clo, chi, ce16 = per_level[0]
-            dev = _blocks(np.abs(_upsample(hk) - hc)).max(axis=(2, 3))
-            total = np.where(cex, dev + ce16, 0.0)
-            e16 = _pool(total, 2)
+            # measured against the finest sampled level, saturated by the children's
+            rng = (cx << k, cy << k, 1 << k, 1 << k)
+            e16 = np.maximum(
+                _pool(np.where(cex, ce16, 0.0), 2), measured_error(hk, rng, ref, r + k)
+            )
             b = _blocks(hk)
             lo = np.minimum(b.min(axis=(2, 3)).astype(np.float32), _pool(clo, 2, "min"))
             hi = np.maximum(b.max(axis=(2, 3)).astype(np.float32), _pool(chi, 2))
@@ -514,20 +527,28 @@ class LazyTree:
     # --- opening ----------------------------------------------------------------------------
 
     def _measure_tails(self) -> dict[int, float]:
-        """Per level L below which chunks do not see: TAIL_MARGIN · Σ_{k ≥ L} D_k (module)."""
-        levels = list(range(self._finest(self.zmin), self.truth))
+        """Per level L below which chunks do not see (a chunk's finest sampled level short of
+        the truth): TAIL_MARGIN · D(L, L') + the tail of L', L' the next such level or the
+        truth (module)."""
+        levels = sorted(
+            {self._finest(r) for r in range(self.zmin, self._zmax + 1, CHUNK_LEVELS)}
+            - set(range(self.truth, self._finest(self._zmax) + 1))
+        )
         if not levels:
             return {}
+        # the steps onto the two finest levels one level long: what is read at the data's own
+        # resolution (those two levels' spacing) stays a 33² sample a tile (a remote file's
+        # full-resolution reads are the dear ones)
+        levels = sorted({*levels, *range(max(levels[0], self.truth - 2), self.truth)})
+        below = dict(zip(levels, [*levels[1:], self.truth], strict=True))
         jobs = [(k, t) for k in levels for t in self._spread(k)]
-        devs = self._pool.map(lambda job: self._increment(*job), jobs)
+        devs = self._pool.map(lambda job: self._increment(job[0], job[1], below[job[0]]), jobs)
         worst: dict[int, float] = dict.fromkeys(levels, 0.0)
         for (k, _), d in zip(jobs, devs, strict=True):
             worst[k] = max(worst[k], d)
         tails: dict[int, float] = {}
-        total = 0.0
         for k in reversed(levels):
-            total += worst[k]
-            tails[k] = TAIL_MARGIN * total
+            tails[k] = TAIL_MARGIN * worst[k] + tails.get(below[k], 0.0)
         return tails
 
     def _spread(self, k: int) -> list[tuple[int, int]]:
@@ -548,16 +569,21 @@ class LazyTree:
                             out.add((x, y))
         return sorted(out)
 
-    def _increment(self, k: int, t: tuple[int, int]) -> float:
-        """The largest deviation of tile t of level k's grid from level k + 1's over it."""
+    def _increment(self, k: int, t: tuple[int, int], fine: int) -> float:
+        """The largest deviation of tile t of level k's grid from level ``fine``'s over it
+        (exact: the finer triangles nest in the coarser)."""
         x, y = t
+        m = fine - k
         hk, vk = _level_grid(self.source, k, (x, y, 1, 1))
         if not vk.any():
             return 0.0
-        hc, vc = _level_grid(self.source, k + 1, (2 * x, 2 * y, 2, 2))
+        hc, vc = _level_grid(self.source, fine, (x << m, y << m, 1 << m, 1 << m))
+        up, whole = hk, vk.astype(np.float32)
+        for _ in range(m):
+            up, whole = _upsample(up), _upsample(whole)
         # where the data is whole: a step onto nodata is the edge's, not the terrain's detail
-        ok = vc & (_upsample(vk.astype(np.float32)) == 1.0)
-        dev = np.abs(_upsample(hk) - hc)[ok]
+        ok = vc & (whole == 1.0)
+        dev = np.abs(up - hc)[ok]
         return float(dev.max()) if dev.size else 0.0
 
     def _height_range(self) -> tuple[float, float]:

@@ -3,10 +3,15 @@
 One bottom-up pass, a whole level per numpy call. Level z is sampled on a grid of 16 segments per
 tile; the deepest level sampled is the data's own resolution (its 16-segment grid is as fine as the
 256-texel texture of the finest tile level), taken as the truth with zero error. A coarser tile's
-error is bounded by the triangle inequality: its deviation from its children's meshes (exact, since
-child triangles nest in parent triangles, so the largest deviation sits on a child vertex) plus
-the largest error among its children. A tile drawn with 16·2^k segments uses exactly the vertices
-of its level z+k descendants, so its error is their largest 16-segment error.
+error is *measured*, not summed: the triangles of every finer level nest in its own (each cell
+split along the same diagonal), so its surface and a finer level's differ most at one of the
+finer level's vertices, and the largest difference over them is the exact deviation. A tile of
+the ``REFERENCE_LEVELS`` levels above the truth is measured against the truth itself; one
+higher up against the level ``REFERENCE_LEVELS`` above the truth, plus that level's own error
+there (one triangle inequality, where summing level by level adds one per level: ×1.4-2.3 the
+measured error on the coarse levels of an fBm DEM). Errors are saturated: a tile's is at least
+its children's. A tile drawn with 16·2^k segments uses exactly the vertices of its level z+k
+descendants, so its error is their largest 16-segment error.
 """
 
 from __future__ import annotations
@@ -44,6 +49,9 @@ _STRIP_POINTS = 1 << 22
 #: Tiles a side of the truth level's blocks: 32 (263,000 samples held at a time) builds a
 #: 16385² DEM's tree as fast as 64 with 160 MB less at the peak.
 BLOCK_TILES = 32
+#: Levels above the truth measured against the truth itself (the module's docstring); a block
+#: holds them all, so blocks are at least 2^REFERENCE_LEVELS tiles a side.
+REFERENCE_LEVELS = 5
 
 
 class SampleSource(Protocol):
@@ -204,15 +212,78 @@ def _upsample(h: NDArray[np.float32]) -> NDArray[np.float32]:
 
 
 def _pool(
-    child: NDArray[np.floating], off: tuple[int, int], shape: tuple[int, int], fill: float, op: str
+    child: NDArray[np.floating],
+    off: tuple[int, int],
+    shape: tuple[int, int],
+    fill: float,
+    op: str,
+    factor: int = 2,
 ) -> NDArray[np.float32]:
-    """Reduce a child level's per-tile array onto its parents (2×2 blocks), missing = fill."""
+    """Reduce a finer level's per-tile array onto its ancestors (``factor``² blocks: 2, the
+    level below), missing = fill."""
     ny, nx = shape
-    full = np.full((2 * ny, 2 * nx), fill, dtype=np.float32)
+    f = factor
+    full = np.full((f * ny, f * nx), fill, dtype=np.float32)
     oy, ox = off
     full[oy : oy + child.shape[0], ox : ox + child.shape[1]] = child
-    blocks = full.reshape(ny, 2, nx, 2)
+    blocks = full.reshape(ny, f, nx, f)
     return getattr(blocks, op)(axis=(1, 3)).astype(np.float32)  # type: ignore[no-any-return]
+
+
+@dataclass(frozen=True, eq=False)
+class _Reference:
+    """A finer level's grid over a range of its tiles, which coarser tiles are measured
+    against, with its tiles' existence and 16-segment errors."""
+
+    z: int
+    heights: NDArray[np.float32]
+    rng: tuple[int, int, int, int]
+    exists: NDArray[np.bool_]
+    error: NDArray[np.float32]
+    #: Where the grid's points hold data (the truth's: what the picture shows of it); None:
+    #: every point of a tile that exists (a coarser reference's vertices off the data still
+    #: shape its surface over the data next to them).
+    valid: NDArray[np.bool_] | None = None
+
+
+def deviation(
+    h: NDArray[np.float32],
+    rng: tuple[int, int, int, int],
+    fine: NDArray[np.float32],
+    fine_rng: tuple[int, int, int, int],
+    levels: int,
+    valid: NDArray[np.bool_] | None = None,
+) -> NDArray[np.float32]:
+    """Per tile of the finer grid ``fine`` (tiles ``fine_rng``, ``levels`` below): the largest
+    difference between its surface and the coarser grid ``h``'s (tiles ``rng``), exact (every
+    finer vertex is compared, or those ``valid`` marks; the coarser triangles hold the finer
+    ones)."""
+    up = h
+    for _ in range(levels):
+        up = _upsample(up)
+    ox, oy = fine_rng[0] - (rng[0] << levels), fine_rng[1] - (rng[1] << levels)
+    sub = up[oy * _BASE : oy * _BASE + fine.shape[0], ox * _BASE : ox * _BASE + fine.shape[1]]
+    diff = np.abs(sub - fine)
+    if valid is not None:
+        diff = np.where(valid, diff, np.float32(0.0))
+    out: NDArray[np.float32] = _blocks(diff).max(axis=(2, 3)).astype(np.float32)
+    return out
+
+
+def measured_error(
+    h: NDArray[np.float32],
+    rng: tuple[int, int, int, int],
+    ref: _Reference,
+    z: int,
+) -> NDArray[np.float32]:
+    """Per tile of level z over ``rng`` (grid ``h``): its largest difference from the
+    reference level's surface plus the reference's own error there, over the reference's
+    tiles that exist."""
+    k = ref.z - z
+    dev = deviation(h, rng, ref.heights, ref.rng, k, ref.valid)
+    total = np.where(ref.exists, dev + ref.error, np.float32(0.0))
+    off = (ref.rng[1] - (rng[1] << k), ref.rng[0] - (rng[0] << k))
+    return _pool(total, off, (rng[3], rng[2]), 0.0, "max", 1 << k)
 
 
 @dataclass(frozen=True)
@@ -267,13 +338,19 @@ def build_tree(
     tile_size: int = 256,
     grids: tuple[int, ...] = GRIDS,
     block_tiles: int = BLOCK_TILES,
+    reference_levels: int = REFERENCE_LEVELS,
 ) -> TileTree:
     """Walk the source once, bottom-up, and return its tile tree.
 
     The finest levels are walked in aligned blocks of ``block_tiles``² tiles of the truth
     level (every parent's children lie in its block), each block from the truth up to the
     level where it is one tile; the levels above, a few tiles each, are walked whole. So the
-    samples held at once are bounded by the block, not by the data's size."""
+    samples held at once are bounded by the block, not by the data's size.
+
+    Tiles of the ``reference_levels`` levels above the truth are measured against it, those
+    higher up against the level ``reference_levels`` above it (the module's docstring); blocks
+    hold those levels, so they are at least 2^reference_levels tiles a side unless one block
+    holds the whole tree."""
     span = level_span(source.bounds_merc, source.resolution_merc, tile_size=tile_size, grids=grids)
     bounds = source.bounds_merc
     zmin, zmax, coarsened = span.zmin, span.texture_zmax, span.coarsened
@@ -288,8 +365,15 @@ def build_tree(
     # meshes reach it through levels below zmax that carry geometry only
     truth = zmax + texel_levels
     zgeo = truth - depth
+    # the level the levels above it are measured against (the truth below it)
+    second = truth - reference_levels
     # the block levels: truth .. top, each block one tile at ``top``
     top = max(truth - round(math.log2(block_tiles)), zmin)
+    if top > max(second, zmin):
+        raise ValueError(
+            f"Expected a power of two of at least {1 << reference_levels} block tiles "
+            f"(the levels measured against the truth), got {block_tiles}"
+        )
     ranges = {z: level_range(bounds, z) for z in range(zmin, truth + 1)}
     acc = {z: _LevelAcc(ranges[z]) for z in range(top, truth + 1)}
     twist_z = max(zgeo, top)
@@ -299,8 +383,9 @@ def build_tree(
     b = 1 << (truth - top)
     for by in range(ty0 // b, (ty0 + tny - 1) // b + 1):
         for bx in range(tx0 // b, (tx0 + tnx - 1) // b + 1):
-            child: tuple[NDArray[np.float32], tuple[int, int, int, int], Level] | None = None
+            child: tuple[tuple[int, int, int, int], Level] | None = None
             block_twist = np.zeros((0, 0), np.float32)
+            refs: dict[int, _Reference] = {}
             for z in range(truth, top - 1, -1):
                 k = truth - z
                 rng = _clip(ranges[z], (bx * b) >> k, (by * b) >> k, max(b >> k, 1))
@@ -315,13 +400,18 @@ def build_tree(
                     south = rng[1] + rng[3] == ty0 + tny
                     block_twist, s2, n2 = _twist(h, valid, rng[3], rng[2], east, south)
                     sq, count = sq + s2, count + n2
-                lv, e16, twisted = _step(z, h, valid, rng, child, stands_in, block_twist, z >= zgeo)
+                ref = refs.get(truth if z >= second else second)
+                lv, e16, twisted = _step(
+                    z, h, valid, rng, child, stands_in, block_twist, z >= zgeo, ref
+                )
                 block_twist = twisted
                 acc[z].put(lv, e16)
+                if z in (truth, second):
+                    refs[z] = _Reference(z, h, rng, lv.exists, e16, valid if z == truth else None)
                 if z == twist_z:
                     ox, oy = rng[0] - ranges[z][0], rng[1] - ranges[z][1]
                     twist[oy : oy + rng[3], ox : ox + rng[2]] = block_twist
-                child = (h, rng, lv)
+                child = (rng, lv)
     if lo > hi:
         raise SourceError(f"{source.name}: no valid heights inside the data's footprint")
     height_range = (lo, hi)
@@ -329,18 +419,22 @@ def build_tree(
     levels: dict[int, tuple[Level, NDArray[np.float32], tuple[int, int, int, int]]] = {
         z: (a.level(z), a.e16, ranges[z]) for z, a in acc.items()
     }
-    # the levels above the blocks: whole, their child the top block level sampled whole
+    # the levels above the blocks: whole, their child the top block level, all measured
+    # against ``second`` (at or below ``top``), sampled whole
     if top > zmin:
-        h, valid = _level_grid(source, top, ranges[top])
-        child = (h, ranges[top], levels[top][0])
+        child = (ranges[top], levels[top][0])
+        second_grid = _level_grid(source, second, ranges[second])[0]
+        whole = _Reference(
+            second, second_grid, ranges[second], levels[second][0].exists, levels[second][1]
+        )
         for z in range(top - 1, zmin - 1, -1):
             rng = ranges[z]
             h, valid = _level_grid(source, z, rng)
-            lv, e16, twisted = _step(z, h, valid, rng, child, stands_in, twist, z >= zgeo)
+            lv, e16, twisted = _step(z, h, valid, rng, child, stands_in, twist, z >= zgeo, whole)
             if z >= zgeo:
                 twist = twisted
             levels[z] = (lv, e16, rng)
-            child = (h, rng, lv)
+            child = (rng, lv)
 
     out = []
     for z in range(zmin, zgeo + 1):
@@ -398,14 +492,15 @@ def _step(
     h: NDArray[np.float32],
     valid: NDArray[np.bool_],
     rng: tuple[int, int, int, int],
-    child: tuple[NDArray[np.float32], tuple[int, int, int, int], Level] | None,
+    child: tuple[tuple[int, int, int, int], Level] | None,
     stands_in: bool,
     twist: NDArray[np.float32],
     pool_twist: bool,
+    ref: _Reference | None = None,
 ) -> tuple[Level, NDArray[np.float32], NDArray[np.float32]]:
     """One level's statistics over ``rng`` from its sampled grid and its child level's (the
-    level below, over the children of ``rng``): (level, 16-segment errors, the twist pooled
-    onto it when ``pool_twist``)."""
+    level below, over the children of ``rng``): (level, 16-segment errors measured against
+    ``ref`` and saturated by the children's, the twist pooled onto it when ``pool_twist``)."""
     x0, y0, nx, ny = rng
     mn = _blocks(h).min(axis=(2, 3)).astype(np.float32)
     mx = _blocks(h).max(axis=(2, 3)).astype(np.float32)
@@ -415,15 +510,13 @@ def _step(
         exists = np.asarray(_blocks(valid).any(axis=(2, 3)), dtype=bool)
     e16 = np.zeros((ny, nx), dtype=np.float32)
     if child is not None:
-        hc, crng, clv = child
+        crng, clv = child
         cx0, cy0 = crng[0], crng[1]
         ox, oy = cx0 - 2 * x0, cy0 - 2 * y0
-        up = _upsample(h)
-        sub = up[oy * _BASE : oy * _BASE + hc.shape[0], ox * _BASE : ox * _BASE + hc.shape[1]]
-        dev = _blocks(np.abs(sub - hc)).max(axis=(2, 3))
-        # the child tiles' own error (its 16-segment mesh against the truth) adds on
-        total = np.where(clv.exists, dev + clv.error[0], 0.0)
-        e16 = _pool(total, (oy, ox), (ny, nx), 0.0, "max")
+        # saturated: no tile's error under its children's
+        e16 = _pool(np.where(clv.exists, clv.error[0], 0.0), (oy, ox), (ny, nx), 0.0, "max")
+        if ref is not None:
+            e16 = np.maximum(e16, measured_error(h, rng, ref, z))
         mn = np.minimum(mn, _pool(clv.min_h, (oy, ox), (ny, nx), np.inf, "min"))
         mx = np.maximum(mx, _pool(clv.max_h, (oy, ox), (ny, nx), -np.inf, "max"))
         exists |= _pool(clv.exists.astype(np.float32), (oy, ox), (ny, nx), 0.0, "max") > 0
