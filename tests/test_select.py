@@ -200,3 +200,24 @@ def test_select_needs_clip_distances(tree: TileTree) -> None:
 def test_bad_options(kw: dict[str, float], msg: str) -> None:
     with pytest.raises(ValueError, match=msg):
         SelectOptions(**kw)
+
+
+def test_box_frames_kept_between_frames_are_the_ones_made_afresh() -> None:
+    """What a tile's box is in its own frame is kept between selections: what comes back for
+    tiles met before, met with another height range (a tree that learnt it), or new after the
+    table was emptied (its bound) is what working it out afresh gives."""
+    from lodscape.lod.select import _box_frames, _BoxFrames
+
+    frames = _BoxFrames(limit=64)
+    rng = np.random.default_rng(3)
+    z = 12
+    for _ in range(8):
+        x = rng.integers(1000, 1012, 30).astype(np.int64)
+        y = rng.integers(1500, 1512, 30).astype(np.int64)
+        lo = rng.choice([0.0, 100.0], 30)
+        hi = lo + rng.choice([500.0, 900.0], 30)
+        got = frames.get(z, x, y, lo, hi)
+        want = _box_frames(z, x, y, lo, hi)
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-6)
+    assert frames.get(z, x[:0], y[:0], lo[:0], hi[:0])[0].shape == (0, 3, 3)

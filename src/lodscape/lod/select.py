@@ -37,6 +37,7 @@ per tile and layer.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -329,6 +330,96 @@ class Boxes:
     horizontal: F64
 
 
+def _box_frames(
+    z: int, x: I64, y: I64, min_h: NDArray[np.floating], max_h: NDArray[np.floating]
+) -> tuple[F64, F64, F64, F64]:
+    """Per tile: its local ENU basis (N, 3, 3), the box of its n×n lattice at its min and max
+    height in that frame about the Earth's centre (lo, hi: (N, 3)), and its ground size; n is
+    chosen per level so that the Earth's curve bulges less between lattice points than the
+    box's margin."""
+    if x.size == 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    left, bottom, right, top = bounds_array(z, x, y)
+    side = 2.0 * ORIGIN / (1 << z)
+    # a chord of length L sags L²/(8R) below the sphere: keep that under the margin
+    n = min(2 + math.ceil(math.sqrt(side / (8.0 * WGS84_A * _MARGIN))), 33)
+    f = np.linspace(0.0, 1.0, n)
+    xs = left[:, None] + f * (right - left)[:, None]
+    ys = bottom[:, None] + f * (top - bottom)[:, None]
+    lon, lat = merc_to_lonlat(xs[:, None, :], ys[:, :, None])
+    clon, clat = merc_to_lonlat((left + right) / 2.0, (bottom + top) / 2.0)
+    basis = enu_basis(clon, clat)
+    lo_h = np.asarray(min_h, np.float64)[:, None, None]
+    hi_h = np.asarray(max_h, np.float64)[:, None, None]
+    pts = np.concatenate(
+        [geodetic_to_ecef(lon, lat, lo_h), geodetic_to_ecef(lon, lat, hi_h)], axis=1
+    ).reshape(len(x), -1, 3)
+    local = np.einsum("nij,npj->npi", basis, pts)
+    ground = (right - left) * np.cos(np.radians(clat))
+    return basis, local.min(axis=1), local.max(axis=1), ground
+
+
+class _BoxFrames:
+    """``_box_frames`` of the tiles selections have met, per level (sorted tile ids and their
+    rows), so a frame works out only the tiles new to it: what a box is in its own frame does
+    not depend on the camera. A tile whose height range changed (a tree that learns it) is
+    worked out again. Bounded: a level's table is emptied when it outgrows ``limit``."""
+
+    def __init__(self, limit: int = 1 << 15) -> None:
+        self.limit = limit
+        self._levels: dict[int, tuple[U64, F64, F64, F64, F64, F64, F64]] = {}
+        self._lock = threading.Lock()
+
+    def get(
+        self, z: int, x: I64, y: I64, min_h: NDArray[np.floating], max_h: NDArray[np.floating]
+    ) -> tuple[F64, F64, F64, F64]:
+        lo_h = np.asarray(min_h, np.float64)
+        hi_h = np.asarray(max_h, np.float64)
+        if x.size == 0:
+            return _box_frames(z, x, y, lo_h, hi_h)
+        ids = tile_id_array(z, x, y)
+        with self._lock:
+            table = self._levels.get(z)
+        n = ids.size
+        if table is None:
+            found = np.zeros(n, bool)
+            row = np.zeros(n, np.int64)
+        else:
+            keys = table[0]
+            row = np.minimum(np.searchsorted(keys, ids), max(keys.size - 1, 0))
+            found = (keys[row] == ids) & (table[5][row] == lo_h) & (table[6][row] == hi_h)
+        if found.all() and table is not None:
+            return table[1][row], table[2][row], table[3][row], table[4][row]
+        basis = np.empty((n, 3, 3))
+        lo = np.empty((n, 3))
+        hi = np.empty((n, 3))
+        ground = np.empty(n)
+        if table is not None and found.any():
+            r = row[found]
+            basis[found], lo[found], hi[found], ground[found] = (
+                table[1][r],
+                table[2][r],
+                table[3][r],
+                table[4][r],
+            )
+        new = ~found
+        made = _box_frames(z, x[new], y[new], lo_h[new], hi_h[new])
+        basis[new], lo[new], hi[new], ground[new] = made
+        with self._lock:
+            table = self._levels.get(z)
+            cols = [ids[new], *made, lo_h[new], hi_h[new]]
+            if table is not None and table[0].size + int(new.sum()) <= self.limit:
+                # the new rows win over stale ones of the same tile (a changed height range)
+                stale = np.isin(table[0], ids[new])
+                cols = [np.concatenate([t[~stale], c]) for t, c in zip(table, cols, strict=True)]
+            order = np.argsort(cols[0], kind="stable")
+            self._levels[z] = tuple(c[order] for c in cols)  # type: ignore[assignment]
+        return basis, lo, hi, ground
+
+
+_BOX_FRAMES = _BoxFrames()
+
+
 def tile_boxes(
     camera: Camera,
     z: int,
@@ -346,29 +437,13 @@ def tile_boxes(
     round, paper 004's areas, whatever the view's direction) takes them as if the camera looked
     at the box's nearest point instead: pixels per metre there.
     """
-    left, bottom, right, top = bounds_array(z, x, y)
-    side = 2.0 * ORIGIN / (1 << z)
-    # a chord of length L sags L²/(8R) below the sphere: keep that under the margin
-    n = min(2 + math.ceil(math.sqrt(side / (8.0 * WGS84_A * _MARGIN))), 33)
-    f = np.linspace(0.0, 1.0, n)
-    xs = left[:, None] + f * (right - left)[:, None]
-    ys = bottom[:, None] + f * (top - bottom)[:, None]
-    lon, lat = merc_to_lonlat(xs[:, None, :], ys[:, :, None])
-    clon, clat = merc_to_lonlat((left + right) / 2.0, (bottom + top) / 2.0)
-    basis = enu_basis(clon, clat)
-    lo_h = np.asarray(min_h, np.float64)[:, None, None]
-    hi_h = np.asarray(max_h, np.float64)[:, None, None]
-    pts = (
-        np.concatenate(
-            [geodetic_to_ecef(lon, lat, lo_h), geodetic_to_ecef(lon, lat, hi_h)], axis=1
-        ).reshape(len(x), -1, 3)
-        - camera.position
-    )
-    local = np.einsum("nij,npj->npi", basis, pts)
-    ground = (right - left) * np.cos(np.radians(clat))
+    basis, lo0, hi0, ground = _BOX_FRAMES.get(z, x, y, min_h, max_h)
+    # the lattice's box in each tile's frame is the camera's business only through where the
+    # camera is: moving the origin to the camera shifts it by the camera's position there
+    shift = basis @ camera.position
     margin = (_MARGIN * ground)[:, None]
-    lo = local.min(axis=1) - margin
-    hi = local.max(axis=1) + margin
+    lo = lo0 - shift - margin
+    hi = hi0 - shift + margin
     # the camera sits at the origin of these camera-relative coordinates
     gap = np.maximum(lo, 0.0) + np.maximum(-hi, 0.0)
     dist_near = np.linalg.norm(gap, axis=1)

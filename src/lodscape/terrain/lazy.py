@@ -13,9 +13,10 @@ level's own error (below), and saturated by its children's.
 What a chunk cannot see is the detail below its finest sampled level L = r + 4, where that is
 coarser than the truth (the level whose grid samples the data's own resolution). That *tail*
 is bounded by a measurement made once when the tree is opened: for each such L, the largest
-deviation D(L, L') between level L's grid and the grid of L', the next such level below it (the
-two levels above the truth in steps of one: 33² samples at the data's resolution), over tiles of level L spread evenly over the data (``TAIL_SAMPLES`` of them, each a
-17² and a 129² sample at most; exact, as in a chunk); a tile's error below L is then taken as
+deviation D(L, L') between level L's grid and the grid of L', the next such level below it
+(the two levels above the truth in steps of one: 33² samples at the data's resolution), over
+tiles of level L spread evenly over the data (``TAIL_SAMPLES`` of them, each a 17² and a 129²
+sample at most; exact, as in a chunk); a tile's error below L is then taken as
 TAIL_MARGIN · D(L, L') plus the tail of L'. It is a measured bound, not a proof: detail finer
 than L that is sharper anywhere than everywhere the samples fell (one cliff in a plain) is
 underestimated by it. Heights ranges are widened by it too. On DEMs whose chunks all reach the
