@@ -67,6 +67,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -112,7 +113,10 @@ def read_dem(dem: Path) -> tuple[np.ndarray, float, float, np.ndarray, Any, Any]
 
     from lodscape.imagery.tint import tint
 
-    with rasterio.open(dem) as ds:
+    with rasterio.open(dem) as ds, warnings.catch_warnings():
+        # rasterio 1.4 sets an array's shape, which NumPy 2.5 deprecates: said on the bench's
+        # own line (its __main__ shows DeprecationWarnings), not a peer's warning
+        warnings.simplefilter("ignore", DeprecationWarning)
         z = ds.read(1).astype(np.float32)
         tr, crs = ds.transform, ds.crs
     rows, cols = z.shape
