@@ -14,9 +14,9 @@ What a chunk cannot see is the detail below its finest sampled level L = r + 4, 
 coarser than the truth (the level whose grid samples the data's own resolution). That *tail*
 is bounded by a measurement made once when the tree is opened: for each such L, the largest
 deviation D(L, L') between level L's grid and the grid of L', the next such level below it
-(the two levels above the truth in steps of one: 33² samples at the data's resolution), over
-tiles of level L spread evenly over the data (``TAIL_SAMPLES`` of them, each a 17² and a 129²
-sample at most; exact, as in a chunk); a tile's error below L is then taken as
+(the last step, onto the truth, from two levels above it at most: 65² samples at the data's
+resolution), over tiles of level L spread evenly over the data (``TAIL_SAMPLES`` of them, each
+a 17² and a 129² sample at most; exact, as in a chunk); a tile's error below L is then taken as
 TAIL_MARGIN · D(L, L') plus the tail of L'. It is a measured bound, not a proof: detail finer
 than L that is sharper anywhere than everywhere the samples fell (one cliff in a plain) is
 underestimated by it. Heights ranges are widened by it too. On DEMs whose chunks all reach the
@@ -319,7 +319,7 @@ class LazyTree:
         if ident is None:
             return None
         params = (
-            f"tree v3|tile {self.tile_size}|grids {self.grids}|chunk {CHUNK_LEVELS}|"
+            f"tree v4|tile {self.tile_size}|grids {self.grids}|chunk {CHUNK_LEVELS}|"
             f"tail {TAIL_SAMPLES}×{TAIL_MARGIN}"
         )
         # one sidecar per raster (its name leaves out size and time: a changed file finds and
@@ -537,10 +537,10 @@ class LazyTree:
         )
         if not levels:
             return {}
-        # the steps onto the two finest levels one level long: what is read at the data's own
-        # resolution (those two levels' spacing) stays a 33² sample a tile (a remote file's
-        # full-resolution reads are the dear ones)
-        levels = sorted({*levels, *range(max(levels[0], self.truth - 2), self.truth)})
+        # the step onto the truth at most two levels long, onto the level above it one: what
+        # is read at the data's own resolution (those two levels' spacing) stays a 65² sample
+        # a tile at most (a remote file's full-resolution reads are the dear ones)
+        levels = sorted({*levels, max(levels[0], self.truth - 2)})
         below = dict(zip(levels, [*levels[1:], self.truth], strict=True))
         jobs = [(k, t) for k in levels for t in self._spread(k)]
         devs = self._pool.map(lambda job: self._increment(job[0], job[1], below[job[0]]), jobs)
