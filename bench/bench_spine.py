@@ -112,6 +112,11 @@ def main() -> None:
             f"tile tree (levels {scene.tree.zmin}..{scene.tree.zmax}) in "
             f"{time.perf_counter() - t:.1f} s"
         )
+        tree = scene.tree
+        if hasattr(tree, "tail"):  # a lazy tree: the detail its chunks do not read, bounded
+            tails = {z: tree.tail(z) for z in range(tree.zmin, tree.truth) if tree.tail(z) > 0}
+            print("tail below a chunk's deepest level, m: " + ", ".join(
+                f"level {z} {v:.1f}" for z, v in tails.items()))  # fmt: skip
         rows = []
         for name, cam in views(scene).items():
             c = scene.prepare(cam)

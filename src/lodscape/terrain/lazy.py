@@ -50,6 +50,7 @@ from lodscape.terrain.pyramid import (
     _Reference,
     _upsample,
     build_tree,
+    deviation,
     level_range,
     level_span,
     measured_error,
@@ -531,16 +532,14 @@ class LazyTree:
         """Per level L below which chunks do not see (a chunk's finest sampled level short of
         the truth): TAIL_MARGIN · D(L, L') + the tail of L', L' the next such level or the
         truth (module)."""
-        levels = sorted(
-            {self._finest(r) for r in range(self.zmin, self._zmax + 1, CHUNK_LEVELS)}
-            - set(range(self.truth, self._finest(self._zmax) + 1))
-        )
-        if not levels:
+        short = {self._finest(r) for r in range(self.zmin, self._zmax + 1, CHUNK_LEVELS)}
+        short = {level for level in short if level < self.truth}
+        if not short:
             return {}
         # the step onto the truth at most two levels long, onto the level above it one: what
         # is read at the data's own resolution (those two levels' spacing) stays a 65² sample
         # a tile at most (a remote file's full-resolution reads are the dear ones)
-        levels = sorted({*levels, max(levels[0], self.truth - 2)})
+        levels = sorted({*short, max(min(short), self.truth - 2)})
         below = dict(zip(levels, [*levels[1:], self.truth], strict=True))
         jobs = [(k, t) for k in levels for t in self._spread(k)]
         devs = self._pool.map(lambda job: self._increment(job[0], job[1], below[job[0]]), jobs)
@@ -578,14 +577,14 @@ class LazyTree:
         hk, vk = _level_grid(self.source, k, (x, y, 1, 1))
         if not vk.any():
             return 0.0
-        hc, vc = _level_grid(self.source, fine, (x << m, y << m, 1 << m, 1 << m))
-        up, whole = hk, vk.astype(np.float32)
+        fine_rng = (x << m, y << m, 1 << m, 1 << m)
+        hc, vc = _level_grid(self.source, fine, fine_rng)
+        whole = vk.astype(np.float32)
         for _ in range(m):
-            up, whole = _upsample(up), _upsample(whole)
+            whole = _upsample(whole)
         # where the data is whole: a step onto nodata is the edge's, not the terrain's detail
         ok = vc & (whole == 1.0)
-        dev = np.abs(up - hc)[ok]
-        return float(dev.max()) if dev.size else 0.0
+        return float(deviation(hk, (x, y, 1, 1), hc, fine_rng, m, ok).max())
 
     def _height_range(self) -> tuple[float, float]:
         # a raster's (a fill forwards it) from its coarse grid; a mosaic's from its roots
