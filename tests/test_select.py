@@ -11,6 +11,7 @@ from lodscape.geo.tiles import tile_from_id_array, tile_id_array
 from lodscape.lod._reference import select_reference
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import SLOPE_ROOM, Selection, SelectOptions, select, tile_boxes
+from lodscape.lod.view import TerrainView
 from lodscape.terrain.pyramid import TileTree, build_tree
 
 OPTS = SelectOptions()
@@ -43,15 +44,42 @@ def _tiles(sel: Selection) -> list[tuple[int, int, int, int, int]]:
     return sorted(zip(*(c.tolist() for c in cols), strict=True))
 
 
+@pytest.mark.parametrize("hold", [False, True])
 @pytest.mark.parametrize("name", CAMERAS)
-def test_vectorised_equals_naive_reference(tree: TileTree, name: str) -> None:
+def test_vectorised_equals_naive_reference(tree: TileTree, name: str, hold: bool) -> None:
+    opts = SelectOptions(hold_parent_grid=hold)
     cam = _clip(CAMERAS[name])
-    sel = select(OPTS, cam, tree)
+    sel = select(opts, cam, tree)
     assert sel.count > 0
-    assert _tiles(sel) == sorted(select_reference(OPTS, cam, tree))
+    assert _tiles(sel) == sorted(select_reference(opts, cam, tree))
     moved = cam.moved(alt=cam.alt * 0.8)
-    again = select(OPTS, moved, tree, previous=sel)
-    assert _tiles(again) == sorted(select_reference(OPTS, moved, tree, previous=sel))
+    again = select(opts, moved, tree, previous=sel)
+    assert _tiles(again) == sorted(select_reference(opts, moved, tree, previous=sel))
+
+
+def test_a_split_holds_its_parents_grid_where_frames_geomorph(tree: TileTree) -> None:
+    # a still picture has nothing to glide: its tiles take the coarsest grid their error
+    # allows; frames that geomorph keep a split from coarsening the ground (no jump)
+    held, free = [], []
+    for morph in (True, False):
+        view = TerrainView(tree)
+        view.morph = morph
+        prev: dict[bool, Selection | None] = {True: None, False: None}
+        for cam in CAMERAS.values():
+            cam = _clip(cam)
+            got = view.update(cam, np.zeros(0, np.uint64), blocking=True).selection
+            want = select(SelectOptions(hold_parent_grid=morph), cam, tree, prev[morph])
+            prev[morph] = want
+            assert _tiles(got) == _tiles(want)
+            (held if morph else free).append(got.triangles)
+    assert all(f <= h for f, h in zip(free, held, strict=True))
+    assert sum(free) < sum(held), (free, held)
+    # said outright, it holds whatever the frames do
+    view = TerrainView(tree, SelectOptions(hold_parent_grid=True))
+    view.morph = False
+    cam = _clip(CAMERAS["oblique-low"])
+    got = view.update(cam, np.zeros(0, np.uint64), blocking=True).selection
+    assert _tiles(got) == _tiles(select(SelectOptions(hold_parent_grid=True), cam, tree))
 
 
 @pytest.mark.parametrize("name", CAMERAS)
