@@ -84,6 +84,7 @@ def test_the_lazy_tree_is_the_eager_one_where_its_chunks_reach_the_data() -> Non
         ("periodic", "EPSG:32617", 1.0),
         ("octaves", "EPSG:4326", 1e-5),
         ("terraced", "EPSG:3035", 2.0),
+        ("plain beside mountains", "EPSG:32633", 1.0),
     ],
 )
 def test_the_lazy_error_bounds_the_exact_one_on_unseen_dems(
@@ -93,6 +94,8 @@ def test_the_lazy_error_bounds_the_exact_one_on_unseen_dems(
     # the measured tail, which must cover what the eager walk finds reading every pixel
     if kind == "periodic":
         h = periodic_fbm(1024, seed=11)
+    elif kind == "plain beside mountains":
+        h = _plain_beside_mountains(seed=3)
     elif kind == "octaves":
         h = fbm_heights(1025, seed=5, relief=1500.0)
     else:
@@ -102,13 +105,56 @@ def test_the_lazy_error_bounds_the_exact_one_on_unseen_dems(
         "EPSG:32617": (500000.0, 4000000.0),
         "EPSG:4326": (8.0, 46.0),
         "EPSG:3035": (4200000.0, 2600000.0),
+        "EPSG:32633": (400000.0, 5200000.0),
     }[crs]
-    path = write_dem(str(tmp_path / f"{kind}.tif"), h, crs=crs, west=west, north=north, res=res)
+    name = kind.replace(" ", "_")
+    path = write_dem(str(tmp_path / f"{name}.tif"), h, crs=crs, west=west, north=north, res=res)
     with RasterSource(path) as src:
         lo, hi = _compare(src)
     assert lo >= 0.99
     # and not uselessly loose: the coarse tiles' bound within a few times the exact one
     assert hi < 6.0, hi
+
+
+def _plain_beside_mountains(seed: int, n: int = 1025) -> np.ndarray:
+    """fBm whose relief falls from whole in the east to 2 % in the west (a sharp shore)."""
+    h = fbm_heights(n, seed=seed, relief=1500.0)
+    x = np.linspace(0.0, 1.0, n)[None, :]
+    w = 0.02 + 0.98 / (1.0 + np.exp(-(x - 0.5) * 40.0))
+    out: np.ndarray = (h.min() + (h - h.min()) * w).astype(np.float32)
+    return out
+
+
+def test_a_plain_is_not_charged_the_mountains_detail(tmp_path: Path) -> None:
+    # what a chunk misses below its finest level is charged by the tile's own roughness there:
+    # the plain's coarse tiles stay near their exact error, far under the mountains' tail
+    h = _plain_beside_mountains(seed=7)
+    path = write_dem(str(tmp_path / "shore.tif"), h, crs="EPSG:32617", west=500000.0,
+                     north=4000000.0, res=1.0)  # fmt: skip
+    with RasterSource(path) as src:
+        eager = build_tree(src, block_tiles=1 << 20, reference_levels=64)
+        lazy = LazyTree(src, keep=False)
+        try:
+            tailed = [z for z in range(lazy.zmin, lazy.truth) if lazy.tail(z) > 0]
+            assert tailed, "the DEM is meant to be deep enough for a tail"
+            worst = max(lazy.tail(z) for z in tailed)
+            checked = 0
+            for lv in eager.levels:
+                x, y = _every_tile(lv)
+                a, b = lv.stats(x, y), lazy.level(lv.z).stats(x, y)
+                plain = a.exists & (x < lv.x0 + 0.4 * lv.shape[1])
+                if not plain.any() or np.allclose(a.error[-1], b.error[-1], atol=0.05):
+                    continue  # this level's chunks reach the data: nothing charged below
+                exact, got = a.error[-1, plain], b.error[-1, plain]
+                assert (got >= exact - 0.05).all()
+                assert np.median(got) < 4.0 * np.median(exact) + 0.1, (lv.z, np.median(exact))
+                if np.median(exact) < 0.1 * worst:
+                    # a tail charged alike everywhere would put every plain tile above the worst
+                    checked += 1
+                    assert np.median(got) < 0.25 * worst, (lv.z, np.median(got), worst)
+            assert checked
+        finally:
+            lazy.close()
 
 
 def test_a_scene_selects_as_the_eager_tree_once_known(tmp_path: Path) -> None:

@@ -57,6 +57,7 @@ def test_a_remote_cog_renders_from_a_small_part_of_it(
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     share = cog.sent / len(cog.data)
+    print(f"fetched {100 * share:.1f} % of the file")
     assert share < 0.25, f"fetched {100 * share:.1f} % of the file"
     from PIL import Image
 
