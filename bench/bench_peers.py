@@ -659,9 +659,19 @@ def _view_sse(blocks: np.ndarray, c: dict[str, float], size: int, meta: dict[str
     return float(sse[~out].max(initial=0.0))
 
 
-def _triangles(root: Any) -> int:
+def _triangles(root: Any, base: Any = None) -> int:
+    """The triangles of the terrain's geoms; with ``base``, of those Panda3D draws from its
+    camera (their bounds meet the lens's frustum: it culls the rest, lodscape's counts are
+    after its own culling)."""
+    from panda3d.core import BoundingBox, BoundingVolume
+
+    frustum = None if base is None else base.camLens.makeBounds()
     n = 0
     for path in root.findAllMatches("**/+GeomNode"):
+        if frustum is not None:
+            lo, hi = path.getTightBounds(base.cam)
+            if frustum.contains(BoundingBox(lo, hi)) == BoundingVolume.IF_no_intersection:
+                continue
         node = path.node()
         for g in range(node.getNumGeoms()):
             geom = node.getGeom(g)
@@ -810,6 +820,7 @@ def run_geomip(data: Path, repeat: int) -> dict[str, Any]:
                 "first_s": first,
                 "flattened": flatten,
                 "drawn_triangles": _triangles(t.getRoot()),
+                "triangles_in_view": _triangles(t.getRoot(), base),
                 **probe.measure(t.getRoot(), probe_shader, meta, z64, size),
             }
             t.getRoot().removeNode()
@@ -1219,6 +1230,13 @@ def compare(
             f"{g['frame_ms']:7.1f} {g['triangles']:8,d} {_px(g)} ×{rg:5.2f} | "
             f"{s['frame_ms']:6.1f} {s['target_px']:6.1f} {_px(s)} ×{rs:5.2f} | "
             f"{g['floor_p999']:4.2f}/{g['floor_max']:4.2f}"
+        )
+    seen = [res["geomip"]["cameras"][name].get("triangles_in_view") for name in CAMERAS]
+    if all(v is not None for v in seen):
+        print(
+            "GeoMipTerrain's triangles in its camera's frustum (what Panda3D draws; the "
+            "column counts the whole terrain's): "
+            + ", ".join(f"{name} {v:,d}" for name, v in zip(CAMERAS, seen, strict=True))
         )
     med = statistics.median
     print(

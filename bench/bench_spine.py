@@ -117,6 +117,10 @@ def main() -> None:
             tails = {z: tree.tail(z) for z in range(tree.zmin, tree.truth) if tree.tail(z) > 0}
             print("tail below a chunk's deepest level, m: " + ", ".join(
                 f"level {z} {v:.1f}" for z, v in tails.items()))  # fmt: skip
+            if hasattr(tree, "tails"):  # a tile's own: base + slope × its last step, at most that
+                print("a tile's tail, m: " + ", ".join(
+                    f"level {z} {t.base:.2f} + {t.slope:.2f}·d" for z in tails
+                    for t in [tree.tails(z)]))  # fmt: skip
         rows = []
         for name, cam in views(scene).items():
             c = scene.prepare(cam)
