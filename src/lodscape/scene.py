@@ -208,7 +208,7 @@ class Scene:
 
     def select(self, camera: Camera) -> Selection:
         """This frame's selection as if everything were resident (no loading, no drawing)."""
-        return select(self._options.select, self.prepare(camera), self.tree, self.view.previous)
+        return select(self.view.select_options, self.prepare(camera), self.tree, self.view.previous)
 
     def render(
         self, camera: Camera, *, depth: bool = True

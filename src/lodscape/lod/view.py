@@ -247,10 +247,12 @@ class TerrainView:
         t0 = time.perf_counter()
         levels = self.texture_levels
         if blocking:
-            sel = select(self._select, camera, self.tree, self.previous, texture_levels=levels)
+            sel = select(
+                self.select_options, camera, self.tree, self.previous, texture_levels=levels
+            )
         else:
             drawable = np.union1d(resident, self._roots)
-            sel = select(self._select, camera, self.tree, self.previous, drawable, levels)
+            sel = select(self.select_options, camera, self.tree, self.previous, drawable, levels)
         self.selections += 1
         self.previous = sel
         worn = sel.layer_keys[sel.layer_keys != NO_TEXTURE]
@@ -264,7 +266,7 @@ class TerrainView:
         return FramePlan(camera, sel, items, required, loads, frozenset(drawn.tolist()), ms)
 
     @property
-    def _select(self) -> SelectOptions:
+    def select_options(self) -> SelectOptions:
         """The options a frame is selected with: a split holds its parent's resolution
         (``SelectOptions.hold_parent_grid``) where the frames geomorph, unless said."""
         if self.options.hold_parent_grid is not None:
@@ -307,7 +309,7 @@ class TerrainView:
     def predict(self, camera: Camera) -> list[int]:
         """Every key a selection from ``camera`` (fitted) would draw, textures first (what a
         prefetch asks for); not remembered, so it leaves the next frame's hysteresis alone."""
-        sel = select(self._select, camera, self.tree, texture_levels=self.texture_levels)
+        sel = select(self.select_options, camera, self.tree, texture_levels=self.texture_levels)
         return [
             int(k) for k in np.concatenate([sel.texture_keys, sel.layer_keys.ravel(), sel.keys])
         ]
@@ -319,7 +321,7 @@ class TerrainView:
         them, so ahead before behind; textures before meshes)
         and how many chunks each area holds."""
         sel = select(
-            self._select,
+            self.select_options,
             camera,
             self.tree,
             texture_levels=self.texture_levels,
