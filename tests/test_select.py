@@ -64,12 +64,10 @@ def test_a_split_holds_its_parents_grid_where_frames_geomorph(tree: TileTree) ->
     for morph in (True, False):
         view = TerrainView(tree)
         view.morph = morph
-        prev: dict[bool, Selection | None] = {True: None, False: None}
-        for cam in CAMERAS.values():
-            cam = _clip(cam)
+        prev: Selection | None = None
+        for cam in map(_clip, CAMERAS.values()):
             got = view.update(cam, np.zeros(0, np.uint64), blocking=True).selection
-            want = select(SelectOptions(hold_parent_grid=morph), cam, tree, prev[morph])
-            prev[morph] = want
+            prev = want = select(SelectOptions(hold_parent_grid=morph), cam, tree, prev)
             assert _tiles(got) == _tiles(want)
             (held if morph else free).append(got.triangles)
     assert all(f <= h for f, h in zip(free, held, strict=True))

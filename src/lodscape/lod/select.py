@@ -197,8 +197,8 @@ class SelectOptions:
     region: bool = False
     #: A tile keeps at least its parent's resolution (the grid of half the segments its parent
     #: would be drawn with): splitting never coarsens the ground, so it never jumps there. It
-    #: costs triangles where a rough parent splits into smooth children (11-23 % on
-    #: ``bench_spine``'s views). None: where the frames geomorph (``TileView.morph``, a scene's
+    #: costs triangles where a rough parent splits into smooth children (``bench_morph.py``
+    #: measures it). None: where the frames geomorph (``TerrainView.morph``, a scene's
     #: streamed frames), not in a still picture, which has nothing to glide.
     hold_parent_grid: bool | None = None
 
