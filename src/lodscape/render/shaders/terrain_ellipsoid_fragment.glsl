@@ -29,8 +29,10 @@ void main() {
 #ifdef LABELS
     f_color = vec4(n * u_to_world, NO_DATA_LABEL);  // the view-space normal, the no-data label
 #elif defined(EARTH)
-    // the ellipsoid's normal is the geodetic vertical: its latitude and longitude
-    float lat = asin(clamp(n.z, -1.0, 1.0));
+    // the ellipsoid's normal is the geodetic vertical: its latitude and longitude. atan, not
+    // asin(n.z): llvmpipe's asin is a coarse approximation (a texel row of the Blue Marble off
+    // at 30-75 degrees; test_render's reference), its atan is not
+    float lat = atan(n.z, length(n.xy));
     float lon = atan(n.y, n.x);
     vec2 uv = vec2(lon / 6.28318531 + 0.5, 0.5 - lat / 3.14159265);
     // no mip across the antimeridian's seam: the level of the texels a pixel spans here
