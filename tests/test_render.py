@@ -295,21 +295,28 @@ def test_a_texture_window_stretches_one_quadrant_over_the_tile(renderer: Rendere
     assert np.all(core == QUADRANTS["ne"])
 
 
-def _ellipsoid_depth(camera: Camera) -> NDArray[np.float64]:
-    """View depth of the WGS84 ellipsoid per pixel (inf where the ray misses), in float64."""
-    from lodscape.geo.frames import WGS84_A, WGS84_B
-
+def _pixel_rays(camera: Camera) -> NDArray[np.float64]:
+    """Per pixel (row 0 at the top) the world direction of its ray, scaled so its parameter is
+    the view depth (z = -1 in view space), in float64."""
     t = np.tan(np.radians(camera.fov_y) / 2)
     x = ((np.arange(camera.width) + 0.5) / camera.width * 2 - 1) * t * camera.aspect
     y = (1 - (np.arange(camera.height) + 0.5) / camera.height * 2) * t
     xx, yy = np.meshgrid(x, y)
+    rays: NDArray[np.float64] = np.stack([xx, yy, -np.ones_like(xx)], axis=-1) @ camera.rotation
+    return rays
+
+
+def _ellipsoid_depth(camera: Camera) -> NDArray[np.float64]:
+    """View depth of the WGS84 ellipsoid per pixel (inf where the ray misses), in float64."""
+    from lodscape.geo.frames import WGS84_A, WGS84_B
+
     axes = np.array([WGS84_A, WGS84_A, WGS84_B])
-    d = (np.stack([xx, yy, -np.ones_like(xx)], axis=-1) @ camera.rotation) / axes
+    d = _pixel_rays(camera) / axes
     o = camera.position / axes
     a, b, c = (d * d).sum(-1), d @ o, o @ o - 1.0
     disc = b * b - a * c
     hit = (disc >= 0) & (b < 0)
-    out = np.full(xx.shape, np.inf)
+    out = np.full(d.shape[:2], np.inf)
     out[hit] = c / (-b[hit] + np.sqrt(disc[hit]))
     return out
 
@@ -347,13 +354,8 @@ def _earth_reference(camera: Camera, image: NDArray[np.uint8]) -> NDArray[np.flo
 
     t = _ellipsoid_depth(camera)
     assert np.isfinite(t).all()
-    ty = np.tan(np.radians(camera.fov_y) / 2)
-    x = ((np.arange(camera.width) + 0.5) / camera.width * 2 - 1) * ty * camera.aspect
-    y = (1 - (np.arange(camera.height) + 0.5) / camera.height * 2) * ty
-    xx, yy = np.meshgrid(x, y)
-    d = np.stack([xx, yy, -np.ones_like(xx)], axis=-1) @ camera.rotation
     axes = np.array([WGS84_A, WGS84_A, WGS84_B])
-    n = (camera.position + t[..., None] * d) / axes**2
+    n = (camera.position + t[..., None] * _pixel_rays(camera)) / axes**2
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     lat, lon = np.arcsin(n[..., 2]), np.arctan2(n[..., 1], n[..., 0])
     rows, cols = image.shape[:2]

@@ -30,8 +30,8 @@ void main() {
     f_color = vec4(n * u_to_world, NO_DATA_LABEL);  // the view-space normal, the no-data label
 #elif defined(EARTH)
     // the ellipsoid's normal is the geodetic vertical: its latitude and longitude. atan, not
-    // asin(n.z): llvmpipe's asin is a coarse approximation (a texel row of the Blue Marble off
-    // at 30-75 degrees; test_render's reference), its atan is not
+    // asin(n.z): llvmpipe's asin is a coarse approximation (the image a fraction of a texel
+    // row off from 30 to 84 degrees against test_render's float64 reference), its atan is not
     float lat = atan(n.z, length(n.xy));
     float lon = atan(n.y, n.x);
     vec2 uv = vec2(lon / 6.28318531 + 0.5, 0.5 - lat / 3.14159265);
