@@ -295,6 +295,44 @@ def test_a_texture_window_stretches_one_quadrant_over_the_tile(renderer: Rendere
     assert np.all(core == QUADRANTS["ne"])
 
 
+def test_a_window_frame_is_the_picture_read_back_bottom_row_first(gl_ctx: Any) -> None:
+    """A frame read back is drawn upside down in clip space, so its rows come top first with
+    no flip; a window's frame (``read_back`` off) keeps the GL's orientation. Both are the same
+    picture: the tile, its texture's quadrants and the ellipsoid's ray-cast behind it (drawn
+    from window coordinates) alike."""
+    import moderngl
+
+    # 2 km south of the tile, looking north-north-east over it: the sky in the top rows
+    cam = Camera(LON, LAT - 0.018, H + 800, heading=30.0, pitch=-15, width=96, height=64)
+    cam = cam.with_clip(1.0, 1e7)
+    with Renderer(96, 64, ctx=gl_ctx, background=MAGENTA) as r:
+        _put(r, 9, _quadrant_texture())
+        rgb, dist = r.draw(cam, [_item(9, 20.0)])
+        assert r.target.flipped
+        r.read_back = False
+        got, _ = r.draw(cam, [_item(9, 20.0)])
+        assert got.size == 0
+        assert not r.target.flipped
+        fbo = r.target.framebuffer
+        assert isinstance(fbo, moderngl.Framebuffer)
+        window = np.frombuffer(fbo.read(components=3, alignment=1), np.uint8).reshape(64, 96, 3)
+        wdist = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32)
+    # the sky (the clear colour) above, the ground below, in the picture read back
+    assert np.all(rgb[0] == MAGENTA_U8)
+    assert not np.any(np.all(rgb[-1] == MAGENTA_U8, axis=1))
+    assert np.isinf(dist[0]).all()
+    assert np.isfinite(dist[-1]).all()
+    window, wdist = window[::-1], wdist.reshape(64, 96)[::-1]
+    # the rasteriser's fill rule turns with the picture: pixels on an edge may go to the other
+    # triangle, nothing more
+    same = np.all(window == rgb, axis=2)
+    assert same.mean() > 0.98, same.mean()
+    both = np.isfinite(dist) & np.isfinite(wdist)
+    assert (np.isfinite(dist) == np.isfinite(wdist)).mean() > 0.99
+    close = np.abs(dist[both] - wdist[both]) <= 1e-4 * dist[both]
+    assert close.mean() > 0.98, close.mean()
+
+
 def _pixel_rays(camera: Camera) -> NDArray[np.float64]:
     """Per pixel (row 0 at the top) the world direction of its ray, scaled so its parameter is
     the view depth (z = -1 in view space), in float64."""

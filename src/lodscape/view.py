@@ -447,7 +447,8 @@ def view(
             if rend is not None:
                 rend.read_back = False
                 colour = rend.colour_framebuffer
-                if colour is not None:
+                # a frame read back (a scene's first) is drawn upside down: not shown
+                if colour is not None and not rend.target.flipped:
                     ctx.copy_framebuffer(window.fbo, colour)
             window.use()
             hud.draw(_hud_text(st, scene), w, h)

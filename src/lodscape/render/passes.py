@@ -95,6 +95,10 @@ class RendererTarget:
         """The framebuffer being drawn."""
         return self.renderer.target.fbo(self.labelled)
 
+    def camera(self, camera: Camera) -> Camera:
+        """``camera`` as the frame begun draws it (``FrameTarget.camera``)."""
+        return self.renderer.target.camera(camera)
+
 
 class TerrainPass:
     """The terrain's tiles (either terrain mode)."""
@@ -103,7 +107,7 @@ class TerrainPass:
         self.renderer = renderer
 
     def draw(self, draws: TerrainDraws, target: RendererTarget) -> None:
-        self.renderer.draw_tiles(draws.camera, draws.items, labelled=target.labelled)
+        self.renderer.draw_tiles(target.camera(draws.camera), draws.items, labelled=target.labelled)
 
     def figures(self) -> dict[str, Any]:
         st = self.renderer.last_stats
@@ -122,7 +126,7 @@ class EllipsoidPass:
         self.renderer = renderer
 
     def draw(self, draws: CameraDraws, target: RendererTarget) -> None:
-        self.renderer.draw_ellipsoid(draws.camera, labelled=target.labelled)
+        self.renderer.draw_ellipsoid(target.camera(draws.camera), labelled=target.labelled)
 
     def figures(self) -> dict[str, Any]:
         return {}
@@ -141,15 +145,16 @@ class CityDrawPass:
         cp = self.city
         fbo = target.fbo
         opts = self.options().resolved(self.software, draws.above_ground)
+        camera = target.camera(draws.camera)
         if not target.labelled:
-            cp.draw(draws.camera, opts, fbo)
+            cp.draw(camera, opts, fbo)
             fbo.use()
             return
         # the label pass draws the same objects again: its figures stay the colour frame's
         cp.use_labels(True)
         last = cp.last
         try:
-            cp.draw(draws.camera, opts, fbo)
+            cp.draw(camera, opts, fbo)
         finally:
             cp.use_labels(False)
             cp.last = last
@@ -168,7 +173,7 @@ class GlobeFacetPass:
 
     def draw(self, draws: GlobeDraws, target: RendererTarget) -> None:
         if not target.labelled:
-            self.globe.draw_facets(draws.camera, draws.mesh, target.fbo)
+            self.globe.draw_facets(target.camera(draws.camera), draws.mesh, target.fbo)
             target.fbo.use()
 
     def figures(self) -> dict[str, Any]:
@@ -187,7 +192,8 @@ class GlobeImageryPass:
             return
         r = target.renderer
         colour, dist = r.target.attachments
-        self.globe.draw_imagery(draws.camera, draws.layers, colour, dist, r.texture)
+        camera = target.camera(draws.camera)
+        self.globe.draw_imagery(camera, draws.layers, colour, dist, r.texture)
         target.fbo.use()
 
     def figures(self) -> dict[str, Any]:

@@ -1,12 +1,17 @@
 """A frame's target: colour, view distance and depth of one size (made again when the size
 changes), its label twin for datasets, and how the picture comes back: at once, through a ring
-of pixel-pack buffers a frame or more later, or not at all (a window shows the target)."""
+of pixel-pack buffers a frame or more later, or not at all (a window shows the target).
+
+A frame that comes back is drawn upside down in clip space (``TopDownCamera``), so the GL's rows
+are the picture's, top first: the read-back lands in the array returned as it is, with no flip
+on the CPU (on a GPU the flip's two copies and the driver's allocations were most of a 1080p
+frame). A window's frames keep the GL's own orientation (it shows the target)."""
 
 from __future__ import annotations
 
 import collections
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Protocol, TypeVar
 
 import moderngl
@@ -16,11 +21,29 @@ from numpy.typing import NDArray
 from lodscape.lod.camera import Camera
 from lodscape.render import labels
 
-__all__ = ["FrameTarget", "GLObject", "as_rgb"]
+__all__ = ["FrameTarget", "GLObject", "TopDownCamera", "as_rgb", "clip_y"]
 
 Rgb = tuple[float, float, float]
 _ALL = (True, True, True, True)
 _NONE = (False, False, False, False)
+
+
+@dataclass(frozen=True)
+class TopDownCamera(Camera):
+    """A camera whose clip space is upside down (y negated): what a frame that is read back is
+    drawn with, so that the GL's first row is the picture's top. Everything drawn through
+    ``view_projection`` follows; what works from window coordinates (``gl_FragCoord``) takes
+    ``clip_y``'s sign, and the front faces are clockwise (``FrameTarget.begin``)."""
+
+    def projection(self) -> NDArray[np.float64]:
+        p = super().projection()
+        p[1] = -p[1]
+        return p
+
+
+def clip_y(camera: Camera) -> float:
+    """-1 where ``camera`` draws upside down in clip space (a frame read back), else 1."""
+    return -1.0 if isinstance(camera, TopDownCamera) else 1.0
 
 
 class GLObject(Protocol):
@@ -84,6 +107,8 @@ class FrameTarget:
         self.ring = 0
         self._ring: collections.deque[tuple[moderngl.Buffer, int, int]] = collections.deque()
         self._ring_free: list[tuple[moderngl.Buffer, int]] = []
+        #: The frame begun draws upside down in clip space (it is read back: ``TopDownCamera``).
+        self.flipped = False
         #: Log-depth frames: pixels of the last picture read back that the terrain and the
         #: city drew (the globe's have alpha 0); through the read ring, of the picture that
         #: came back.
@@ -131,6 +156,9 @@ class FrameTarget:
         """Start a frame of ``camera``'s size: the target cleared to ``background`` (the
         target's own when None), its distance to +inf; the target's framebuffer, bound."""
         self._use()
+        # a frame read back is drawn top row first (no flip on the CPU); the winding follows
+        self.flipped = labelled or self.read_back
+        self.ctx.front_face = "cw" if self.flipped else "ccw"
         if labelled:
             fbo = self._label_target_for(camera.width, camera.height)
             bg: tuple[float, float, float, float] = (0.0, 0.0, 0.0, float(labels.SKY))
@@ -157,14 +185,12 @@ class FrameTarget:
         self._use()
         fbo = self.fbo(labelled)
         self.ctx.wireframe = False
+        self.ctx.front_face = "ccw"
         h, w = camera.height, camera.width
         if labelled:
-            got = np.frombuffer(fbo.read(components=4, attachment=0, dtype="f4"), np.float32)
-            dist = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32)
-            return (
-                np.ascontiguousarray(got.reshape(h, w, 4)[::-1]),
-                np.ascontiguousarray(dist.reshape(h, w)[::-1]),
-            )
+            got = np.empty((h, w, 4), np.float32)
+            fbo.read_into(got, components=4, attachment=0, dtype="f4")
+            return got, self._read_dist(fbo, h, w)
         if not self.read_back:
             # a window shows the framebuffer itself (``framebuffer``): nothing comes back
             return np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.float32)
@@ -174,22 +200,32 @@ class FrameTarget:
             self._ring.append((self._pack(fbo, w, h), w, h))
             late = self.drain(keep=self.ring - 1)
             return (late[0] if late else np.zeros((0, 0, 3), np.uint8)), no_depth
-        # GL rows go bottom-up: flip so row 0 is the top of the picture
+        # the rows come top first (``begin``): read straight into the arrays returned
         if self.log_depth:
             # the same read with the alpha: the pixels the terrain scene drew, globe aside
-            rgba = np.frombuffer(fbo.read(components=4, attachment=0, alignment=1), np.uint8)
-            rgba = rgba.reshape(h, w, 4)[::-1]
+            rgba = np.empty((h, w, 4), np.uint8)
+            fbo.read_into(rgba, components=4, attachment=0, alignment=1)
             self.covered = int(np.count_nonzero(rgba[..., 3] > 127))
             rgb = np.ascontiguousarray(rgba[..., :3])
         else:
-            rgb = np.frombuffer(fbo.read(components=3, attachment=0, alignment=1), np.uint8)
-            rgb = np.ascontiguousarray(rgb.reshape(h, w, 3)[::-1])
+            rgb = np.empty((h, w, 3), np.uint8)
+            fbo.read_into(rgb, components=3, attachment=0, alignment=1)
         if not self.read_depth:
             return rgb, no_depth
-        dist = np.frombuffer(
-            fbo.read(components=1, attachment=1, alignment=1, dtype="f4"), np.float32
-        )
-        return rgb, np.ascontiguousarray(dist.reshape(h, w)[::-1])
+        return rgb, self._read_dist(fbo, h, w)
+
+    @staticmethod
+    def _read_dist(fbo: moderngl.Framebuffer, h: int, w: int) -> NDArray[np.float32]:
+        dist = np.empty((h, w), np.float32)
+        fbo.read_into(dist, components=1, attachment=1, alignment=1, dtype="f4")
+        return dist
+
+    def camera(self, camera: Camera) -> Camera:
+        """``camera`` as the frame begun draws it: upside down in clip space where it is read
+        back (``TopDownCamera``), as it is in a window's frame."""
+        if not self.flipped or isinstance(camera, TopDownCamera):
+            return camera
+        return TopDownCamera(**{f.name: getattr(camera, f.name) for f in fields(camera)})
 
     @property
     def pending(self) -> int:
@@ -202,7 +238,8 @@ class FrameTarget:
         n = self._components
         while len(self._ring) > keep:
             buf, w, h = self._ring.popleft()
-            got = np.frombuffer(buf.read(), np.uint8).reshape(h, w, n)[::-1]
+            got = np.empty((h, w, n), np.uint8)  # top row first (``begin``)
+            buf.read_into(got)
             if n == 4:  # the terrain scene's pixels of the picture that comes back
                 self.covered = int(np.count_nonzero(got[..., 3] > 127))
             out.append(np.ascontiguousarray(got[..., :3]))

@@ -35,7 +35,7 @@ from lodscape.render import labels
 from lodscape.render._context import create_context, is_software, make_current
 from lodscape.render._depth import with_log_depth
 from lodscape.render._shaders import shader
-from lodscape.render.target import FrameTarget, GLObject, as_rgb
+from lodscape.render.target import FrameTarget, GLObject, as_rgb, clip_y
 from lodscape.render.tess_pass import LAYER_UNIT, MAX_OVERLAYS, TessTerrain, bind_layers
 from lodscape.terrain.heightmap import height_tile
 from lodscape.terrain.mesh import TileMesh, grid_indices
@@ -601,6 +601,7 @@ class Renderer:
         # resolve every key before touching GL state, so a bad frame changes nothing
         resolved = self._resolve(items)
         fbo = self.target.begin(camera, background=background, labelled=labelled)
+        camera = self.target.camera(camera)  # as the frame draws it (upside down when read)
         with self._labelling() if labelled else contextlib.nullcontext():
             self._draw_tiles(camera, items, resolved, fbo, labelled)
         if self.ellipsoid:
@@ -770,7 +771,8 @@ class Renderer:
         ty = math.tan(math.radians(camera.fov_y) / 2.0)
         values: dict[str, Any] = {
             "u_to_world": np.ascontiguousarray(camera.rotation, np.float32),  # (R^T) col-major
-            "u_tan": np.array([ty * camera.aspect, ty], np.float32),
+            # a frame read back is drawn upside down: its window rows run from the top
+            "u_tan": np.array([ty * camera.aspect, ty * clip_y(camera)], np.float32),
             "u_size": np.array([camera.width, camera.height], np.float32),
             "u_eye": eye.astype(np.float32),
             "u_c": np.array([float(eye @ eye) - 1.0], np.float32),
