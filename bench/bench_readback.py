@@ -47,11 +47,10 @@ def main() -> None:
     args = ap.parse_args()
     w, h = (int(v) for v in args.resolution.split("x"))
 
+    import bench_peers
     import lodscape
     import lodscape.data
     from lodscape.render import target as target_mod
-
-    import bench_peers
 
     dem = args.dem or Path(lodscape.data.__file__).parent / "jacksboro.tif"
     with tempfile.TemporaryDirectory() as tmp:
@@ -105,9 +104,8 @@ def main() -> None:
                     rgb, dist = scene.render(cam)
                     times.append(time.perf_counter() - t)
                 pictures.setdefault(way, {})[name] = (rgb, dist)
-                rows.append(
-                    (r + 1, way, name, statistics.median(times) * 1e3, statistics.median(ends) * 1e3)
-                )
+                frame, end = statistics.median(times) * 1e3, statistics.median(ends) * 1e3
+                rows.append((r + 1, way, name, frame, end))
     cls.begin, cls.end = new_begin, new_end  # type: ignore[method-assign]
     renderer = scene.renderer
     gl = renderer.ctx.info["GL_RENDERER"] if renderer is not None else "?"
@@ -120,7 +118,8 @@ def main() -> None:
             got = {way: (f, e) for rr, way, n, f, e in rows if rr == r and n == name}
             (ft, et), (ff, ef) = got["top-down"], got["flipped"]
             ratios.append(ff / ft)
-            print(f"  {r} | {name:8s} | {ft:6.2f} / {ff:6.2f} (×{ff / ft:.2f}) | {et:5.2f} / {ef:5.2f}")
+            frames = f"{ft:6.2f} / {ff:6.2f} (×{ff / ft:.2f})"
+            print(f"  {r} | {name:8s} | {frames} | {et:5.2f} / {ef:5.2f}")
     print(f"frame ratio flipped / top-down: median ×{statistics.median(ratios):.2f} "
           f"(range ×{min(ratios):.2f}–×{max(ratios):.2f})")  # fmt: skip
     for name in cams:
