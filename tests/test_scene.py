@@ -120,6 +120,28 @@ def test_same_inputs_same_picture(dem: str) -> None:
     del cam
 
 
+def test_a_picture_is_the_same_whatever_was_rendered_before_it(dem: str) -> None:
+    """Hysteresis is for the frames of one motion: a camera unrelated to the last (here a
+    close-up of the same ground first) is selected and drawn as in a fresh scene."""
+    with lodscape.open(dem) as fresh:
+        views = _views(fresh)
+        want = {name: fresh.render(cam)[0] for name, cam in views.items()}
+        tris = {}
+        for name, cam in views.items():
+            fresh.view.previous = None
+            fresh.render(cam)
+            tris[name] = fresh.frame_stats()["triangles"]
+    with lodscape.open(dem) as s:
+        for name, cam in views.items():
+            ground = s.ground_height(cam.lon, cam.lat)
+            assert ground is not None
+            close = cam.moved(alt=ground + 0.3 * (cam.alt - ground), pitch=max(cam.pitch, -60.0))
+            s.render(close)
+            got, _ = s.render(cam)
+            assert s.frame_stats()["triangles"] == tris[name], name
+            assert np.array_equal(got, want[name]), name
+
+
 def test_camera_under_the_ground_is_refused(scene: lodscape.Scene) -> None:
     lon, lat = _centre(scene)
     g = scene.ground_height(lon, lat)

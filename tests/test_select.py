@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -11,7 +13,7 @@ from lodscape.geo.tiles import tile_from_id_array, tile_id_array
 from lodscape.lod._reference import select_reference
 from lodscape.lod.camera import Camera
 from lodscape.lod.select import SLOPE_ROOM, Selection, SelectOptions, select, tile_boxes
-from lodscape.lod.view import TerrainView
+from lodscape.lod.view import TerrainView, follows
 from lodscape.terrain.pyramid import TileTree, build_tree
 
 OPTS = SelectOptions()
@@ -57,6 +59,40 @@ def test_vectorised_equals_naive_reference(tree: TileTree, name: str, hold: bool
     assert _tiles(again) == sorted(select_reference(opts, moved, tree, previous=sel))
 
 
+def test_the_hysteresis_carries_between_the_frames_of_a_motion_not_across_a_cut(
+    tree: TileTree,
+) -> None:
+    """A frame that follows the last (the eye moved a little, the view turned a little) is
+    selected against it; a cut (a jump, a turn past half the field of view, another viewport
+    or bound) as if it were the first: an unrelated picture is the same whatever was rendered
+    before it."""
+    opts = SelectOptions()
+    carried = 0
+    for cam in map(_clip, CAMERAS.values()):
+        view = TerrainView(tree, opts)
+        view.morph = False
+        first = view.update(cam, np.zeros(0, np.uint64), blocking=True).selection
+        nearest = float(first.dist_near.min())
+        # backwards by a quarter of the distance to the nearest tile: the next frame
+        step = cam.moved(alt=cam.alt + 0.25 * nearest)
+        assert follows(cam, step, first)
+        got = view.update(step, np.zeros(0, np.uint64), blocking=True).selection
+        want = select(opts, step, tree, first)
+        assert _tiles(got) == _tiles(want)
+        carried += _tiles(want) != _tiles(select(opts, step, tree))
+        # away by more than the nearest tile's distance, turned, or resized: a cut
+        away = cam.moved(alt=cam.alt + 1.5 * nearest)
+        turned = cam.moved(pitch=min(cam.pitch + 0.75 * cam.fov_y, 90.0))
+        resized = replace(cam, width=cam.width // 2)
+        for other in (away, turned, resized):
+            assert not follows(step, other, got)
+            view.update(step, np.zeros(0, np.uint64), blocking=True)
+            cut = view.update(other, np.zeros(0, np.uint64), blocking=True).selection
+            assert _tiles(cut) == _tiles(select(opts, other, tree))
+    # the hysteresis did something on some camera (else this proves nothing)
+    assert carried > 0
+
+
 def test_a_split_holds_its_parents_grid_where_frames_geomorph(tree: TileTree) -> None:
     # a still picture has nothing to glide: its tiles take the coarsest grid their error
     # allows; frames that geomorph keep a split from coarsening the ground (no jump)
@@ -64,10 +100,10 @@ def test_a_split_holds_its_parents_grid_where_frames_geomorph(tree: TileTree) ->
     for morph in (True, False):
         view = TerrainView(tree)
         view.morph = morph
-        prev: Selection | None = None
         for cam in map(_clip, CAMERAS.values()):
             got = view.update(cam, np.zeros(0, np.uint64), blocking=True).selection
-            prev = want = select(SelectOptions(hold_parent_grid=morph), cam, tree, prev)
+            # unrelated cameras, each a cut: no hysteresis from the one before
+            want = select(SelectOptions(hold_parent_grid=morph), cam, tree)
             assert _tiles(got) == _tiles(want)
             (held if morph else free).append(got.triangles)
     assert all(f <= h for f, h in zip(free, held, strict=True))

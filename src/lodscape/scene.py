@@ -208,7 +208,8 @@ class Scene:
 
     def select(self, camera: Camera) -> Selection:
         """This frame's selection as if everything were resident (no loading, no drawing)."""
-        return select(self.view.select_options, self.prepare(camera), self.tree, self.view.previous)
+        fitted = self.prepare(camera)
+        return select(self.view.select_options, fitted, self.tree, self.view.history(fitted))
 
     def render(
         self, camera: Camera, *, depth: bool = True

@@ -146,9 +146,27 @@ def horizon_view(
     return None
 
 
+def follows(before: Camera, camera: Camera, drawn: Selection) -> bool:
+    """Whether ``camera`` is the next frame of one motion after ``before`` (whose selection was
+    ``drawn``), so that the hysteresis carries over: the same viewport and field of view, the
+    eye moved at most half the distance to the nearest tile drawn (no tile's distance changes
+    by half, where the pixel band's hysteresis spans a factor of two) and the view turned at
+    most half the field of view. Anything else is a cut: a picture of an unrelated view is
+    selected as if it were the first, the same whatever was rendered before it."""
+    if (before.width, before.height, before.fov_y) != (camera.width, camera.height, camera.fov_y):
+        return False
+    if drawn.count == 0:
+        return False
+    nearest = max(float(drawn.dist_near.min()), 1.0)
+    if float(np.linalg.norm(camera.position - before.position)) > 0.5 * nearest:
+        return False
+    turn = float(np.clip(before.forward @ camera.forward, -1.0, 1.0))
+    return math.degrees(math.acos(turn)) <= camera.fov_y / 2.0
+
+
 class TerrainView:
     """Selection and culling of one terrain's tile tree, frame after frame (it remembers the
-    last selection, for hysteresis)."""
+    last selection, for hysteresis between the frames of one motion: ``follows``)."""
 
     def __init__(
         self,
@@ -175,6 +193,8 @@ class TerrainView:
         self.texture_levels = texture_levels
         #: Last frame's selection (hysteresis), None before the first.
         self.previous: Selection | None = None
+        #: The camera and the options ``previous`` was selected with.
+        self._previous_of: tuple[Camera, SelectOptions] | None = None
         #: Selections made by ``update`` so far (one per frame).
         self.selections = 0
         x, y = tree.roots()
@@ -246,15 +266,16 @@ class TerrainView:
         one selection. Remembered as the previous frame's."""
         t0 = time.perf_counter()
         levels = self.texture_levels
+        options = self.select_options
+        before = self.history(camera)
         if blocking:
-            sel = select(
-                self.select_options, camera, self.tree, self.previous, texture_levels=levels
-            )
+            sel = select(options, camera, self.tree, before, texture_levels=levels)
         else:
             drawable = np.union1d(resident, self._roots)
-            sel = select(self.select_options, camera, self.tree, self.previous, drawable, levels)
+            sel = select(options, camera, self.tree, before, drawable, levels)
         self.selections += 1
         self.previous = sel
+        self._previous_of = (camera, options)
         worn = sel.layer_keys[sel.layer_keys != NO_TEXTURE]
         drawn = np.union1d(np.union1d(sel.keys, sel.texture_keys), worn)
         absent = _absent(drawn, resident)
@@ -264,6 +285,15 @@ class TerrainView:
         ms = (time.perf_counter() - t0) * 1e3
         required = [int(k) for k in absent]
         return FramePlan(camera, sel, items, required, loads, frozenset(drawn.tolist()), ms)
+
+    def history(self, camera: Camera) -> Selection | None:
+        """The last selection, where a frame of (fitted) ``camera`` follows it in one motion
+        with the same options (``follows``); None after a cut: no hysteresis from an unrelated
+        view, another bound or a selection set aside (``previous`` set by hand)."""
+        prev, of = self.previous, self._previous_of
+        if prev is None or of is None or of[1] != self.select_options:
+            return None
+        return prev if follows(of[0], camera, prev) else None
 
     @property
     def select_options(self) -> SelectOptions:
