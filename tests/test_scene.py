@@ -3,7 +3,11 @@ determinism and GL hygiene."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -140,6 +144,29 @@ def test_a_picture_is_the_same_whatever_was_rendered_before_it(dem: str) -> None
             got, _ = s.render(cam)
             assert s.frame_stats()["triangles"] == tris[name], name
             assert np.array_equal(got, want[name]), name
+
+
+def test_the_first_picture_waits_for_nothing_it_does_not_need(dem: str, tmp_path: Path) -> None:
+    """On the way to a DEM's first picture: SciPy is imported only where the DEM has voids or
+    a sea to find (its import was a fifth of the sample's first picture), and the Blue
+    Marble's decoding starts as the scene opens, on a thread of its own, not in the render."""
+    script = f"""
+import sys, threading, lodscape
+scene = lodscape.open({dem!r})
+assert any(t.name == "lodscape-earth" for t in threading.enumerate()) or (
+    __import__("lodscape.render.passes").render.passes._EARTH.done()
+)
+rgb, _ = scene.render(scene.overview_camera(64, 36))
+scene.close()
+assert rgb.shape == (36, 64, 3)
+print(sorted(m for m in sys.modules if m.startswith("scipy.ndimage")))
+"""
+    env = {**os.environ, "LODSCAPE_CACHE": str(tmp_path)}
+    got = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert got.returncode == 0, got.stderr
+    assert got.stdout.strip().splitlines()[-1] == "[]"
 
 
 def test_camera_under_the_ground_is_refused(scene: lodscape.Scene) -> None:

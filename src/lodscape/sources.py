@@ -194,6 +194,11 @@ def open(
             **array_kwargs,
         )
     opts = options or SceneOptions()
+    if opts.ellipsoid and opts.earth:
+        # the ellipsoid's Earth decodes beside the DEM's reading, not before the first picture
+        from lodscape.render.passes import prefetch_blue_marble
+
+        prefetch_blue_marble()
     provider, owns, town = _assemble(
         source,
         opts,

@@ -3,8 +3,9 @@ layer that draws into it."""
 
 from __future__ import annotations
 
-import functools
+import threading
 from collections.abc import Callable
+from concurrent.futures import Future
 from typing import Any
 
 import moderngl
@@ -28,6 +29,7 @@ __all__ = [
     "RendererTarget",
     "TerrainPass",
     "make_renderer",
+    "prefetch_blue_marble",
 ]
 
 Rgb = tuple[float, float, float]
@@ -66,14 +68,50 @@ def make_renderer(
     return renderer, note
 
 
-@functools.cache
-def _blue_marble() -> NDArray[np.uint8] | None:
-    """NASA's Blue Marble for the world outside the data, read once a process (None: not
-    installed; the ellipsoid stays grey)."""
+_EARTH: Future[NDArray[np.uint8] | None] | None = None
+_EARTH_LOCK = threading.Lock()
+
+
+def prefetch_blue_marble() -> None:
+    """Start reading NASA's Blue Marble on a thread of its own, once a process: a scene that
+    draws it asks for it as it opens, so its decoding (a sixth of a second) runs beside the
+    DEM's reading instead of before the first picture."""
+    global _EARTH
+    with _EARTH_LOCK:
+        if _EARTH is not None:
+            return
+        future: Future[NDArray[np.uint8] | None] = Future()
+        _EARTH = future
+    threading.Thread(
+        target=_read_blue_marble, args=(future,), name="lodscape-earth", daemon=True
+    ).start()
+
+
+def _read_blue_marble(future: Future[NDArray[np.uint8] | None]) -> None:
     from lodscape.imagery.globe import earth_image
 
-    image, notice = earth_image()
-    return None if notice is not None else image
+    try:
+        image, notice = earth_image()
+    except BaseException as exc:
+        future.set_exception(exc)
+        return
+    future.set_result(None if notice is not None else image)
+
+
+def _blue_marble() -> NDArray[np.uint8] | None:
+    """NASA's Blue Marble for the world outside the data, read once a process (None: not
+    installed; the ellipsoid stays grey); a read that failed is tried again next time."""
+    global _EARTH
+    prefetch_blue_marble()
+    future = _EARTH
+    assert future is not None
+    try:
+        return future.result()
+    except BaseException:
+        with _EARTH_LOCK:
+            if _EARTH is future:
+                _EARTH = None
+        raise
 
 
 class RendererTarget:

@@ -535,14 +535,17 @@ class _GridSource:
         edge (a nodata collar, the world outside)."""
         if self._voids is not None:
             return self._voids
-        from scipy.ndimage import label
-
         valid = self._count > 0.0
         mean = self._sum / np.maximum(self._count, 1.0)
-        labels, _ = label(~valid)
-        edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-        outside = np.isin(labels, edge[edge > 0])
-        inside = ~outside
+        if valid.all():
+            # nothing to find (most DEMs): no SciPy to import on the way to the first picture
+            inside = np.ones(valid.shape, bool)
+        else:
+            from scipy.ndimage import label
+
+            labels, _ = label(~valid)
+            edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+            inside = ~np.isin(labels, edge[edge > 0])
         holes = inside & ~valid
         filled = mean.copy()
         if holes.any():
@@ -565,6 +568,12 @@ class _GridSource:
         _, inside = self._void_grid()
         ch, cw = self._count.shape
         outside = ~inside[:ch, :cw]
+        if not flat.any():
+            # no cell at exactly that height: no sea (and no SciPy to import)
+            got = np.zeros(flat.shape, bool)
+            pad = ((0, got.shape[0] < 2), (0, got.shape[1] < 2))
+            self._seas[level] = got = np.pad(got, pad, "edge")
+            return got
         from scipy.ndimage import label
 
         labels, _ = label(flat | outside)
