@@ -189,21 +189,20 @@ class Camera:
         u, e, n = (np.asarray(v, np.float64) @ rot.T for v in (up, east, north))
         # view-space components: x right, y up, f along the view axis (GL looks down -z)
         uf, ef, nf = -u[..., 2], -e[..., 2], -n[..., 2]
-        vertical = np.zeros(zmin.shape)
-        ground = np.zeros(zmin.shape)
-        stretch = np.zeros(zmin.shape)
-        for ca in (a0, a1):
-            for cb in (b0, b1):
-                vertical = np.maximum(vertical, np.hypot(u[..., 0] - ca * uf, u[..., 1] - cb * uf))
-                # the largest singular value of the ground's 2×2 image
-                m00, m01 = e[..., 0] - ca * ef, n[..., 0] - ca * nf
-                m10, m11 = e[..., 1] - cb * ef, n[..., 1] - cb * nf
-                sq = m00 * m00 + m01 * m01 + m10 * m10 + m11 * m11
-                det = m00 * m11 - m01 * m10
-                sigma = np.sqrt((sq + np.sqrt(np.maximum(sq * sq - 4.0 * det * det, 0.0))) / 2.0)
-                ground = np.maximum(ground, sigma)
-                # the most any unit direction stretches: what a turned normal may add
-                stretch = np.maximum(stretch, np.sqrt(1.0 + ca * ca + cb * cb))
+        # the four corners of the image's box at once (axis 0), the worst of each kept
+        ca = np.stack([a0, a0, a1, a1])
+        cb = np.stack([b0, b1, b0, b1])
+        vertical = np.hypot(u[..., 0] - ca * uf, u[..., 1] - cb * uf).max(axis=0)
+        # the largest singular value of the ground's 2×2 image
+        m00, m01 = e[..., 0] - ca * ef, n[..., 0] - ca * nf
+        m10, m11 = e[..., 1] - cb * ef, n[..., 1] - cb * nf
+        sq = m00 * m00 + m01 * m01 + m10 * m10 + m11 * m11
+        det = m00 * m11 - m01 * m10
+        ground = np.sqrt((sq + np.sqrt(np.maximum(sq * sq - 4.0 * det * det, 0.0))) / 2.0).max(
+            axis=0
+        )
+        # the most any unit direction stretches: what a turned normal may add
+        stretch = np.sqrt(1.0 + ca * ca + cb * cb).max(axis=0)
         slack = np.asarray(spread, np.float64) * stretch
         corner = 1.0 / math.sqrt(1.0 + tx * tx + ty * ty)
         per_metre = self.pixels_per_metre(
@@ -245,7 +244,11 @@ class Camera:
     def frustum_planes(self) -> NDArray[np.float64]:
         """Six planes (nx, ny, nz, w), inward unit normals, for points given relative to the
         camera position: p is inside when n·p + w >= 0 for all six (left, right, bottom, top,
-        near, far)."""
+        near, far). Worked out once a camera (read-only: a selection asks for them per level)."""
+        return self._frustum_planes
+
+    @cached_property
+    def _frustum_planes(self) -> NDArray[np.float64]:
         near, far = self._clip()
         rot = self.rotation
         right, up, back = rot[0], rot[1], rot[2]
@@ -264,7 +267,9 @@ class Camera:
         )
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         w = np.array([0.0, 0.0, 0.0, 0.0, -near, far])
-        return np.concatenate([normals, w[:, None]], axis=1)
+        planes = np.concatenate([normals, w[:, None]], axis=1)
+        planes.flags.writeable = False
+        return planes
 
     def geodetic(self) -> tuple[float, float, float]:
         lon, lat, h = ecef_to_geodetic(self.position)
