@@ -146,6 +146,27 @@ def test_a_picture_is_the_same_whatever_was_rendered_before_it(dem: str) -> None
             assert np.array_equal(got, want[name]), name
 
 
+def test_a_low_flight_keeps_its_hysteresis_frame_to_frame(dem: str) -> None:
+    """The frames of a flight 60 m over rough ground, 10 m apart, follow one another (the
+    scale of a move is the eye's height above the ground, not the nearest tile's box, which a
+    low eye in a valley stands inside); a jump of a kilometre does not."""
+    with lodscape.open(dem) as s:
+        lon, lat = _centre(s)
+        followed = []
+        for i in range(8):
+            at = lat + i * 10.0 / 111_000.0
+            ground = s.ground_height(lon, at)
+            assert ground is not None
+            cam = Camera(lon, at, ground + 60.0, pitch=-10.0, width=320, height=180)
+            followed.append(s.view.history(s.prepare(cam)) is not None)
+            s.render(cam)
+        assert followed == [False] + [True] * 7
+        away = cam.moved(lat=cam.lat + 1000.0 / 111_000.0)
+        ground = s.ground_height(away.lon, away.lat)
+        assert ground is not None
+        assert s.view.history(s.prepare(away.moved(alt=ground + 60.0))) is None
+
+
 def test_the_first_picture_waits_for_nothing_it_does_not_need(dem: str, tmp_path: Path) -> None:
     """On the way to a DEM's first picture: SciPy is imported only where the DEM has voids or
     a sea to find (its import was a fifth of the sample's first picture), and the Blue

@@ -146,19 +146,16 @@ def horizon_view(
     return None
 
 
-def follows(before: Camera, camera: Camera, drawn: Selection) -> bool:
-    """Whether ``camera`` is the next frame of one motion after ``before`` (whose selection was
-    ``drawn``), so that the hysteresis carries over: the same viewport and field of view, the
-    eye moved at most half the distance to the nearest tile drawn (no tile's distance changes
-    by half, where the pixel band's hysteresis spans a factor of two) and the view turned at
-    most half the field of view. Anything else is a cut: a picture of an unrelated view is
-    selected as if it were the first, the same whatever was rendered before it."""
+def follows(before: Camera, camera: Camera, scale: float) -> bool:
+    """Whether ``camera`` is the next frame of one motion after ``before``, so that the
+    hysteresis carries over: the same viewport and field of view, the eye moved at most half
+    of ``scale`` (the metres that set the scene's size around the eye: its height above the
+    ground, the smaller of the two frames') and the view turned at most half the field of view.
+    Anything else is a cut: a picture of an unrelated view is selected as if it were the first,
+    the same whatever was rendered before it."""
     if (before.width, before.height, before.fov_y) != (camera.width, camera.height, camera.fov_y):
         return False
-    if drawn.count == 0:
-        return False
-    nearest = max(float(drawn.dist_near.min()), 1.0)
-    if float(np.linalg.norm(camera.position - before.position)) > 0.5 * nearest:
+    if float(np.linalg.norm(camera.position - before.position)) > 0.5 * max(scale, 1.0):
         return False
     turn = float(np.clip(before.forward @ camera.forward, -1.0, 1.0))
     return math.degrees(math.acos(turn)) <= camera.fov_y / 2.0
@@ -193,8 +190,11 @@ class TerrainView:
         self.texture_levels = texture_levels
         #: Last frame's selection (hysteresis), None before the first.
         self.previous: Selection | None = None
-        #: The camera and the options ``previous`` was selected with.
-        self._previous_of: tuple[Camera, SelectOptions] | None = None
+        #: The camera and the options ``previous`` was selected with, and that frame's scale
+        #: (``_scale``).
+        self._previous_of: tuple[Camera, SelectOptions, float] | None = None
+        #: The last camera ``fit`` made and its height above the ground (or the data's top).
+        self._fitted: tuple[Camera, float] | None = None
         #: Selections made by ``update`` so far (one per frame).
         self.selections = 0
         x, y = tree.roots()
@@ -217,7 +217,9 @@ class TerrainView:
         clearance = camera.alt - (ground if ground is not None else hi)
         near = camera.near or min(max(0.1 * clearance, 0.5), 1e5)
         if camera.far is not None:
-            return camera.with_clip(near, camera.far)
+            fitted = camera.with_clip(near, camera.far)
+            self._fitted = (fitted, clearance)
+            return fitted
         x, y = self.tree.roots()
         st = self.tree.level(self.tree.zmin).stats(x, y)
         probe = camera.with_clip(1.0, 2.0)
@@ -227,7 +229,9 @@ class TerrainView:
         up, rise = max(camera.alt - lo, 1.0), max(hi - lo, 1.0)
         horizon = math.sqrt(up * (2.0 * WGS84_A + up)) + math.sqrt(rise * (2.0 * WGS84_A + rise))
         far = max(min(float(boxes.dist_far.max()), horizon), near * 10.0) * 1.01
-        return camera.with_clip(near, far)
+        fitted = camera.with_clip(near, far)
+        self._fitted = (fitted, clearance)
+        return fitted
 
     def overview(self, b: Bbox, width: int, height: int, fov_y: float) -> Camera:
         """A camera south of the data (``b``, EPSG:3857) looking north over it, seeing all of it
@@ -275,7 +279,7 @@ class TerrainView:
             sel = select(options, camera, self.tree, before, drawable, levels)
         self.selections += 1
         self.previous = sel
-        self._previous_of = (camera, options)
+        self._previous_of = (camera, options, self._scale(camera, sel))
         worn = sel.layer_keys[sel.layer_keys != NO_TEXTURE]
         drawn = np.union1d(np.union1d(sel.keys, sel.texture_keys), worn)
         absent = _absent(drawn, resident)
@@ -293,7 +297,17 @@ class TerrainView:
         prev, of = self.previous, self._previous_of
         if prev is None or of is None or of[1] != self.select_options:
             return None
-        return prev if follows(of[0], camera, prev) else None
+        scale = min(of[2], self._scale(camera, prev))
+        return prev if follows(of[0], camera, scale) else None
+
+    def _scale(self, camera: Camera, drawn: Selection) -> float:
+        """The metres that set the scene's size around ``camera``: its height above the ground
+        where ``fit`` made it (the ground under a flight's eye is its nearest surface, however
+        rough), else the distance to the nearest tile ``drawn``."""
+        fitted = self._fitted
+        if fitted is not None and fitted[0] is camera and fitted[1] > 0.0:
+            return fitted[1]
+        return float(drawn.dist_near.min()) if drawn.count else 0.0
 
     @property
     def select_options(self) -> SelectOptions:
