@@ -8,6 +8,7 @@ import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -188,6 +189,32 @@ print(sorted(m for m in sys.modules if m.startswith("scipy.ndimage")))
     )
     assert got.returncode == 0, got.stderr
     assert got.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_a_window_scene_keeps_its_frames_in_the_target(dem: str, gl_ctx: Any) -> None:
+    """A scene drawing in a window's context (``use_context``) reads nothing back, from its
+    first frame: the target holds the picture as the GL draws it (bottom row first), the same
+    picture a headless render returns (top row first)."""
+    opts = SceneOptions(background=MAGENTA, ellipsoid=False)
+    with lodscape.open(dem, opts) as headless:
+        cam = headless.overview_camera(160, 90)
+        want, _ = headless.render(cam)
+    s = lodscape.open(dem, opts)
+    try:
+        s.use_context(gl_ctx)
+        got, dist = s.render(cam)
+        assert got.size == 0
+        assert dist.size == 0
+        renderer = s.renderer
+        assert renderer is not None
+        assert not renderer.target.flipped
+        fbo = renderer.colour_framebuffer
+        assert fbo is not None
+        window = np.frombuffer(fbo.read(components=3, alignment=1), np.uint8)
+        same = np.all(window.reshape(90, 160, 3)[::-1] == want, axis=2)
+        assert same.mean() > 0.98, same.mean()
+    finally:
+        s.close()
 
 
 def test_camera_under_the_ground_is_refused(scene: lodscape.Scene) -> None:

@@ -63,6 +63,8 @@ class Globe:
     #: the loop of a globe without terrain tiles.
     _ctx: moderngl.Context | None = None
     _owns_ctx: bool = False
+    #: The context is a window's (``use_context``): frames stay in its target.
+    _window: bool = False
     _pass: GlobePass | None = None
     _loop: FrameLoop | None = None
     _stats: FrameStats | None = None
@@ -219,7 +221,7 @@ class Globe:
             self._ctx = create_context()
             self._owns_ctx = True
         if joined is not None:
-            joined.join_globe(self._ctx)
+            joined.join_globe(self._ctx, window=self._window)
         self._pass = GlobePass(self._ctx, self.base_image())
         # the drape, and where the terrain's tiles are drawn, what the globe only fills
         if self.terrain is not None and (self.options.imagery or self._joined is not None):
@@ -247,6 +249,7 @@ class Globe:
                 layers=0,
                 log_depth=True,
             )
+            target.read_back = not self._window  # a window shows its target
             o = self.options
             loader = Loader(
                 LayerSource(self.imagery_layers),
@@ -295,6 +298,7 @@ class Globe:
         if self._pass is not None:
             raise RuntimeError("use_context before the first frame")
         self._ctx = ctx
+        self._window = True
 
     @property
     def renderer(self) -> Any:

@@ -124,6 +124,8 @@ class Scene:
         self._ctx: Any = None
         #: Frames are drawn under a globe (``join_globe``).
         self._under_globe = False
+        #: Frames stay in the target, a window's to show (``use_context``): none is read back.
+        self._window = False
         #: Why frames are drawn in the CPU terrain mode though the options asked for "gpu".
         self.terrain_mode_note: str | None = None
         self.city: Any = None
@@ -487,6 +489,8 @@ class Scene:
                 layers=len(self.provider.layers),
                 earth=(float(w), float(s), float(e), float(n)) if opts.earth else None,
             )
+            # a window's frames stay in its target from the first (drawn as the GL draws)
+            self._renderer.read_back = not self._window
         return self._renderer
 
     @property
@@ -500,15 +504,18 @@ class Scene:
         if self._renderer is not None:
             raise RuntimeError("use_context before the first frame")
         self._ctx = ctx
+        self._window = True
 
-    def join_globe(self, ctx: Any) -> None:
+    def join_globe(self, ctx: Any, *, window: bool = False) -> None:
         """Draw in ``ctx`` under a globe from the next frame on: the globe's pass first in the
         same target, one logarithmic depth for both (``render._depth``), and no ellipsoid of
-        the terrain's own (the globe is the world outside the data)."""
+        the terrain's own (the globe is the world outside the data); ``window``: a window's
+        context, whose frames stay in the target."""
         if self._renderer is not None:
             raise RuntimeError("join_globe before the first frame")
         self._ctx = ctx
         self._under_globe = True
+        self._window = window
 
     @property
     def renderer(self) -> Renderer | None:

@@ -447,7 +447,7 @@ def view(
             if rend is not None:
                 rend.read_back = False
                 colour = rend.colour_framebuffer
-                # a frame read back (a scene's first) is drawn upside down: not shown
+                # a frame read back is drawn upside down: not shown (a window's reads none)
                 if colour is not None and not rend.target.flipped:
                     ctx.copy_framebuffer(window.fbo, colour)
             window.use()
