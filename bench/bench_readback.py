@@ -4,7 +4,8 @@ new arrays (before: two reads and two copies of a frame's size), in one process,
 
 The scene is the sample (or ``--dem``) at the bench_peers cameras; per round and camera the
 median of ``--repeat`` whole frames (``Scene.render``, colour and distance), and of the frame's
-end alone (the GPU's wait, the reads, the copies: ``FrameTarget.end``). Both ways draw the same
+end alone (the GPU's wait, the reads, the copies: ``FrameTarget.end``) and of the GPU's wait in
+it (a ``glFinish`` before the reads: the rest is the reads and copies). Both ways draw the same
 frame; the pictures are compared (the rasteriser's fill rule turns with the picture: pixels on
 a triangle's edge may go to its neighbour).
 
@@ -72,11 +73,13 @@ def main() -> None:
         return fbo
 
     ends: list[float] = []
+    waits: list[float] = []
 
     def timed(end: Any) -> Any:
         def run(self: Any, camera: Any, labelled: bool = False) -> Any:
             t = time.perf_counter()
-            self.ctx.finish()  # the GPU's wait counted in the end, either way
+            self.ctx.finish()  # the GPU's wait counted in the end, either way, and apart
+            waits.append(time.perf_counter() - t)
             got = end(self, camera, labelled)
             ends.append(time.perf_counter() - t)
             return got
@@ -98,6 +101,7 @@ def main() -> None:
                 for _ in range(3):
                     scene.render(cam)
                 ends.clear()
+                waits.clear()
                 times = []
                 for _ in range(args.repeat):
                     t = time.perf_counter()
@@ -105,21 +109,24 @@ def main() -> None:
                     times.append(time.perf_counter() - t)
                 pictures.setdefault(way, {})[name] = (rgb, dist)
                 frame, end = statistics.median(times) * 1e3, statistics.median(ends) * 1e3
-                rows.append((r + 1, way, name, frame, end))
+                rows.append((r + 1, way, name, frame, end, statistics.median(waits) * 1e3))
     cls.begin, cls.end = new_begin, new_end  # type: ignore[method-assign]
     renderer = scene.renderer
     gl = renderer.ctx.info["GL_RENDERER"] if renderer is not None else "?"
     scene.close()
     print(f"GL: {gl}")
-    print("round | camera | frame ms: top-down / flipped (×) | end ms: top-down / flipped")
+    print(
+        "round | camera | frame ms: top-down / flipped (×) | end ms: top-down / flipped"
+        " | of it the GPU's wait: top-down / flipped"
+    )
     ratios = []
     for r in range(1, args.rounds + 1):
         for name in cams:
-            got = {way: (f, e) for rr, way, n, f, e in rows if rr == r and n == name}
-            (ft, et), (ff, ef) = got["top-down"], got["flipped"]
+            got = {way: (f, e, g) for rr, way, n, f, e, g in rows if rr == r and n == name}
+            (ft, et, gt), (ff, ef, gf) = got["top-down"], got["flipped"]
             ratios.append(ff / ft)
             frames = f"{ft:6.2f} / {ff:6.2f} (×{ff / ft:.2f})"
-            print(f"  {r} | {name:8s} | {frames} | {et:5.2f} / {ef:5.2f}")
+            print(f"  {r} | {name:8s} | {frames} | {et:5.2f} / {ef:5.2f} | {gt:5.2f} / {gf:5.2f}")
     print(f"frame ratio flipped / top-down: median ×{statistics.median(ratios):.2f} "
           f"(range ×{min(ratios):.2f}–×{max(ratios):.2f})")  # fmt: skip
     for name in cams:

@@ -81,15 +81,16 @@ class Viewable(Protocol):
     answer it."""
 
     def use_context(self, ctx: Any) -> None:
-        """Draw in the window's OpenGL context (before the first frame)."""
+        """Draw in the window's OpenGL context (before the first frame); the frames stay in
+        the renderer's target, none read back."""
         ...
 
     def render(self, camera: Camera) -> Any: ...
 
     @property
     def renderer(self) -> Any:
-        """What drew the last frame: its ``colour_framebuffer``, ``read_back``, ``wireframe``
-        and ``lod_colours``."""
+        """What drew the last frame: its ``colour_framebuffer``, ``wireframe`` and
+        ``lod_colours``."""
         ...
 
     @property
@@ -444,12 +445,10 @@ def view(
                 st.camera = st.camera.moved(alt=st.camera.alt + 50.0)
                 continue
             rend = scene.renderer
-            if rend is not None:
-                rend.read_back = False
-                colour = rend.colour_framebuffer
-                # a frame read back is drawn upside down: not shown (a window's reads none)
-                if colour is not None and not rend.target.flipped:
-                    ctx.copy_framebuffer(window.fbo, colour)
+            # a scene in the window's context reads nothing back (``use_context``)
+            colour = rend.colour_framebuffer if rend is not None else None
+            if colour is not None:
+                ctx.copy_framebuffer(window.fbo, colour)
             window.use()
             hud.draw(_hud_text(st, scene), w, h)
             window.swap_buffers()

@@ -109,6 +109,8 @@ class FrameTarget:
         self._ring_free: list[tuple[moderngl.Buffer, int]] = []
         #: The frame begun draws upside down in clip space (it is read back: ``TopDownCamera``).
         self.flipped = False
+        #: The last camera ``camera`` turned upside down, and what it made (each pass asks).
+        self._top_down: tuple[Camera, TopDownCamera] | None = None
         #: Log-depth frames: pixels of the last picture read back that the terrain and the
         #: city drew (the globe's have alpha 0); through the read ring, of the picture that
         #: came back.
@@ -225,7 +227,11 @@ class FrameTarget:
         back (``TopDownCamera``), as it is in a window's frame."""
         if not self.flipped or isinstance(camera, TopDownCamera):
             return camera
-        return TopDownCamera(**{f.name: getattr(camera, f.name) for f in fields(camera)})
+        made = self._top_down
+        if made is None or made[0] is not camera:
+            top = TopDownCamera(**{f.name: getattr(camera, f.name) for f in fields(camera)})
+            self._top_down = made = (camera, top)
+        return made[1]
 
     @property
     def pending(self) -> int:

@@ -565,21 +565,17 @@ class _GridSource:
         valid = self._count > 0.0
         mean = self._sum / np.maximum(self._count, 1.0)
         flat = valid & (mean == level)
-        _, inside = self._void_grid()
-        ch, cw = self._count.shape
-        outside = ~inside[:ch, :cw]
-        if not flat.any():
-            # no cell at exactly that height: no sea (and no SciPy to import)
-            got = np.zeros(flat.shape, bool)
-            pad = ((0, got.shape[0] < 2), (0, got.shape[1] < 2))
-            self._seas[level] = got = np.pad(got, pad, "edge")
-            return got
-        from scipy.ndimage import label
+        sea = flat  # no cell at exactly that height: no sea (and no SciPy to import)
+        if flat.any():
+            from scipy.ndimage import label
 
-        labels, _ = label(flat | outside)
-        edge = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
-        touching = np.unique(np.concatenate([edge, labels[outside]]))
-        sea = flat & np.isin(labels, touching[touching > 0])
+            _, inside = self._void_grid()
+            ch, cw = self._count.shape
+            outside = ~inside[:ch, :cw]
+            labels, _ = label(flat | outside)
+            edge = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+            touching = np.unique(np.concatenate([edge, labels[outside]]))
+            sea = flat & np.isin(labels, touching[touching > 0])
         pad = ((0, sea.shape[0] < 2), (0, sea.shape[1] < 2))
         self._seas[level] = got = np.pad(sea, pad, "edge")
         return got
