@@ -12,6 +12,7 @@ import pytest
 from _synthetic import fbm_heights, periodic_fbm, write_dem
 from lodscape.data import sample_dem_path
 from lodscape.lod.camera import Camera
+from lodscape.options import SceneOptions
 from lodscape.scene import Scene
 from lodscape.terrain.lazy import LazyTree
 from lodscape.terrain.pyramid import build_tree
@@ -164,8 +165,10 @@ def test_a_scene_selects_as_the_eager_tree_once_known(tmp_path: Path) -> None:
                      north=4000000.0, res=8.0)  # fmt: skip
     with RasterSource(path) as src:
         eager = build_tree(src)
-        lazy = Scene(src, tree=LazyTree(src))  # type: ignore[arg-type]
-        fixed = Scene(src, tree=eager)
+        # the trees themselves, not the error ladder TIN meshes wrap them in
+        grids = SceneOptions(meshes="grid")
+        lazy = Scene(src, grids, tree=LazyTree(src))  # type: ignore[arg-type]
+        fixed = Scene(src, grids, tree=eager)
         try:
             assert isinstance(lazy.tree, LazyTree)
             assert not lazy.tree._tails, "the DEM is meant to be small enough for no tail"
@@ -227,7 +230,8 @@ def test_a_streamed_frame_never_waits_for_statistics(tmp_path: Path) -> None:
     path = write_dem(str(tmp_path / "s.tif"), h, crs="EPSG:32617", west=500000.0,
                      north=4000000.0, res=1.0)  # fmt: skip
     with RasterSource(path) as src:
-        scene = Scene(src, tree=LazyTree(src, keep=False))  # type: ignore[arg-type]
+        grids = SceneOptions(meshes="grid")  # the tree itself, as ``whole``
+        scene = Scene(src, grids, tree=LazyTree(src, keep=False))  # type: ignore[arg-type]
         whole = LazyTree(src, keep=False)
         try:
             cam = scene.view.fit(scene.overview_camera(640, 360), None)

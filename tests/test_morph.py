@@ -61,7 +61,11 @@ def _approach(dem: str, morph: bool, terrain_mode: str = "cpu") -> list[float]:
 
     # a coarse bound (8 px) makes each split's step plain to see
     opts = SceneOptions(
-        select=SelectOptions(max_sse=8.0), morph=morph, anisotropy=1.0, terrain_mode=terrain_mode
+        select=SelectOptions(max_sse=8.0),
+        morph=morph,
+        anisotropy=1.0,
+        terrain_mode=terrain_mode,
+        meshes="grid",  # the meshes that morph (a picture's TINs do not)
     )
     jumps: list[float] = []
     with lodscape.open(dem, opts) as scene:

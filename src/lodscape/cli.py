@@ -131,6 +131,15 @@ TerrainModeOpt = Annotated[
         "(falls back to cpu, with a notice, where tessellation is missing).",
     ),
 ]
+MeshesOpt = Annotated[
+    str,
+    typer.Option(
+        "--meshes",
+        help="The cpu mode's tile meshes: tin (each tile's RTIN cut at the error its place on "
+        "screen allows: fewer triangles), grid (regular grids, which geomorph), auto (tin for "
+        "a picture, grid for frames that geomorph).",
+    ),
+]
 ImageryOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -347,6 +356,7 @@ class TerrainFlags:
 
     max_sse: float = _SELECT.max_sse
     terrain_mode: str = _SCENE.terrain_mode
+    meshes: str = _SCENE.meshes
     ground: str = "tint"
     landcover: Path | None = None
     anisotropy: float = _SCENE.anisotropy
@@ -380,6 +390,7 @@ class TerrainFlags:
             max_sse=self.max_sse,
             anisotropy=self.anisotropy,
             terrain_mode=self.terrain_mode,
+            meshes=self.meshes,
             budget_mb=budget_mb,
             imagery_timeout=self.imagery_timeout,
             imagery_strict=self.imagery_strict,
@@ -465,6 +476,7 @@ _FLAG_PANELS: dict[str, tuple[tuple[str, Any], ...]] = {
     "Level of detail and drawing": (
         ("max_sse", SseOpt),
         ("terrain_mode", TerrainModeOpt),
+        ("meshes", MeshesOpt),
         ("anisotropy", AnisotropyOpt),
         ("morph", MorphOpt),
         ("ellipsoid", EllipsoidOpt),
@@ -519,6 +531,7 @@ def _scene_options(
     max_sse: float,
     anisotropy: float,
     terrain_mode: str,
+    meshes: str = _SCENE.meshes,
     budget_mb: float | None,
     imagery_timeout: float,
     imagery_strict: bool,
@@ -543,6 +556,7 @@ def _scene_options(
             select=SelectOptions(max_sse=max_sse),
             anisotropy=anisotropy,
             terrain_mode=terrain_mode,
+            meshes=meshes,
             imagery_timeout=imagery_timeout,
             imagery_strict=imagery_strict,
             ellipsoid=ellipsoid,

@@ -58,6 +58,12 @@ class SceneOptions:
     #: colour (about 43 dB PSNR on the sample). Where the GL does not, a notice and
     #: uncompressed textures.
     compress_textures: bool = False
+    #: The CPU terrain mode's tile meshes: "tin", each an RTIN of the tile's finest grid cut at
+    #: the error the frame allows (``terrain.tin_tiles``: a half to a fifth of the triangles
+    #: for the same bound); "grid", regular grids of 16, 32 or 64 segments, which geomorph;
+    #: "auto", TINs where frames do not geomorph (one-shot renders) and grids where they do.
+    #: Rasters meshed on the fly only: tilesets, fractal detail and "gpu" keep their meshes.
+    meshes: str = "auto"
 
     def __post_init__(self) -> None:
         if not self.gpu_budget_mb > 0.0:
@@ -72,3 +78,5 @@ class SceneOptions:
             raise ValueError(f"Expected imagery_timeout >= 0, got {self.imagery_timeout}")
         if self.terrain_mode not in ("cpu", "gpu"):
             raise ValueError(f"Expected terrain_mode cpu or gpu, got {self.terrain_mode!r}")
+        if self.meshes not in ("auto", "tin", "grid"):
+            raise ValueError(f"Expected meshes auto, tin or grid, got {self.meshes!r}")

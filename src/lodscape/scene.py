@@ -104,6 +104,12 @@ class Scene:
             self.provider = source  # type: ignore[assignment]
         self._owns = owns
         self._options = options or SceneOptions()
+        o = self._options
+        morphs = o.morph and o.stream is not None
+        if o.terrain_mode == "cpu" and (o.meshes == "tin" or (o.meshes == "auto" and not morphs)):
+            by_error = getattr(self.provider, "mesh_by_error", None)
+            if by_error is not None:
+                by_error()
         self.tree = self.provider.tree
         self.view = TerrainView(
             self.tree,

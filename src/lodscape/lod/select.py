@@ -15,7 +15,8 @@ across the line of sight, off-axis stretch included: Lindstrom's projected error
   covers merge·T pixels or more (hysteresis, no flicker);
 - split when even its finest grid cannot keep the screen-space error within ``max_sse``;
 - otherwise drawn, with the coarsest grid whose error stays within ``max_sse``, so the mesh
-  follows the terrain's roughness.
+  follows the terrain's roughness. (A tree's "grids" are whatever meshes its tiles have, each
+  with its recorded error: regular grids, or ``terrain.tin_tiles``' ladder of error bounds.)
 Tiles kept all round by distance (``reach``: paper 004's areas, whatever the view's direction)
 are measured as if the camera looked at them: pixels per metre at their nearest point.
 

@@ -22,6 +22,7 @@ from lodscape.terrain.lazy import open_tree
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import RefinedTree, TileTree
 from lodscape.terrain.source import Fill, HeightSource
+from lodscape.terrain.tin_tiles import ErrorLadder, tin_tile_mesh
 
 __all__ = [
     "FractalProvider",
@@ -125,7 +126,8 @@ def fill_of(source: Any) -> Fill:
 
 
 class RasterProvider:
-    """A height source meshed on the fly: regular grids per tile, tint + hillshade imagery."""
+    """A height source meshed on the fly: regular grids per tile, or RTINs cut by error
+    (``mesh_by_error``); tint + hillshade imagery."""
 
     textures = "imagery"
     layers: tuple[Any, ...] = ()
@@ -192,7 +194,20 @@ class RasterProvider:
             return np.frombuffer(data, dtype=np.uint8).reshape(n, n, 4)
         s = self.tree.grids[grid_of(key)] + 1
         heights = np.frombuffer(data, dtype=np.float32).reshape(s, s)
+        if isinstance(self.tree, ErrorLadder):
+            bound = self.tree.threshold(t.z, t.x, t.y, grid_of(key))
+            made = tin_tile_mesh(key, t.z, t.x, t.y, heights, bound)
+            if made is not None:
+                return made
         return build_mesh(key, t.z, t.x, t.y, heights)
+
+    def mesh_by_error(self) -> bool:
+        """Mesh tiles as RTINs cut at the error each frame allows (``terrain.tin_tiles``)
+        instead of regular grids: the tree's grids become the error ladder's slots. Call
+        before anything selects over the tree; True where this provider does so."""
+        if not isinstance(self.tree, ErrorLadder):
+            self.tree = ErrorLadder(self.tree)
+        return True
 
     def mesh(self, key: int) -> TileMesh:
         return mesh_of(self, key)
@@ -229,6 +244,10 @@ class FractalProvider(RasterProvider):
             return self.imagery.texture(t.z, t.x, t.y).tobytes()
         segments = self.tree.grids[grid_of(key)]
         return bytes(self.heights.tile(t.z, t.x, t.y, segments).tobytes())
+
+    def mesh_by_error(self) -> bool:
+        # meshes of exact lattice heights split along their lowest diagonals (paper 003)
+        return False
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
         t = tile_of(key)

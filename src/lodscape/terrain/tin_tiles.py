@@ -1,0 +1,168 @@
+"""Tile meshes by error (Cesium's and Martini's way): an RTIN of the tile's finest grid, cut at an
+error bound picked per frame, instead of one of a few regular grids.
+
+A regular grid spends its triangles evenly: where a tile is rough in one corner and smooth in
+the rest, the grid that follows the corner is far too fine elsewhere, and a tile split for its
+texture (paper 000's pixel band) keeps at least the coarsest grid's 512 triangles however small
+its error is on screen. An RTIN (``terrain.rtin``) splits only where its error bound needs it.
+
+The selection needs each candidate mesh's error before any mesh is made, so a tile's candidates
+are a fixed ladder of bounds, ``LADDER[j]`` times its coarsest grid's recorded error (the tile's
+roughness at its own scale), the last one 0 (the whole grid). Slot j's error is its bound plus
+the finest grid's own recorded error against the data (one triangle inequality): ``ErrorLadder``
+wraps a tile tree so that its statistics give those errors per slot, and the selection picks the
+coarsest slot within ``max_sse`` as it picked the coarsest grid. A mesh key names the tile and
+the slot (``geo.keys``' grid index).
+
+Heights are meshed as the height above the tile's tangent plane at its centre, so the RTIN's
+error includes the ellipsoid's curvature under its flat triangles (a tile-wide triangle sags
+far below the surface it spans). Measured along the centre's vertical, not each point's, and
+with the grid's Web Mercator spacing taken as even in the plane, which is exact to 0.4 % of the
+bound on a 626 km tile (level 6) and closer on smaller ones (tests/test_tin_tiles.py).
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lodscape.geo.frames import geodetic_to_ecef, up_vector
+from lodscape.geo.tiles import merc_to_lonlat
+from lodscape.terrain.mesh import TileMesh, grid_coordinates, tin_mesh
+from lodscape.terrain.pyramid import TileStats
+
+__all__ = [
+    "LADDER",
+    "ErrorLadder",
+    "ladder_errors",
+    "ladder_threshold",
+    "prewarm",
+    "tin_tile_mesh",
+]
+
+_WARM_LOCK = threading.Lock()
+_warming = False
+
+
+def prewarm() -> None:
+    """Import the RTIN kernels (numba, and their compiled code from its cache: about half a
+    second) on a thread of their own, once a process: a scene that meshes by error asks for
+    them as it opens, so the wait runs beside the DEM's reading, not before the first picture."""
+    global _warming
+    with _WARM_LOCK:
+        if _warming:
+            return
+        _warming = True
+    threading.Thread(target=_warm, name="lodscape-rtin", daemon=True).start()
+
+
+def _warm() -> None:
+    from lodscape.terrain.rtin import Rtin
+
+    Rtin(np.zeros((3, 3))).mesh(0.0)
+
+
+#: The bounds a tile may be meshed at, as multiples of its coarsest grid's recorded error,
+#: coarsest first (eight: ``geo.keys.MAX_GRIDS``); the last is the whole finest grid.
+LADDER: tuple[float, ...] = (2.0, 1.0, 0.7, 0.5, 0.35, 0.25, 0.125, 0.0)
+_LADDER = np.asarray(LADDER, np.float64)[:, None]
+
+
+def ladder_errors(error: NDArray[np.floating]) -> NDArray[np.float32]:
+    """(len(LADDER), N) errors of a tile's ladder meshes from its (grids, N) grid errors: each
+    slot's bound over the finest grid, plus that grid's own error."""
+    e = np.asarray(error, np.float64)
+    out: NDArray[np.float32] = (_LADDER * e[0] + e[-1]).astype(np.float32)
+    return out
+
+
+def ladder_threshold(error: NDArray[np.floating], slot: int) -> float:
+    """The RTIN bound (metres) of ladder ``slot`` for a tile of (grids,) errors ``error``."""
+    return float(LADDER[slot] * float(np.asarray(error)[0]))
+
+
+class _Level:
+    def __init__(self, base: Any, finest: bool) -> None:
+        self.base = base
+        self.z = base.z
+        self.finest = finest
+
+    def stats(self, x: NDArray[np.int64], y: NDArray[np.int64]) -> TileStats:
+        st = self.base.stats(x, y)
+        err = ladder_errors(st.error)
+        # the whole finest grid (the last slot) only where the tile cannot split: four children
+        # meshed by their own error draw fewer triangles than a grid as fine as theirs
+        if not self.finest:
+            can_split = True if st.leaf is None else ~np.asarray(st.leaf, bool)
+            err[-1] = np.where(can_split, err[-2], err[-1])
+        return TileStats(st.exists, st.min_h, st.max_h, err, st.leaf)
+
+
+class ErrorLadder:
+    """A tile tree whose "grids" are the ``LADDER``'s slots over its finest grid: the same tiles,
+    heights and levels, each slot's error as ``ladder_errors`` says. Everything else is the
+    wrapped tree's (a tree made on demand stays one: ``wait``, ``ready``, ``epoch``)."""
+
+    def __init__(self, tree: Any) -> None:
+        object.__setattr__(self, "base", tree)
+        #: Every slot meshes the base tree's finest grid.
+        object.__setattr__(self, "grids", (int(tree.grids[-1]),) * len(LADDER))
+        object.__setattr__(self, "_levels", {})
+
+    def level(self, z: int) -> _Level:
+        levels: dict[int, _Level] = self._levels
+        lv = levels.get(z)
+        base = self.base.level(z)
+        if lv is None or lv.base is not base:
+            lv = levels[z] = _Level(base, z >= self.base.zmax)
+        return lv
+
+    def threshold(self, z: int, x: int, y: int, slot: int) -> float:
+        """The RTIN bound of tile (z, x, y)'s ladder slot, from its recorded grid errors."""
+        st = self.base.level(z).stats(np.array([x], np.int64), np.array([y], np.int64))
+        return ladder_threshold(np.asarray(st.error)[:, 0], slot)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.base, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        # the selection's switches (``wait``) are the base tree's
+        setattr(self.base, name, value)
+
+
+def tin_tile_mesh(
+    key: int, z: int, x: int, y: int, heights: NDArray[np.floating], threshold: float
+) -> TileMesh | None:
+    """Tile (z, x, y)'s RTIN mesh of its (S+1)² grid ``heights`` (row 0 north, S a power of
+    two), within ``threshold`` metres of every grid point, with skirts; None where the heights
+    are not all finite (a regular grid is made instead)."""
+    h = np.asarray(heights, np.float64)
+    s = h.shape[0] - 1
+    if not np.isfinite(h).all():
+        return None
+    xs, ys = grid_coordinates(z, x, y, s)
+    lon, lat = merc_to_lonlat(xs[None, :], ys[:, None])
+    lon = np.broadcast_to(lon, h.shape)
+    lat = np.broadcast_to(lat, h.shape)
+    # heights above the tangent plane at the centre: the RTIN's flat triangles are measured
+    # against the curved lattice, sag included
+    mid = s // 2
+    c = geodetic_to_ecef(float(lon[mid, mid]), float(lat[mid, mid]), 0.0)
+    up = up_vector(float(lon[mid, mid]), float(lat[mid, mid]))
+    p = geodetic_to_ecef(lon, lat, h)
+    above = (p - c) @ up
+    from lodscape.terrain.rtin import Rtin  # numba: imported where meshes are made
+
+    verts, tris = Rtin(above).mesh(max(float(threshold), 0.0))
+    col = verts[:, 0].astype(np.int64)
+    row = verts[:, 1].astype(np.int64)
+    sides = [
+        np.nonzero(col == 0)[0],
+        np.nonzero(row == s)[0],
+        np.nonzero(col == s)[0],
+        np.nonzero(row == 0)[0],
+    ]
+    return tin_mesh(key, z, x, y, lon[row, col], lat[row, col], h[row, col], tris, sides)

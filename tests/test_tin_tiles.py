@@ -1,0 +1,202 @@
+"""Tile meshes cut by error (``terrain.tin_tiles``): each keeps to its bound against the tile's
+curved lattice, the selection's ladder charges what the meshes keep to, and a picture drawn
+with them keeps the screen-space bound on far fewer triangles than the grids."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import lodscape
+from _synthetic import fbm_heights, periodic_fbm, write_dem
+from lodscape import Camera
+from lodscape.geo.frames import geodetic_to_ecef, up_vector
+from lodscape.geo.keys import mesh_key
+from lodscape.geo.tiles import Tile, merc_to_lonlat, tile_id
+from lodscape.stream import StreamOptions
+from lodscape.terrain.mesh import grid_coordinates
+from lodscape.terrain.pyramid import TileStats
+from lodscape.terrain.tin_tiles import LADDER, ErrorLadder, ladder_errors, tin_tile_mesh
+
+
+def _lattice_error(z: int, x: int, y: int, h: np.ndarray, mesh: Any) -> float:
+    """The largest distance, along the local vertical, between a lattice point (on the curved
+    Earth) and the mesh's flat triangle over it."""
+    s = h.shape[0] - 1
+    xs, ys = grid_coordinates(z, x, y, s)
+    lon, lat = merc_to_lonlat(xs[None, :], ys[:, None])
+    lon, lat = np.broadcast_to(lon, h.shape), np.broadcast_to(lat, h.shape)
+    p = geodetic_to_ecef(lon, lat, h.astype(np.float64))
+    v = mesh.vertices.astype(np.float64)
+    surface = v[:, 5] == 0.0
+    n = int(surface.sum())
+    tris = mesh.indices.astype(np.int64)
+    tris = tris[(tris < n).all(axis=1)]  # skirts out
+    cr = v[:n, 3:5] * s  # (column, row) of each vertex
+    pos = v[:n, :3] + mesh.center
+    worst = 0.0
+    rows, cols = np.mgrid[0 : s + 1, 0 : s + 1]
+    for t in tris:
+        a, b, c = cr[t]
+        lo, hi = np.floor(np.minimum(np.minimum(a, b), c)), np.ceil(np.maximum(np.maximum(a, b), c))
+        box = (cols >= lo[0]) & (cols <= hi[0]) & (rows >= lo[1]) & (rows <= hi[1])
+        q = np.column_stack([cols[box], rows[box]]).astype(np.float64)
+        m = np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]])
+        uv = np.linalg.solve(m, (q - a).T).T
+        w = np.column_stack([1.0 - uv.sum(axis=1), uv])
+        inside = (w >= -1e-9).all(axis=1)
+        if not inside.any():
+            continue
+        flat = w[inside] @ pos[t]
+        ij = q[inside].astype(np.int64)
+        real = p[ij[:, 1], ij[:, 0]]
+        ups = up_vector(lon[ij[:, 1], ij[:, 0]], lat[ij[:, 1], ij[:, 0]])
+        worst = max(worst, float(np.abs(np.einsum("ij,ij->i", real - flat, ups)).max()))
+    return worst
+
+
+@pytest.mark.parametrize("z", [7, 12])
+@pytest.mark.parametrize("bound", [0.0, 2.0, 25.0])
+def test_a_tin_tile_keeps_its_bound_against_the_curved_lattice(z: int, bound: float) -> None:
+    # a big tile (z 7: 313 km) sags kilometres under a flat triangle: the mesh must split for it
+    rng = np.random.default_rng(z)
+    h = fbm_heights(65, seed=z, relief=300.0).astype(np.float64) + rng.normal(0, 1, (65, 65))
+    x, y = (1 << z) // 3, (1 << z) // 3
+    key = mesh_key(tile_id(Tile(x, y, z)), 3)
+    mesh = tin_tile_mesh(key, z, x, y, h, bound)
+    assert mesh is not None
+    got = _lattice_error(z, x, y, h, mesh)
+    # float32 vertices relative to a centre up to 220 km away: centimetres
+    assert got <= bound * 1.001 + 0.05, got
+    surface = int((mesh.vertices[:, 5] == 0).sum())
+    if bound > 0:
+        assert mesh.triangles < 2 * 64 * 64 + 8 * 64, mesh.triangles
+    # skirts hang from the four sides: every edge vertex has its copy
+    uv = mesh.vertices[:surface, 3:5]
+    edge = ((uv == 0.0) | (uv == 1.0)).any(axis=1).sum()
+    assert mesh.vertices.shape[0] - surface >= edge
+
+
+def test_flat_ground_on_a_big_tile_is_split_for_the_earths_curvature() -> None:
+    h = np.zeros((65, 65))
+    z, x, y = 6, 20, 20
+    key = mesh_key(tile_id(Tile(x, y, z)), 0)
+    coarse = tin_tile_mesh(key, z, x, y, h, 1e6)
+    tight = tin_tile_mesh(key, z, x, y, h, 10.0)
+    assert coarse is not None
+    assert tight is not None
+    # within 1 %: measured above the centre's tangent plane, a 626 km tile's sides lean
+    assert _lattice_error(z, x, y, h, tight) <= 10.0 * 1.01
+    # flat heights, yet the Earth bends under a 626 km tile: tens of triangles, not two
+    assert tight.triangles - 8 * 64 > 4 * (coarse.triangles - 8 * 64) or tight.triangles > 40
+
+
+def test_nodata_heights_give_no_tin() -> None:
+    h = np.zeros((65, 65))
+    h[3, 4] = np.nan
+    assert tin_tile_mesh(mesh_key(tile_id(Tile(1, 1, 5)), 0), 5, 1, 1, h, 1.0) is None
+
+
+def test_the_ladder_charges_each_slot_its_bound_over_the_finest_grid() -> None:
+    error = np.array([[40.0, 8.0], [20.0, 4.0], [5.0, 0.0]])  # grids × tiles
+    got = ladder_errors(error)
+    assert got.shape == (len(LADDER), 2)
+    assert np.allclose(got[:, 0], np.array(LADDER) * 40.0 + 5.0)
+    assert np.allclose(got[:, 1], np.array(LADDER) * 8.0)
+    # coarsest first, the whole finest grid last
+    assert np.all(np.diff(got, axis=0) <= 0)
+    assert LADDER[-1] == 0.0
+
+
+def test_the_ladder_keeps_the_whole_grid_for_tiles_that_cannot_split(tmp_path: Path) -> None:
+    path = tmp_path / "dem.tif"
+    write_dem(str(path), periodic_fbm(256, seed=2, relief=500.0), crs="EPSG:32617",
+              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
+    scene = lodscape.open(path, lodscape.SceneOptions(meshes="tin"))
+    try:
+        tree = scene.tree
+        assert isinstance(tree, ErrorLadder)
+        assert tree.grids == (64,) * len(LADDER)
+        for z in (tree.zmin, tree.zmax):
+            x, y = tree.roots() if z == tree.zmin else _some_tiles(tree, z)
+            st = tree.level(z).stats(x, y)
+            assert isinstance(st, TileStats)
+            assert st.error.shape == (len(LADDER), x.size)
+            base = tree.base.level(z).stats(x, y).error
+            if z < tree.zmax:  # a tile that can split is not drawn with its whole grid
+                assert np.allclose(st.error[-1], st.error[-2])
+            else:
+                assert np.allclose(st.error[-1], base[-1])
+    finally:
+        scene.close()
+
+
+def _some_tiles(tree: Any, z: int) -> tuple[np.ndarray, np.ndarray]:
+    x, y = tree.roots()
+    for _ in range(tree.zmin, z):
+        x = (2 * x[:, None] + np.array([0, 1, 0, 1])).ravel()
+        y = (2 * y[:, None] + np.array([0, 0, 1, 1])).ravel()
+    ok = tree.level(z).stats(x, y).exists
+    return x[ok], y[ok]
+
+
+def test_tins_draw_the_same_picture_within_the_bound_on_fewer_triangles(tmp_path: Path) -> None:
+    """Grids against TINs on one DEM and cameras: the TINs keep the bound as measured on
+    screen, spend more of it, and draw well under the grids' triangles."""
+    from test_screen_error import BOUND, H, W, _cameras, screen_error
+
+    z = periodic_fbm(512, seed=23, relief=700.0)
+    path = tmp_path / "dem.tif"
+    write_dem(str(path), z, crs="EPSG:32617", west=700000.0, north=4070000.0, res=10.0)
+    opts = dict(ellipsoid=False, anisotropy=1.0)
+    tin = lodscape.open(path, lodscape.SceneOptions(meshes="tin", **opts))  # type: ignore[arg-type]
+    grid = lodscape.open(path, lodscape.SceneOptions(meshes="grid", **opts))  # type: ignore[arg-type]
+    fine = lodscape.open(path, lodscape.SceneOptions(
+        meshes="grid", select=lodscape.SelectOptions(max_sse=0.05), **opts))  # type: ignore[arg-type]  # fmt: skip
+    try:
+        ratios, tails, grid_tails = [], [], []
+        for cam in _cameras(tin, 6, seed=4):
+            cam = Camera(cam.lon, cam.lat, cam.alt, heading=cam.heading, pitch=cam.pitch,
+                         width=W, height=H)  # fmt: skip
+            _, d_tin = tin.render(cam)
+            _, d_grid = grid.render(cam)
+            _, d_fine = fine.render(cam)
+            floor = np.percentile(screen_error(path, z, fine.prepare(cam), d_fine), 99.9)
+            e_tin = screen_error(path, z, tin.prepare(cam), d_tin)
+            e_grid = screen_error(path, z, grid.prepare(cam), d_grid)
+            assert e_tin.size > 0.2 * W * H
+            tails.append(float(np.percentile(e_tin, 99.9)))
+            grid_tails.append(float(np.percentile(e_grid, 99.9)))
+            assert tails[-1] <= BOUND + floor, (tails, floor)
+            assert tin.frame_stats()["max_sse_px"] <= BOUND + 1e-6
+            ratios.append(tin.frame_stats()["triangles"] / grid.frame_stats()["triangles"])
+        print("triangles tin/grid", np.round(ratios, 2), "p99.9 tin", np.round(tails, 2),
+              "grid", np.round(grid_tails, 2))  # fmt: skip
+        assert np.median(ratios) < 0.6, ratios
+        assert np.median(tails) > np.median(grid_tails), (tails, grid_tails)
+    finally:
+        tin.close()
+        grid.close()
+        fine.close()
+
+
+def test_meshes_auto_keeps_grids_where_frames_geomorph(tmp_path: Path) -> None:
+    path = tmp_path / "dem.tif"
+    write_dem(str(path), periodic_fbm(128, seed=1, relief=200.0), crs="EPSG:32617",
+              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
+    one_shot = lodscape.open(path)
+    streamed = lodscape.open(path, lodscape.SceneOptions(stream=StreamOptions()))
+    gpu = lodscape.open(path, lodscape.SceneOptions(terrain_mode="gpu"))
+    try:
+        assert isinstance(one_shot.tree, ErrorLadder)
+        assert not isinstance(streamed.tree, ErrorLadder)
+        assert not isinstance(gpu.tree, ErrorLadder)
+    finally:
+        one_shot.close()
+        streamed.close()
+        gpu.close()
+    with pytest.raises(ValueError, match="meshes"):
+        lodscape.SceneOptions(meshes="rtin")
