@@ -86,3 +86,47 @@ def test_the_mesher_is_tighter_than_martinis_midpoint_error() -> None:
 def test_bad_grids_are_refused(heights: np.ndarray, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         Rtin(heights)
+
+
+@pytest.mark.parametrize("size", [2, 3, 5, 9, 17, 33, 65])
+def test_the_numpy_rtin_is_the_numba_rtin(size: int) -> None:
+    """``rtin_numpy`` (the tiles' mesher, no numba to load) gives the errors and the meshes of
+    ``Rtin`` with every level exact, on rough and smooth grids, at any bound."""
+    from lodscape.terrain import rtin_numpy
+
+    rng = np.random.default_rng(size)
+    for k in range(4):
+        h = rng.normal(size=(size, size)).cumsum(0).cumsum(1) * rng.uniform(0.1, 10.0)
+        if k == 3:
+            h = np.round(h)  # ties: equal errors where the bound is
+        want = Rtin(h, exact_span=max(size, 2))
+        got = rtin_numpy.errors(h)
+        np.testing.assert_allclose(got, want.errors, rtol=1e-9, atol=1e-9)
+        for bound in (0.0, 0.5, 1.0, 4.0, 1e9):
+            va, ta = want.mesh(bound)
+            vb, tb = rtin_numpy.mesh(got, bound)
+            assert len(ta) == len(tb)
+            # the same triangles, each with its vertices in the same (winding) order
+            a = {
+                tuple(
+                    map(tuple, np.roll(va[t], -int(np.argmin(va[t][:, 0] * 99 + va[t][:, 1])), 0))
+                )
+                for t in ta
+            }
+            b = {
+                tuple(
+                    map(tuple, np.roll(vb[t], -int(np.argmin(vb[t][:, 0] * 99 + vb[t][:, 1])), 0))
+                )
+                for t in tb
+            }
+            assert a == b
+
+
+def _turned(v: np.ndarray, t: np.ndarray) -> set[tuple[tuple[int, int], ...]]:
+    """Each triangle's vertices from its smallest one, in its winding order."""
+    out = set()
+    for tri in t:
+        p = v[tri]
+        first = int(np.lexsort((p[:, 1], p[:, 0]))[0])
+        out.add(tuple((int(x), int(y)) for x, y in np.roll(p, -first, axis=0)))
+    return out

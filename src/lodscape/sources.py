@@ -199,11 +199,6 @@ def open(
         from lodscape.render.passes import prefetch_blue_marble
 
         prefetch_blue_marble()
-    if opts.terrain_mode == "cpu" and opts.meshes != "grid":
-        # the meshes' kernels load beside the DEM's reading too
-        from lodscape.terrain.tin_tiles import prewarm
-
-        prewarm()
     provider, owns, town = _assemble(
         source,
         opts,

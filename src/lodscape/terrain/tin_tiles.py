@@ -19,11 +19,13 @@ error includes the ellipsoid's curvature under its flat triangles (a tile-wide t
 far below the surface it spans). Measured along the centre's vertical, not each point's, and
 with the grid's Web Mercator spacing taken as even in the plane, which is exact to 0.4 % of the
 bound on a 626 km tile (level 6) and closer on smaller ones (tests/test_tin_tiles.py).
+
+The RTIN is ``terrain.rtin_numpy``'s, the same meshes as ``terrain.rtin``'s without numba, whose
+import and kernels would cost a first picture 0.8 s.
 """
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 import numpy as np
@@ -31,6 +33,7 @@ from numpy.typing import NDArray
 
 from lodscape.geo.frames import geodetic_to_ecef, up_vector
 from lodscape.geo.tiles import merc_to_lonlat
+from lodscape.terrain import rtin_numpy
 from lodscape.terrain.mesh import TileMesh, grid_coordinates, tin_mesh
 from lodscape.terrain.pyramid import TileStats
 
@@ -39,30 +42,8 @@ __all__ = [
     "ErrorLadder",
     "ladder_errors",
     "ladder_threshold",
-    "prewarm",
     "tin_tile_mesh",
 ]
-
-_WARM_LOCK = threading.Lock()
-_warming = False
-
-
-def prewarm() -> None:
-    """Import the RTIN kernels (numba, and their compiled code from its cache: about half a
-    second) on a thread of their own, once a process: a scene that meshes by error asks for
-    them as it opens, so the wait runs beside the DEM's reading, not before the first picture."""
-    global _warming
-    with _WARM_LOCK:
-        if _warming:
-            return
-        _warming = True
-    threading.Thread(target=_warm, name="lodscape-rtin", daemon=True).start()
-
-
-def _warm() -> None:
-    from lodscape.terrain.rtin import Rtin
-
-    Rtin(np.zeros((3, 3))).mesh(0.0)
 
 
 #: The bounds a tile may be meshed at, as multiples of its coarsest grid's recorded error,
@@ -154,9 +135,7 @@ def tin_tile_mesh(
     up = up_vector(float(lon[mid, mid]), float(lat[mid, mid]))
     p = geodetic_to_ecef(lon, lat, h)
     above = (p - c) @ up
-    from lodscape.terrain.rtin import Rtin  # numba: imported where meshes are made
-
-    verts, tris = Rtin(above).mesh(max(float(threshold), 0.0))
+    verts, tris = rtin_numpy.mesh(rtin_numpy.errors(above), max(float(threshold), 0.0))
     col = verts[:, 0].astype(np.int64)
     row = verts[:, 1].astype(np.int64)
     sides = [
