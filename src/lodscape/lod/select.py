@@ -272,6 +272,8 @@ class Selection:
 
     @property
     def triangles(self) -> int:
+        """Triangles of the drawn tiles' grids, skirts included: for TINs (``terrain.tin_tiles``,
+        whose "grids" are the finest grid's) a bound; what is drawn is ``FrameStats``'."""
         s = np.asarray(self.grids, dtype=np.int64)[self.grid]
         return int((2 * s * s + 8 * s).sum())
 
