@@ -10,6 +10,8 @@ millisecond or two. ``tests/test_rtin.py`` checks both against each other.
 
 from __future__ import annotations
 
+from functools import cache
+
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
@@ -60,6 +62,48 @@ def errors(heights: NDArray[np.floating]) -> F64:
     return err
 
 
+@cache
+def _points(
+    s: int,
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+    """The grid points (rows, columns, as (k, m) arrays) of a square of side s inside each of
+    its k triangles: the diamond level's top, bottom, left and right ones (edges as
+    hypotenuses, the centre as apex), then the square level's pairs, leaning one way (above and
+    below the diagonal from the top-left) and the other (above and below the other diagonal).
+    Triangles of a kind hold as many points as each other, so one gather serves them all."""
+    v, u = np.mgrid[0 : s + 1, 0 : s + 1]
+    diamond = [
+        v <= np.minimum(u, s - u),
+        v >= np.maximum(u, s - u),
+        u <= np.minimum(v, s - v),
+        u >= np.maximum(v, s - v),
+    ]
+    square = [u >= v, u <= v, u + v <= s, u + v >= s]
+
+    def rows_cols(masks: list[NDArray[np.bool_]]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        rr = np.stack([v[m] for m in masks])
+        cc = np.stack([u[m] for m in masks])
+        rr.setflags(write=False)
+        cc.setflags(write=False)
+        return rr, cc
+
+    return (*rows_cols(diamond), *rows_cols(square))
+
+
+def _ranges(w: F64, rows: NDArray[np.intp], cols: NDArray[np.intp], planes: F64) -> tuple[F64, F64]:
+    """(n, n, k) least and largest plane − height over each square's k triangles: ``planes``
+    (3, n, n, k) the planes' a + b·u + c·v (u the column, v the row in the square)."""
+    got = w[:, :, rows, cols]  # (n, n, k, m)
+    a, b, c = planes[..., None]
+    r = a + b * cols + c * rows - got
+    return r.min(axis=-1), r.max(axis=-1)
+
+
+def _corners(w: F64, s: int) -> tuple[F64, F64, F64, F64, F64]:
+    half = s // 2
+    return w[:, :, 0, 0], w[:, :, 0, s], w[:, :, s, 0], w[:, :, s, s], 2.0 * w[:, :, half, half]
+
+
 def _diamond(h: F64, s: int, err: F64) -> None:
     """The level whose triangles have the squares' edges as hypotenuses and their centres as
     apexes: slots at the edge midpoints, shared by the squares on either side."""
@@ -67,53 +111,34 @@ def _diamond(h: F64, s: int, err: F64) -> None:
     n = (size - 1) // s
     half, quarter = s // 2, s // 4
     w = _windows(h, s)
-    tl, tr = w[:, :, 0, 0, None, None], w[:, :, 0, s, None, None]
-    bl, br = w[:, :, s, 0, None, None], w[:, :, s, s, None, None]
-    c2 = 2.0 * w[:, :, half, half, None, None]
-    v, u = np.mgrid[0 : s + 1, 0 : s + 1].astype(np.float64)
+    tl, tr, bl, br, c2 = _corners(w, s)
     inv = 1.0 / s
-    top = v <= np.minimum(u, s - u)
-    bottom = v >= np.maximum(u, s - u)
-    left = u <= np.minimum(v, s - v)
-    right = u >= np.maximum(v, s - v)
-    r_top = tl + (tr - tl) * inv * u + (c2 - tl - tr) * inv * v - w
-    r_bottom = bl + (c2 - bl - br) + (br - bl) * inv * u - (c2 - bl - br) * inv * v - w
-    r_left = tl + (c2 - tl - bl) * inv * u + (bl - tl) * inv * v - w
-    r_right = tr + (c2 - tr - br) - (c2 - tr - br) * inv * u + (br - tr) * inv * v - w
-
-    def rng(r: F64, m: NDArray[np.bool_]) -> tuple[F64, F64]:
-        return (
-            np.where(m, r, np.inf).min(axis=(2, 3)),
-            np.where(m, r, -np.inf).max(axis=(2, 3)),
-        )
-
-    # horizontal edge slots (rows 0, s, … n·s; columns half + k·s): tops and bottoms
-    lo_h = np.zeros((n + 1, n))
-    hi_h = np.zeros((n + 1, n))
-    a, b = rng(r_top, top)
-    lo_h[:-1] = np.minimum(lo_h[:-1], a)
-    hi_h[:-1] = np.maximum(hi_h[:-1], b)
-    a, b = rng(r_bottom, bottom)
-    lo_h[1:] = np.minimum(lo_h[1:], a)
-    hi_h[1:] = np.maximum(hi_h[1:], b)
-    # vertical edge slots (rows half + k·s; columns 0, s, … n·s): lefts and rights
-    lo_v = np.zeros((n, n + 1))
-    hi_v = np.zeros((n, n + 1))
-    a, b = rng(r_left, left)
-    lo_v[:, :-1] = np.minimum(lo_v[:, :-1], a)
-    hi_v[:, :-1] = np.maximum(hi_v[:, :-1], b)
-    a, b = rng(r_right, right)
-    lo_v[:, 1:] = np.minimum(lo_v[:, 1:], a)
-    hi_v[:, 1:] = np.maximum(hi_v[:, 1:], b)
+    rows, cols = _points(s)[:2]
+    planes = np.stack(
+        [
+            np.stack([tl, bl + (c2 - bl - br), tl, tr + (c2 - tr - br)], axis=-1),
+            np.stack([tr - tl, br - bl, c2 - tl - bl, tr + br - c2], axis=-1) * inv,
+            np.stack([c2 - tl - tr, bl + br - c2, bl - tl, br - tr], axis=-1) * inv,
+        ]
+    )
+    lo, hi = _ranges(w, rows, cols, planes)
+    lo, hi = np.minimum(lo, 0.0), np.maximum(hi, 0.0)
+    # horizontal edge slots (rows 0, s, … n·s; columns half + k·s): tops and bottoms;
+    # vertical ones (rows half + k·s; columns 0, s, … n·s): lefts and rights
+    lo_h, hi_h = np.zeros((n + 1, n)), np.zeros((n + 1, n))
+    lo_h[:-1], hi_h[:-1] = lo[..., 0], hi[..., 0]
+    lo_h[1:], hi_h[1:] = np.minimum(lo_h[1:], lo[..., 1]), np.maximum(hi_h[1:], hi[..., 1])
+    lo_v, hi_v = np.zeros((n, n + 1)), np.zeros((n, n + 1))
+    lo_v[:, :-1], hi_v[:, :-1] = lo[..., 2], hi[..., 2]
+    lo_v[:, 1:] = np.minimum(lo_v[:, 1:], lo[..., 3])
+    hi_v[:, 1:] = np.maximum(hi_v[:, 1:], hi[..., 3])
     # merged with the children's errors, a quarter square off on both sides (inside the grid)
     pad = np.pad(err, quarter, constant_values=0.0)
-    for (lo, hi), (y0, x0) in (((lo_h, hi_h), (0, half)), ((lo_v, hi_v), (half, 0))):
-        ys = np.arange(y0, size, s)[:, None]
-        xs = np.arange(x0, size, s)[None, :]
-        e = np.maximum(-lo, hi)
-        for dy in (-quarter, quarter):
-            for dx in (-quarter, quarter):
-                e = np.maximum(e, pad[ys + dy + quarter, xs + dx + quarter])
+    for lo_, hi_, (y0, x0) in ((lo_h, hi_h, (0, half)), (lo_v, hi_v, (half, 0))):
+        e = np.maximum(-lo_, hi_)
+        for dy in (0, 2 * quarter):
+            for dx in (0, 2 * quarter):
+                e = np.maximum(e, pad[y0 + dy :: s, x0 + dx :: s][: e.shape[0], : e.shape[1]])
         err[y0::s, x0::s] = e
 
 
@@ -123,27 +148,23 @@ def _square(h: F64, s: int, err: F64) -> None:
     half = s // 2
     w = _windows(h, s)
     n = w.shape[0]
-    tl, tr = w[:, :, 0, 0, None, None], w[:, :, 0, s, None, None]
-    bl, br = w[:, :, s, 0, None, None], w[:, :, s, s, None, None]
-    v, u = np.mgrid[0 : s + 1, 0 : s + 1].astype(np.float64)
+    tl, tr, bl, br, _ = _corners(w, s)
     inv = 1.0 / s
+    rows, cols = _points(s)[2:]
+    # even squares: the diagonal from the top-left (above it, then below); odd: the other
+    planes = np.stack(
+        [
+            np.stack([tl, tl, tl, tr + bl - br], axis=-1),
+            np.stack([tr - tl, br - bl, tr - tl, br - bl], axis=-1) * inv,
+            np.stack([br - tr, bl - tl, bl - tl, br - tr], axis=-1) * inv,
+        ]
+    )
+    lo, hi = _ranges(w, rows, cols, planes)
     qy, qx = np.mgrid[0:n, 0:n]
-    even = ((qx + qy) % 2 == 0)[:, :, None, None]
-    # even: the diagonal top-left to bottom-right; odd: top-right to bottom-left
-    r_even = np.where(
-        u >= v,
-        tl + (tr - tl) * inv * u + (br - tr) * inv * v,
-        tl + (br - bl) * inv * u + (bl - tl) * inv * v,
-    )
-    r_odd = np.where(
-        u + v <= s,
-        tl + (tr - tl) * inv * u + (bl - tl) * inv * v,
-        (tr + bl - br) + (br - bl) * inv * u + (br - tr) * inv * v,
-    )
-    r = np.where(even, r_even, r_odd) - w
-    lo = np.minimum(r.min(axis=(2, 3)), 0.0)
-    hi = np.maximum(r.max(axis=(2, 3)), 0.0)
-    e = np.maximum(-lo, hi)
+    even = (qx + qy) % 2 == 0
+    lo = np.where(even, np.minimum(lo[..., 0], lo[..., 1]), np.minimum(lo[..., 2], lo[..., 3]))
+    hi = np.where(even, np.maximum(hi[..., 0], hi[..., 1]), np.maximum(hi[..., 2], hi[..., 3]))
+    e = np.maximum(-np.minimum(lo, 0.0), np.maximum(hi, 0.0))
     # merged with the children's: the four edge midpoints
     c = err
     e = np.maximum.reduce(
