@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 __all__ = ["errors", "mesh"]
 
 F64 = NDArray[np.float64]
+Idx = NDArray[np.intp]
 
 
 def _windows(h: F64, s: int) -> F64:
@@ -80,7 +81,7 @@ def _points(
     ]
     square = [u >= v, u <= v, u + v <= s, u + v >= s]
 
-    def rows_cols(masks: list[NDArray[np.bool_]]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    def rows_cols(masks: list[NDArray[np.bool_]]) -> tuple[Idx, Idx]:
         rr = np.stack([v[m] for m in masks])
         cc = np.stack([u[m] for m in masks])
         rr.setflags(write=False)
@@ -90,7 +91,7 @@ def _points(
     return (*rows_cols(diamond), *rows_cols(square))
 
 
-def _ranges(w: F64, rows: NDArray[np.intp], cols: NDArray[np.intp], planes: F64) -> tuple[F64, F64]:
+def _ranges(w: F64, rows: Idx, cols: Idx, planes: F64) -> tuple[F64, F64]:
     """(n, n, k) least and largest plane − height over each square's k triangles: ``planes``
     (3, n, n, k) the planes' a + b·u + c·v (u the column, v the row in the square)."""
     got = w[:, :, rows, cols]  # (n, n, k, m)
