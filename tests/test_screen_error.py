@@ -143,13 +143,13 @@ def test_the_bound_holds_on_screen_and_is_used(dem: tuple[Path, np.ndarray, dict
         tails_a, floors_a = np.array(tails), np.array(floors)
         # within the bound, up to what the finest mesh itself measures
         assert np.all(tails_a <= BOUND + floors_a), (tails, floors)
-        # where the frame is much coarser than the data, some of the bound is spent (the rest
-        # is what a guarantee costs: grids a factor apart, the worst of a box charged): more
-        # than when coarse tiles' errors were sums of bounds level by level (0.41 px on the
-        # geographic DEM; measured against the truth, 0.50)
+        # where the frame is much coarser than the data, the bound is spent: a picture's TINs
+        # cut each tile where its error reaches its budget (on the geographic DEM their median
+        # is 0.88 px; regular grids, a factor of two apart in error, about 0.5 px, and fail
+        # here; when coarse tiles' errors were sums of bounds level by level, 0.41 px)
         spent = tails_a[np.array(coarse)]
         assert spent.size, (tails, floors, coarse)
-        assert np.median(spent) >= 0.22 * BOUND, (tails, floors, coarse)
+        assert np.median(spent) >= 0.35 * BOUND, (tails, floors, coarse)
     finally:
         scene.close()
         fine.close()
