@@ -531,7 +531,7 @@ def _scene_options(
     max_sse: float,
     anisotropy: float,
     terrain_mode: str,
-    meshes: str = _SCENE.meshes,
+    meshes: str,
     budget_mb: float | None,
     imagery_timeout: float,
     imagery_strict: bool,

@@ -201,13 +201,12 @@ class RasterProvider:
                 return made
         return build_mesh(key, t.z, t.x, t.y, heights)
 
-    def mesh_by_error(self) -> bool:
+    def mesh_by_error(self) -> None:
         """Mesh tiles as RTINs cut at the error each frame allows (``terrain.tin_tiles``)
         instead of regular grids: the tree's grids become the error ladder's slots. Call
-        before anything selects over the tree; True where this provider does so."""
+        before anything selects over the tree."""
         if not isinstance(self.tree, ErrorLadder):
             self.tree = ErrorLadder(self.tree)
-        return True
 
     def mesh(self, key: int) -> TileMesh:
         return mesh_of(self, key)
@@ -245,9 +244,9 @@ class FractalProvider(RasterProvider):
         segments = self.tree.grids[grid_of(key)]
         return bytes(self.heights.tile(t.z, t.x, t.y, segments).tobytes())
 
-    def mesh_by_error(self) -> bool:
-        # meshes of exact lattice heights split along their lowest diagonals (paper 003)
-        return False
+    def mesh_by_error(self) -> None:
+        """Keeps its grids: meshes of exact lattice heights split along their lowest
+        diagonals (paper 003)."""
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
         t = tile_of(key)

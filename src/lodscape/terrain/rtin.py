@@ -33,7 +33,7 @@ __all__ = ["Rtin", "mesh_error", "rtin"]
 EXACT_SPAN = 64
 
 
-@numba.njit(cache=True, nogil=True)  # type: ignore[misc]
+@numba.njit(cache=True)  # type: ignore[misc]
 def _errors_kernel(h: NDArray[np.float64], exact_span: int) -> NDArray[np.float64]:
     """Per grid point: the error of the two triangles whose hypotenuse midpoint it is, merged with
     their children's (so a triangle splits whenever a descendant must, and meshes have no cracks).
@@ -238,7 +238,7 @@ def _settle(
                 err[y, x] = max(e, -lo[y, x], hi[y, x])
 
 
-@numba.njit(cache=True, nogil=True)  # type: ignore[misc]
+@numba.njit(cache=True)  # type: ignore[misc]
 def _mesh_kernel(
     err: NDArray[np.float64], max_error: float
 ) -> tuple[NDArray[np.int32], NDArray[np.int32]]:

@@ -91,15 +91,9 @@ class ErrorLadder:
         object.__setattr__(self, "base", tree)
         #: Every slot meshes the base tree's finest grid.
         object.__setattr__(self, "grids", (int(tree.grids[-1]),) * len(LADDER))
-        object.__setattr__(self, "_levels", {})
 
     def level(self, z: int) -> _Level:
-        levels: dict[int, _Level] = self._levels
-        lv = levels.get(z)
-        base = self.base.level(z)
-        if lv is None or lv.base is not base:
-            lv = levels[z] = _Level(base, z >= self.base.zmax)
-        return lv
+        return _Level(self.base.level(z), z >= self.base.zmax)
 
     def threshold(self, z: int, x: int, y: int, slot: int) -> float:
         """The RTIN bound of tile (z, x, y)'s ladder slot, from its recorded grid errors."""
