@@ -17,7 +17,15 @@ from rasterio.transform import Affine
 
 from lodscape.data import sample_dem_path
 from lodscape.errors import SourceError
-from lodscape.geo.tiles import Bbox, Tile, lonlat_to_merc, merc_to_lonlat, tile, xy_bounds
+from lodscape.geo.tiles import (
+    Bbox,
+    Tile,
+    lonlat_to_merc,
+    merc_to_lonlat,
+    tile,
+    tile_size,
+    xy_bounds,
+)
 from lodscape.terrain import ArraySource, HeightSource, RasterSource
 
 LON0, LAT0 = -81.0, 35.0  # on UTM zone 17's central meridian
@@ -445,3 +453,44 @@ def test_sample_grid_matches_sample_within_a_thousandth_of_a_pixel(crs: str) -> 
     rise = max(np.abs(np.diff(data, axis=0)).max(), np.abs(np.diff(data, axis=1)).max())
     assert np.abs(hg - h).max() <= 1e-3 * rise * 2 + 1e-4
     assert np.mean(v != vg) < 1e-3
+    # the grid's edges are projected exactly: a neighbouring grid sharing one (a tile's
+    # neighbour, which may choose another lattice step) agrees with it to the bit
+    for got, want in ((hg, h), (vg, v)):
+        for edge in (np.s_[0], np.s_[-1], np.s_[:, 0], np.s_[:, -1]):
+            np.testing.assert_array_equal(got[edge], want[edge])
+
+
+def test_neighbouring_tiles_share_their_edge_heights_to_the_bit(tmp_path: Path) -> None:
+    """A raster's mesh tiles are sampled on a lattice (``sample_grid``): two neighbours still
+    read the same heights along their shared edge, and those of the exact projection."""
+    from lodscape.geo.keys import mesh_key
+    from lodscape.geo.tiles import tile_id
+    from lodscape.store.provider import RasterProvider
+    from lodscape.terrain.mesh import grid_coordinates
+
+    rng = np.random.default_rng(8)
+    data = rng.normal(0.0, 3.0, (900, 900)).cumsum(axis=0).cumsum(axis=1).astype(np.float32)
+    path = write_tif(
+        tmp_path / "utm.tif", data, from_origin(500000.0, 3900000.0, 4.0, 4.0), crs="EPSG:32617"
+    )
+    with RasterSource(str(path)) as source:
+        provider = RasterProvider(source)
+        tree = provider.tree
+        z, g = tree.zmax, len(tree.grids) - 1
+        segments = tree.grids[g]
+        b = source.bounds_merc
+        lon, lat = merc_to_lonlat((b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0)
+        t = tile(float(lon), float(lat), z)
+        x, y = t.x, t.y
+
+        def heights(tx: int) -> np.ndarray:
+            raw = provider.fetch(mesh_key(tile_id(Tile(tx, y, z)), g))
+            return np.frombuffer(raw, np.float32).reshape(segments + 1, segments + 1)
+
+        west, east = heights(x), heights(x + 1)
+        assert np.isfinite(west).all()
+        assert np.isfinite(east).all()
+        np.testing.assert_array_equal(west[:, -1], east[:, 0])
+        xs, ys = grid_coordinates(z, x, y, segments)
+        exact, _ = source.sample(*np.meshgrid(xs[-1:], ys), float(tile_size(z)) / segments)
+        np.testing.assert_array_equal(west[:, -1], exact[:, 0])

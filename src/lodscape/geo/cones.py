@@ -62,23 +62,40 @@ def patch_cones(
     if tri.size == 0:
         return out
     v = np.asarray(vertices, dtype=np.float64)[:, :3]
-    p0, p1, p2 = v[tri[..., 0]], v[tri[..., 1]], v[tri[..., 2]]
-    n = np.cross(p1 - p0, p2 - p0)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    # component arrays (P, T): np.cross and norms over a trailing axis of 3 cost several times
+    # these few ufuncs (a 65² tile's TIN, one patch of 8,000 triangles: 4.2 -> 1.6 ms)
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    i0, i1, i2 = tri[..., 0], tri[..., 1], tri[..., 2]
+    ax, ay, az = x[i1] - x[i0], y[i1] - y[i0], z[i1] - z[i0]
+    bx, by, bz = x[i2] - x[i0], y[i2] - y[i0], z[i2] - z[i0]
+    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
     # degenerate triangles have no direction: leave them out of the cone
-    n = np.where(norm > 0.0, n / np.where(norm > 0.0, norm, 1.0), 0.0)
-    n *= np.where(n @ np.asarray(up, np.float64) < 0.0, -1.0, 1.0)[..., None]
-    axis = n.sum(axis=1)
-    length = np.linalg.norm(axis, axis=1, keepdims=True)
-    ok = length[:, 0] > 0.0
-    axis = axis / np.where(length > 0.0, length, 1.0)
-    dots = np.einsum("ptk,pk->pt", n, axis)
-    dots = np.where(norm[..., 0] > 0.0, dots, 1.0)
+    live = norm > 0.0
+    u = np.asarray(up, np.float64)
+    # unit normals on the side of ``up``: one scale per triangle
+    scale = np.where(live, 1.0 / np.where(live, norm, 1.0), 0.0)
+    scale *= np.where(nx * u[0] + ny * u[1] + nz * u[2] < 0.0, -1.0, 1.0)
+    nx, ny, nz = nx * scale, ny * scale, nz * scale
+    axis = np.column_stack([nx.sum(axis=1), ny.sum(axis=1), nz.sum(axis=1)])
+    length = np.sqrt((axis * axis).sum(axis=1))
+    ok = length > 0.0
+    axis = axis / np.where(ok, length, 1.0)[:, None]
+    dots = nx * axis[:, 0:1] + ny * axis[:, 1:2] + nz * axis[:, 2:3]
+    dots = np.where(live, dots, 1.0)
     cos_a = np.clip(dots.min(axis=1), -1.0, 1.0)
     ok &= cos_a > 0.0
-    pts = np.concatenate([p0, p1, p2], axis=1)
+    # the bounding box, sphere and lowest a·p over each patch's points
+    if tri.shape[0] == 1:
+        # one patch (a TIN): its vertices, each once
+        used = np.zeros(len(v), bool)
+        used[tri.ravel()] = True
+        pts = v[used][None]
+    else:
+        pts = v[tri.reshape(tri.shape[0], -1)]
     centre = (pts.min(axis=1) + pts.max(axis=1)) / 2.0
-    r = np.linalg.norm(pts - centre[:, None, :], axis=-1).max(axis=1)
+    d = pts - centre[:, None, :]
+    r = np.sqrt((d * d).sum(axis=-1).max(axis=1))
     sin_a = np.sqrt(np.clip(1.0 - cos_a * cos_a, 0.0, 1.0))
     low = np.einsum("pvk,pk->pv", pts, axis).min(axis=1)
     full = np.column_stack([axis, cos_a, sin_a, centre, r, low])

@@ -183,9 +183,15 @@ class RasterProvider:
             return self.imagery.texture(t.z, t.x, t.y).tobytes()
         segments = self.tree.grids[grid_of(key)]
         xs, ys = grid_coordinates(t.z, t.x, t.y, segments)
-        xx, yy = np.meshgrid(xs, ys)
-        heights, _ = self.source.sample(xx, yy, float(tile_size(t.z)) / segments)
-        return heights.astype(np.float32).tobytes()
+        spacing = float(tile_size(t.z)) / segments
+        # the protocol's grid sampling projects a lattice and the edges, not every point; a
+        # source of the user's own may have ``sample`` alone
+        grid = getattr(self.source, "sample_grid", None)
+        if grid is not None:
+            heights, _ = grid(xs, ys, spacing)
+        else:
+            heights, _ = self.source.sample(*np.meshgrid(xs, ys), spacing)
+        return np.asarray(heights, np.float32).tobytes()
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
         t = tile_of(key)

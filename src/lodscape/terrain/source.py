@@ -431,8 +431,10 @@ class _GridSource:
 
     def _grid_pixel_coords(self, xs: F64, ys: F64) -> tuple[F64, F64, B]:
         """``_pixel_coords`` of the grid xs × ys (rows ys), projecting exactly only a lattice of
-        every ``step``-th point and interpolating between, with ``step`` halved until the
-        interpolation stays within _LATTICE_TOL pixels at every lattice cell's centre."""
+        every ``step``-th point and the grid's four edges, interpolating between, with ``step``
+        halved until the interpolation stays within _LATTICE_TOL pixels at every lattice cell's
+        centre. The edges are exact so that grids sharing one (neighbouring tiles) agree on it
+        to the bit, whatever step each chose."""
         w, h = xs.size, ys.size
         step = _LATTICE
         while step > 1 and min(w, h) > 2 * step:
@@ -449,6 +451,12 @@ class _GridSource:
                 jj, ii = np.arange(w), np.arange(h)
                 col = _lattice_interp(lc, ci, ri, jj, ii)
                 row = _lattice_interp(lr, ci, ri, jj, ii)
+                # the edges exactly: rows 0 and h-1, columns 0 and w-1
+                ex = np.concatenate([xs, xs, np.full(h, xs[0]), np.full(h, xs[-1])])
+                ey = np.concatenate([np.full(w, ys[0]), np.full(w, ys[-1]), ys, ys])
+                bc, br, _ = self._pixel_coords(ex, ey)
+                col[0], col[-1], col[:, 0], col[:, -1] = np.split(bc, [w, 2 * w, 2 * w + h])
+                row[0], row[-1], row[:, 0], row[:, -1] = np.split(br, [w, 2 * w, 2 * w + h])
                 return col, row, self._inside(col, row)
             step //= 2
         return self._pixel_coords(*np.meshgrid(xs, ys))
@@ -728,9 +736,11 @@ class _GridSource:
     def sample_grid(
         self, xs: ArrayLike, ys: ArrayLike, spacing: float
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-        """``sample`` on the grid of columns ``xs`` and rows ``ys``, (len(ys), len(xs)), for
-        large grids: the projection is exact on a lattice and interpolated between, off by at
-        most 1/1000 of a pixel (so a height by at most that share of a pixel's rise)."""
+        """``sample`` on the grid of columns ``xs`` and rows ``ys``, (len(ys), len(xs)): the
+        projection is exact on a lattice and the grid's edges and interpolated between, off by
+        at most 1/1000 of a pixel inside (so a height by at most that share of a pixel's rise).
+        A 256² texture's grid projects about 1,600 points instead of 66,000 (12 ms of pyproj
+        each on the development machine)."""
         if self._closed:
             raise SourceError(f"{self.name}: source is closed")
         xs = np.asarray(xs, dtype=np.float64).ravel()
@@ -881,8 +891,7 @@ class _GridSource:
         y = top - np.arange(rows) * (top - bottom) / (rows - 1)
         # the far edges exactly, so neighbouring windows share bit-equal edge coordinates
         x[-1], y[-1] = right, bottom
-        xx, yy = np.meshgrid(x, y)
-        return self.sample(xx, yy, (right - left) / (cols - 1))
+        return self.sample_grid(x, y, (right - left) / (cols - 1))
 
     def close(self) -> None:
         """Release the data; further samples raise SourceError."""
