@@ -146,3 +146,27 @@ def test_box_scales_bound_the_projection_everywhere_in_the_box() -> None:
     # and it is attained: some box comes close to its bound
     assert worst_v > 0.8
     assert worst_g > 0.8
+
+
+@given(
+    st.floats(-179.0, 179.0),
+    st.floats(-80.0, 80.0),
+    st.floats(10.0, 2e6),
+    st.floats(0.0, 360.0),
+    st.floats(-90.0, 0.0),
+)
+def test_view_projections_are_each_origins_view_projection(
+    lon: float, lat: float, alt: float, heading: float, pitch: float
+) -> None:
+    """The tiles' matrices made at once (the terrain pass) are ``view_projection``'s, one by
+    one, to a few ulps of float64: the same float32 matrices on the GPU."""
+    cam = Camera(lon, lat, alt, heading=heading, pitch=pitch, width=640, height=360)
+    cam = cam.with_clip(1.0, 1e7)
+    rng = np.random.default_rng(int(alt))
+    origins = cam.position + rng.normal(size=(7, 3)) * alt
+    got = cam.view_projections(origins)
+    assert got.shape == (7, 4, 4)
+    for o, m in zip(origins, got, strict=True):
+        want = cam.view_projection(o)
+        np.testing.assert_allclose(m, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+    assert cam.view_projections(np.empty((0, 3))).shape == (0, 4, 4)

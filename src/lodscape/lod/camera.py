@@ -241,6 +241,16 @@ class Camera:
         view[:3, 3] = self.rotation @ (np.asarray(origin, np.float64) - self.position)
         return self.projection() @ view
 
+    def view_projections(self, origins: ArrayLike) -> NDArray[np.float64]:
+        """``view_projection`` of each of ``origins`` (N, 3), (N, 4, 4), in a few array
+        operations: the matrices differ only in their translation column, P·(R·(o − eye), 1)."""
+        o = np.asarray(origins, np.float64).reshape(-1, 3)
+        p = self.projection()
+        out = np.empty((o.shape[0], 4, 4))
+        out[:, :, :3] = p[:, :3] @ self.rotation
+        out[:, :, 3] = ((o - self.position) @ self.rotation.T) @ p[:, :3].T + p[:, 3]
+        return out
+
     def frustum_planes(self) -> NDArray[np.float64]:
         """Six planes (nx, ny, nz, w), inward unit normals, for points given relative to the
         camera position: p is inside when n·p + w >= 0 for all six (left, right, bottom, top,

@@ -699,7 +699,13 @@ class Renderer:
             return
         triangles = calls = 0
         cpu_tiles = [t for t in tiles if isinstance(t, _Tile)]
-        view_projections = [camera.view_projection(tile.center) for tile in cpu_tiles]
+        centres = np.array([t.center for t in cpu_tiles]).reshape(-1, 3)
+        # every tile's matrix and view-space centre at once, in float64 until the cast; GLSL
+        # matrices are column-major: the transposes of the row-major NumPy ones
+        mvps = np.ascontiguousarray(
+            camera.view_projections(centres).transpose(0, 2, 1), dtype=np.float32
+        )
+        offsets = ((centres - camera.position) @ rot.T).astype(np.float32)
         main = self._program
         whole = [
             self.no_discard
@@ -710,7 +716,6 @@ class Renderer:
         ]
         # the variant without a discard first, then the cutting one; each near tiles first, so
         # the depth test spares the shading of what they hide
-        centres = np.array([t.center for t in cpu_tiles]).reshape(-1, 3)
         near = np.linalg.norm(centres - camera.position, axis=1)
         order = sorted(range(len(items)), key=lambda i: (not whole[i], near[i]))
         uniforms: dict[str, Any] = {}
@@ -724,15 +729,14 @@ class Renderer:
                 }
                 if isinstance(uniforms["u_layers"], moderngl.Uniform):
                     uniforms["u_layers"].value = len(layers[0]) if layers else 0
-            item, ct, tex, mvp = items[i], cpu_tiles[i], textures[i], view_projections[i]
+            item, ct, tex = items[i], cpu_tiles[i], textures[i]
             bind_layers(uniforms, layers[i])
             if isinstance(uniforms["u_ground"], moderngl.Uniform):
                 uniforms["u_ground"].value = ground[i]
             if isinstance(uniforms["u_tint"], moderngl.Uniform):
                 uniforms["u_tint"].value = tints[i]
-            # GLSL matrices are column-major: upload the transpose of the row-major numpy one
-            self._u_mvp.write(np.ascontiguousarray(mvp.T, dtype=np.float32))
-            self._u_offset.write(np.asarray(_view_offset(rot, ct.center, camera), np.float32))
+            self._u_mvp.write(mvps[i])
+            self._u_offset.write(offsets[i])
             self._u_up.write(ct.up)
             self._u_skirt.value = float(item.skirt)
             self._u_uv.value = item.uv
@@ -1000,11 +1004,3 @@ def _sun_world(camera: Camera) -> NDArray[np.float64]:
 def _sun_view(camera: Camera) -> NDArray[np.float32]:
     """``_sun_world`` in view space."""
     return np.asarray(camera.rotation @ _sun_world(camera), np.float32)
-
-
-def _view_offset(
-    rot: NDArray[np.float64], center: NDArray[np.float64], camera: Camera
-) -> NDArray[np.float64]:
-    """View-space position of a tile centre: R·(centre − camera), in float64."""
-    result: NDArray[np.float64] = rot @ (center - camera.position)
-    return result
