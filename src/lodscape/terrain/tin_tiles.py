@@ -26,6 +26,7 @@ import and kernels would cost a first picture 0.8 s.
 
 from __future__ import annotations
 
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -40,6 +41,7 @@ from lodscape.terrain.pyramid import TileStats
 __all__ = [
     "LADDER",
     "ErrorLadder",
+    "cache_order",
     "ladder_errors",
     "ladder_threshold",
     "tin_tile_mesh",
@@ -108,6 +110,35 @@ class ErrorLadder:
         setattr(self.base, name, value)
 
 
+@cache
+def _z_codes(n: int) -> NDArray[np.int64]:
+    """Morton codes of 0 .. n-1: each number's bits spread to the even bit positions."""
+    v = np.arange(n, dtype=np.int64)
+    out = np.zeros(n, np.int64)
+    for bit in range(max(1, int(n - 1).bit_length())):
+        out |= ((v >> bit) & 1) << (2 * bit)
+    return out
+
+
+def cache_order(verts: NDArray[np.integer], tris: NDArray[np.integer]) -> NDArray[np.integer]:
+    """The triangles of a grid mesh (vertices as (column, row)) in Z order of their centres,
+    so that neighbours are drawn together and a GPU's post-transform cache reuses the vertices
+    they share. The RTIN's cut emits its triangles level by level, each far from the last: 2.98
+    vertices shaded per triangle on a 65² tile of 8,000 triangles against 0.66 in this order (a
+    32-entry FIFO), for about 0.5 ms on the development machine (under load). On the lent
+    H200, a diagnostic that drew the sample's TINs in this order (and renumbered their
+    vertices by first use, which this does not) took about a tenth less GL time a frame than
+    the cut's order in 21 of 24 alternating comparisons (BENCHMARKS.md)."""
+    col = np.asarray(verts[:, 0], np.int64)
+    row = np.asarray(verts[:, 1], np.int64)
+    t = np.asarray(tris)
+    # three times the centre: integers, ordered as the centres are
+    cx = col[t[:, 0]] + col[t[:, 1]] + col[t[:, 2]]
+    cy = row[t[:, 0]] + row[t[:, 1]] + row[t[:, 2]]
+    z = _z_codes(int(max(cx.max(initial=0), cy.max(initial=0))) + 1)
+    return tris[np.argsort(z[cx] | (z[cy] << 1), kind="stable")]
+
+
 def tin_tile_mesh(
     key: int, z: int, x: int, y: int, heights: NDArray[np.floating], threshold: float
 ) -> TileMesh | None:
@@ -130,6 +161,7 @@ def tin_tile_mesh(
     p = geodetic_to_ecef(lon, lat, h)
     above = (p - c) @ up
     verts, tris = rtin_numpy.mesh(rtin_numpy.errors(above), max(float(threshold), 0.0))
+    ordered = cache_order(verts, tris)
     col = verts[:, 0].astype(np.int64)
     row = verts[:, 1].astype(np.int64)
     sides = [
@@ -138,4 +170,4 @@ def tin_tile_mesh(
         np.nonzero(col == s)[0],
         np.nonzero(row == 0)[0],
     ]
-    return tin_mesh(key, z, x, y, lon[row, col], lat[row, col], h[row, col], tris, sides)
+    return tin_mesh(key, z, x, y, lon[row, col], lat[row, col], h[row, col], ordered, sides)
