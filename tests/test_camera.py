@@ -170,3 +170,59 @@ def test_view_projections_are_each_origins_view_projection(
         want = cam.view_projection(o)
         np.testing.assert_allclose(m, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
     assert cam.view_projections(np.empty((0, 3))).shape == (0, 4, 4)
+
+
+@given(
+    st.floats(-180.0, 180.0),
+    st.floats(-89.0, 89.0),
+    st.floats(1.0, 8.0),
+    st.floats(0.0, 360.0),
+    st.floats(-90.0, 90.0),
+    st.floats(20.0, 100.0),
+)
+def test_the_ellipsoid_box_holds_every_pixel_whose_ray_meets_it(
+    lon: float, lat: float, log_alt: float, heading: float, pitch: float, fov: float
+) -> None:
+    """Every pixel centre of a 320×180 view whose ray meets the ellipsoid lies in
+    ``ellipsoid_box`` (the terrain pass ray-casts only there), from 10 m up to 100,000 km, any
+    way the camera looks; the box is no more than a few lattice steps larger than they are."""
+    from lodscape.geo.frames import WGS84_A, WGS84_B
+
+    w, h = 320, 180
+    cam = Camera(lon, lat, 10.0**log_alt, heading=heading, pitch=pitch, fov_y=fov, width=w,
+                 height=h)  # fmt: skip
+    ax = np.array([WGS84_A, WGS84_A, WGS84_B])
+    eye = cam.position / ax
+    c = float(eye @ eye) - 1.0
+    ty = math.tan(math.radians(fov) / 2.0)
+    nx = (np.arange(w) + 0.5) / w * 2.0 - 1.0
+    ny = (np.arange(h) + 0.5) / h * 2.0 - 1.0
+    x, y = np.meshgrid(nx * ty * cam.aspect, ny * ty)
+    r = cam.rotation
+    d = (x[..., None] * r[0] + y[..., None] * r[1] - r[2]) / ax
+    b = d @ eye
+    hit = (b < 0.0) & (b * b - (d * d).sum(axis=-1) * c >= 0.0)
+    box = cam.ellipsoid_box()
+    if box is None:  # nothing known: the whole view is ray-cast
+        return
+    x0, y0, x1, y1 = box
+    xs, ys = np.meshgrid(nx, ny)
+    assert not (hit & ((xs < x0) | (xs > x1) | (ys < y0) | (ys > y1))).any()
+    if hit.any():
+        step = 2.0 / 64
+        assert x0 >= xs[hit].min() - 3.5 * step
+        assert x1 <= xs[hit].max() + 3.5 * step
+        assert y0 >= ys[hit].min() - 3.5 * step
+        assert y1 <= ys[hit].max() + 3.5 * step
+
+
+def test_the_ellipsoid_box_is_unknown_from_inside_and_empty_of_the_sky() -> None:
+    """No box from inside the ellipsoid; a camera on the ground looking up sees none of it
+    (no ray meets it: unknown, the whole view is ray-cast and discards); one looking at the
+    horizon has it below the middle of the view and none at the top."""
+    assert Camera(10.0, 45.0, -50_000.0).ellipsoid_box() is None
+    assert Camera(10.0, 45.0, 100.0, pitch=80.0, fov_y=40.0).ellipsoid_box() is None
+    box = Camera(10.0, 45.0, 100.0, pitch=10.0, fov_y=40.0).ellipsoid_box()
+    assert box is not None
+    assert box[1] == -1.0
+    assert box[3] < 0.0

@@ -359,9 +359,19 @@ def _ellipsoid_depth(camera: Camera) -> NDArray[np.float64]:
     return out
 
 
-@pytest.mark.parametrize(("alt", "pitch"), [(1000.0, -90.0), (1000.0, -5.0), (3e6, -60.0)])
+@pytest.mark.parametrize(
+    ("alt", "pitch"),
+    # the last three see it in part of the view (the Earth whole and small, its limb, the
+    # horizon from the ground): it is ray-cast inside its box only, the rows turned with the
+    # picture read back top row first
+    [(1000.0, -90.0), (1000.0, -5.0), (3e6, -60.0), (3e7, -80.0), (4e5, -5.0), (1000.0, 8.0)],
+)
 def test_the_ellipsoid_stands_behind_the_terrain(gl_ctx: Any, alt: float, pitch: float) -> None:
     cam = Camera(LON, LAT, alt, heading=30.0, pitch=pitch, width=64, height=48).with_clip(1.0, 1e8)
+    if alt > 1e7 or pitch > 0.0:
+        box = cam.ellipsoid_box()
+        assert box is not None
+        assert (box[2] - box[0]) * (box[3] - box[1]) < 3.0
     want = _ellipsoid_depth(cam)
     with Renderer(64, 48, ctx=gl_ctx, background=MAGENTA) as r:
         rgb, depth = r.draw(cam, [])

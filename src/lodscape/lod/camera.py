@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lodscape.errors import CameraError
-from lodscape.geo.frames import ecef_to_geodetic, enu_basis, geodetic_to_ecef
+from lodscape.geo.frames import WGS84_A, WGS84_B, ecef_to_geodetic, enu_basis, geodetic_to_ecef
 
 __all__ = ["EARTH_MIN_RADIUS", "MIN_DISTANCE", "Camera"]
 
@@ -250,6 +250,42 @@ class Camera:
         out[:, :, :3] = p[:, :3] @ self.rotation
         out[:, :, 3] = ((o - self.position) @ self.rotation.T) @ p[:, :3].T + p[:, 3]
         return out
+
+    def ellipsoid_box(
+        self, samples: int = 65, axes: tuple[float, float, float] = (WGS84_A, WGS84_A, WGS84_B)
+    ) -> tuple[float, float, float, float] | None:
+        """Where in the view rays meet the ellipsoid of semi-axes ``axes`` (ECEF): (x0, y0, x1,
+        y1) in normalised device coordinates, y up, clipped to the view; None where that is not
+        known (the eye inside, or no sampled ray meets it: nothing of it, or less than a lattice
+        cell, is in view). The rays of a ``samples``² lattice over the view are tested and the
+        box around those that meet it widened by two lattice steps: what a convex body shows
+        from outside is a convex region, here an ellipse or the inside of a conic no narrower
+        than the lens makes a circle (a lattice step is 1/64 of the view), so what lies beyond
+        the box's hits lies within a step of them."""
+        ax = np.asarray(axes, np.float64)
+        eye = self.position / ax
+        c = float(eye @ eye) - 1.0
+        if c <= 0.0:
+            return None
+        ty = math.tan(math.radians(self.fov_y) / 2.0)
+        g = np.linspace(-1.0, 1.0, samples)
+        x, y = np.meshgrid(g * ty * self.aspect, g * ty)
+        # view-space rays (x, y, -1) to ECEF (the rotation's rows are the view axes), scaled
+        r = self.rotation
+        d = (x[..., None] * r[0] + y[..., None] * r[1] - r[2]) / ax
+        b = d @ eye
+        hit = (b < 0.0) & (b * b - (d * d).sum(axis=-1) * c >= 0.0)
+        if not hit.any():
+            return None
+        rows = np.flatnonzero(hit.any(axis=1))
+        cols = np.flatnonzero(hit.any(axis=0))
+        step = 2.0 * (g[1] - g[0])
+        return (
+            max(-1.0, float(g[cols[0]]) - step),
+            max(-1.0, float(g[rows[0]]) - step),
+            min(1.0, float(g[cols[-1]]) + step),
+            min(1.0, float(g[rows[-1]]) + step),
+        )
 
     def frustum_planes(self) -> NDArray[np.float64]:
         """Six planes (nx, ny, nz, w), inward unit normals, for points given relative to the

@@ -769,6 +769,9 @@ class Renderer:
         ctx.enable_only(moderngl.DEPTH_TEST)
         ctx.depth_func = "<="
         fbo.depth_mask = False
+        # only where its rays can meet it: the sky's pixels are not ray-cast (the rasteriser
+        # drops them before the shader)
+        fbo.scissor = _ellipsoid_scissor(camera)  # type: ignore[assignment]  # None: no box
         p, vao = self._ellipsoid_program(labelled)
         axes = np.array([WGS84_A, WGS84_A, WGS84_B])
         eye = camera.position / axes  # float64 until the upload
@@ -797,6 +800,7 @@ class Renderer:
             if isinstance(box, moderngl.Uniform):
                 box.write(self._data_box.tobytes())
         vao.render(moderngl.TRIANGLES, vertices=3)
+        fbo.scissor = None  # type: ignore[assignment]  # moderngl: the test off
         fbo.depth_mask = True
         ctx.depth_func = "<"
 
@@ -991,6 +995,24 @@ def _tints(keys: Sequence[int], on: bool) -> list[tuple[float, float, float, flo
         r, g, b = _LEVEL_COLOURS[tile_of(k).z % len(_LEVEL_COLOURS)]
         out.append((r, g, b, 0.5))
     return out
+
+
+def _ellipsoid_scissor(camera: Camera) -> tuple[int, int, int, int] | None:
+    """The window rectangle (x, y, width, height; row 0 at the bottom of the target) holding
+    every pixel whose ray meets the ellipsoid (``Camera.ellipsoid_box``), None for the whole
+    view. A frame read back is drawn upside down: its box's rows turn with it."""
+    box = camera.ellipsoid_box()
+    if box is None:
+        return None
+    x0, y0, x1, y1 = box
+    if clip_y(camera) < 0.0:
+        y0, y1 = -y1, -y0
+    w, h = camera.width, camera.height
+    left, right = math.floor((x0 + 1.0) / 2.0 * w), math.ceil((x1 + 1.0) / 2.0 * w)
+    bottom, top = math.floor((y0 + 1.0) / 2.0 * h), math.ceil((y1 + 1.0) / 2.0 * h)
+    if (left, bottom, right, top) == (0, 0, w, h):
+        return None
+    return left, bottom, max(right - left, 0), max(top - bottom, 0)
 
 
 def _sun_world(camera: Camera) -> NDArray[np.float64]:
