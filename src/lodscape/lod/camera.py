@@ -258,10 +258,11 @@ class Camera:
         y1) in normalised device coordinates, y up, clipped to the view; None where that is not
         known (the eye inside, or no sampled ray meets it: nothing of it, or less than a lattice
         cell, is in view). The rays of a ``samples``² lattice over the view are tested and the
-        box around those that meet it widened by two lattice steps: what a convex body shows
-        from outside is a convex region, here an ellipse or the inside of a conic no narrower
-        than the lens makes a circle (a lattice step is 1/64 of the view), so what lies beyond
-        the box's hits lies within a step of them."""
+        box around those that meet it widened by two lattice steps (1/32 of the view): what a
+        convex body shows from outside is a convex region, here an ellipse or the inside of a
+        conic, stretched no more than a wide lens stretches a circle at its corners, so nothing
+        of it reaches a lattice step beyond the rays that meet it (tests/test_camera.py: every
+        pixel of 320×180 views from 10 m to 100,000 km, any way the camera looks)."""
         ax = np.asarray(axes, np.float64)
         eye = self.position / ax
         c = float(eye @ eye) - 1.0
