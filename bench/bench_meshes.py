@@ -17,12 +17,9 @@ read back in the same way, and it says whether the TINs' fewer triangles pay the
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
-import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -41,25 +38,11 @@ def _frame(scene: Any, cam: Any) -> tuple[float, float]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--dem", type=Path, help="a GeoTIFF (default: the sample)")
-    ap.add_argument("--resolution", default="1280x720")
-    ap.add_argument("--rounds", type=int, default=4)
-    ap.add_argument("--repeat", type=int, default=20)
-    args = ap.parse_args()
-    w, h = (int(v) for v in args.resolution.split("x"))
-
     import bench_peers
     import lodscape
-    import lodscape.data
 
-    dem = args.dem or Path(lodscape.data.__file__).parent / "jacksboro.tif"
-    with tempfile.TemporaryDirectory() as tmp:
-        meta = bench_peers.prepare(dem, Path(tmp))
-    cams = {
-        name: replace(bench_peers._camera(c), width=w, height=h)
-        for name, c in meta["cameras"].items()
-    }
+    args, dem, cams = bench_peers.lodscape_views(rounds=4)
+    w, h = next(iter(cams.values())).width, next(iter(cams.values())).height
     scenes = {
         m: lodscape.open(dem, lodscape.SceneOptions(anisotropy=1.0, meshes=m)) for m in MESHES
     }

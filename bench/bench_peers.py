@@ -278,6 +278,26 @@ def _camera(c: dict[str, float]) -> Any:
     )  # fmt: skip
 
 
+def lodscape_views(rounds: int) -> tuple[Any, Path, dict[str, Any]]:
+    """For the benches that time lodscape alone at these cameras (bench_readback,
+    bench_meshes): their arguments (``--dem``, the sample by default; ``--resolution``;
+    ``--rounds``; ``--repeat``), the DEM and its four cameras at that resolution."""
+    import lodscape.data
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--dem", type=Path, help="a GeoTIFF (default: the sample)")
+    ap.add_argument("--resolution", default="1280x720")
+    ap.add_argument("--rounds", type=int, default=rounds)
+    ap.add_argument("--repeat", type=int, default=20)
+    args = ap.parse_args()
+    w, h = (int(v) for v in args.resolution.split("x"))
+    dem = args.dem or Path(lodscape.data.__file__).parent / "jacksboro.tif"
+    with tempfile.TemporaryDirectory() as tmp:
+        meta = prepare(dem, Path(tmp))
+    cams = {name: replace(_camera(c), width=w, height=h) for name, c in meta["cameras"].items()}
+    return args, dem, cams
+
+
 def ground_depth(scene: Any, cam: Any) -> np.ndarray:
     """The distances of a frame of ``cam`` drawn without the ellipsoid: the ground alone (where
     the data's edge lets the ellipsoid through, its points are not the terrain's)."""
@@ -1346,6 +1366,7 @@ def main() -> None:
     _bytecode()
     with tempfile.TemporaryDirectory() as t:
         tmp = args.workdir or Path(t)
+        tmp.mkdir(parents=True, exist_ok=True)  # a --workdir not made yet
         if args.dem in ("sample", "both"):
             sample = Path(lodscape.data.__file__).parent / "jacksboro.tif"
             compare("sample", sample, args.repeat, tmp, tuple(args.engines), args.rounds)

@@ -14,10 +14,8 @@ a triangle's edge may go to its neighbour).
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -40,28 +38,12 @@ def _old_end(self: Any, camera: Any, labelled: bool = False) -> tuple[Any, Any]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--dem", type=Path, help="a GeoTIFF (default: the sample)")
-    ap.add_argument("--resolution", default="1280x720")
-    ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--repeat", type=int, default=20)
-    args = ap.parse_args()
-    w, h = (int(v) for v in args.resolution.split("x"))
-
     import bench_peers
     import lodscape
-    import lodscape.data
     from lodscape.render import target as target_mod
 
-    dem = args.dem or Path(lodscape.data.__file__).parent / "jacksboro.tif"
-    with tempfile.TemporaryDirectory() as tmp:
-        meta = bench_peers.prepare(dem, Path(tmp))
-    from dataclasses import replace
-
-    cams = {
-        name: replace(bench_peers._camera(c), width=w, height=h)
-        for name, c in meta["cameras"].items()
-    }
+    args, dem, cams = bench_peers.lodscape_views(rounds=3)
+    w, h = next(iter(cams.values())).width, next(iter(cams.values())).height
     scene = lodscape.open(dem, lodscape.SceneOptions(anisotropy=1.0))
     cls = target_mod.FrameTarget
     new_end, new_begin = cls.end, cls.begin
