@@ -1012,7 +1012,7 @@ def _ellipsoid_scissor(camera: Camera) -> tuple[int, int, int, int] | None:
     bottom, top = math.floor((y0 + 1.0) / 2.0 * h), math.ceil((y1 + 1.0) / 2.0 * h)
     if (left, bottom, right, top) == (0, 0, w, h):
         return None
-    return left, bottom, max(right - left, 0), max(top - bottom, 0)
+    return left, bottom, right - left, top - bottom
 
 
 def _sun_world(camera: Camera) -> NDArray[np.float64]:

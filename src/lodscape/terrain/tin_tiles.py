@@ -117,6 +117,7 @@ def _z_codes(n: int) -> NDArray[np.int64]:
     out = np.zeros(n, np.int64)
     for bit in range(max(1, int(n - 1).bit_length())):
         out |= ((v >> bit) & 1) << (2 * bit)
+    out.setflags(write=False)  # shared by every caller (cached)
     return out
 
 
@@ -125,10 +126,7 @@ def cache_order(verts: NDArray[np.integer], tris: NDArray[np.integer]) -> NDArra
     so that neighbours are drawn together and a GPU's post-transform cache reuses the vertices
     they share. The RTIN's cut emits its triangles level by level, each far from the last: 2.98
     vertices shaded per triangle on a 65² tile of 8,000 triangles against 0.66 in this order (a
-    32-entry FIFO), for about 0.5 ms on the development machine (under load). On the lent
-    H200, a diagnostic that drew the sample's TINs in this order (and renumbered their
-    vertices by first use, which this does not) took about a tenth less GL time a frame than
-    the cut's order in 21 of 24 alternating comparisons (BENCHMARKS.md)."""
+    32-entry FIFO; tests/test_tin_tiles.py), for about 0.5 ms on the development machine."""
     col = np.asarray(verts[:, 0], np.int64)
     row = np.asarray(verts[:, 1], np.int64)
     t = np.asarray(tris)
