@@ -52,6 +52,25 @@ def test_pitch_and_roll() -> None:
     assert right_enu[2] == pytest.approx(-math.sin(math.radians(30)))
 
 
+def test_with_clip_keeps_the_pose_and_a_move_does_not() -> None:
+    """A clipped copy shares its camera's worked-out position and rotation (a frame fits its
+    clip distances every time); a moved copy works out its own."""
+    cam = Camera(-84.2, 36.6, 2000.0, heading=45, pitch=-20)
+    pose = (cam.position, cam.rotation)
+    clipped = cam.with_clip(1.0, 1e5)
+    assert clipped.position is pose[0]
+    assert clipped.rotation is pose[1]
+    moved = clipped.moved(heading=46.0, alt=2100.0)
+    fresh = Camera(-84.2, 36.6, 2100.0, heading=46, pitch=-20)
+    assert np.array_equal(moved.rotation, fresh.rotation)
+    assert np.array_equal(moved.position, fresh.position)
+    assert not np.array_equal(moved.rotation, pose[1])
+    # a camera clipped before its pose was asked for works it out itself, the same
+    late = Camera(-84.2, 36.6, 2000.0, heading=45, pitch=-20).with_clip(1.0, 1e5)
+    assert np.array_equal(late.rotation, pose[1])
+    assert np.array_equal(late.position, pose[0])
+
+
 def test_frustum_contains_what_is_ahead_only() -> None:
     cam = Camera(-84.2, 36.6, 2000.0, heading=45, pitch=-20).with_clip(1.0, 1e5)
     planes = cam.frustum_planes()

@@ -12,7 +12,14 @@ from lodscape.geo.keys import tile_id_of_array
 from lodscape.geo.tiles import tile_from_id_array, tile_id_array
 from lodscape.lod._reference import select_reference
 from lodscape.lod.camera import Camera
-from lodscape.lod.select import SLOPE_ROOM, Selection, SelectOptions, select, tile_boxes
+from lodscape.lod.select import (
+    SLOPE_ROOM,
+    Selection,
+    SelectOptions,
+    select,
+    tile_boxes,
+    tile_far,
+)
 from lodscape.lod.view import TerrainView, follows
 from lodscape.terrain.pyramid import TileTree, build_tree
 
@@ -168,6 +175,25 @@ def _seen_by_both(sel: Selection, one: Camera, two: Camera, tree: TileTree) -> n
             tile_boxes(two, z, sel.x[m], sel.y[m], st.min_h, st.max_h).inside
         )
     return seen
+
+
+def test_tile_far_is_the_boxes_farthest_distance(tree: TileTree) -> None:
+    """``tile_far`` (what fitting a far plane asks, with no clip distances) is ``tile_boxes``'
+    ``dist_far``, and no corner of a box's lattice lies beyond it."""
+    for cam in CAMERAS.values():
+        for z in range(tree.zmin, tree.zmin + 3):
+            n = 1 << (z - tree.zmin)
+            x0, y0 = tree.roots()
+            dx, dy = (a.ravel() for a in np.meshgrid(np.arange(n), np.arange(n)))
+            x = (x0[:, None] * n + dx).ravel()
+            y = (y0[:, None] * n + dy).ravel()
+            st = tree.level(z).stats(x, y)
+            x, y = x[st.exists], y[st.exists]
+            st = tree.level(z).stats(x, y)
+            far = tile_far(cam, z, x, y, st.min_h, st.max_h)
+            boxes = tile_boxes(_clip(cam), z, x, y, st.min_h, st.max_h)
+            assert np.array_equal(far, boxes.dist_far)
+            assert np.all(far >= boxes.dist_near)
 
 
 def test_hysteresis_stops_flicker(tree: TileTree) -> None:

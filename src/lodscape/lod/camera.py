@@ -71,7 +71,13 @@ class Camera:
     # --- construction ------------------------------------------------------------------
 
     def with_clip(self, near: float, far: float) -> Camera:
-        return replace(self, near=near, far=far)
+        clipped = replace(self, near=near, far=far)
+        # the same pose: its position and rotation are not worked out again (a frame fits
+        # its camera's clip distances every time)
+        for name in ("position", "rotation"):
+            if name in self.__dict__:
+                clipped.__dict__[name] = self.__dict__[name]
+        return clipped
 
     def moved(self, **changes: float) -> Camera:
         """A copy with some fields changed (e.g. ``cam.moved(alt=500)``)."""

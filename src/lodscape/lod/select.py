@@ -75,6 +75,7 @@ __all__ = [
     "TreeLike",
     "select",
     "tile_boxes",
+    "tile_far",
 ]
 
 I64 = NDArray[np.int64]
@@ -472,6 +473,24 @@ def tile_boxes(
     return Boxes(inside, dist_near, dist_far, ground, centre, vertical, horizontal)
 
 
+def tile_far(
+    camera: Camera,
+    z: int,
+    x: I64,
+    y: I64,
+    min_h: NDArray[np.floating],
+    max_h: NDArray[np.floating],
+) -> F64:
+    """``tile_boxes``' ``dist_far`` alone: the farthest any point of each tile's box is from
+    the camera (no clip distances needed), what fitting a camera's far plane asks."""
+    basis, lo0, hi0, ground = _BOX_FRAMES.get(z, x, y, min_h, max_h)
+    shift = basis @ camera.position
+    margin = (_MARGIN * ground)[:, None]
+    reach = np.maximum(np.abs(lo0 - shift - margin), np.abs(hi0 - shift + margin))
+    far: F64 = np.linalg.norm(reach, axis=1)
+    return far
+
+
 @dataclass(frozen=True, eq=False)
 class _Metrics:
     """Screen metrics of N tiles of one level: what both the traversal and fallbacks need."""
@@ -604,6 +623,10 @@ def _walk(
     visited = culled = outside = 0
 
     view = region_view(camera) if options.region else None
+    prev_grids = _previous_grids(previous.keys) if previous is not None else None
+    # an on-demand tree's test of which tiles' children it knows (a protocol's isinstance
+    # is tens of microseconds: once a selection)
+    ready = tree.ready if isinstance(tree, MadeOnDemand) else None
     x, y = tree.roots()
     # the grid each tile's parent would be drawn with (-1: the roots have no parent)
     parent_k = np.full(x.size, -1, np.int64)
@@ -629,7 +652,7 @@ def _walk(
         leaf = st.leaf[keep] if st.leaf is not None else None
         asks = (px > options.split * tsize, too_rough, leaf)
         refine = _refine(
-            options, camera, tree, (z, zmax, ztex), (x, y, ids), asks, err, scale, prev
+            options, camera, tree, (z, zmax, ztex), (x, y, ids), asks, err, scale, prev, ready
         )
         refined_ids.append(ids[refine])
         draw = ~refine
@@ -637,8 +660,8 @@ def _walk(
         # half its parent's segments is its parent's surface): a split never coarsens what is
         # drawn, so it never jumps (and geomorphing glides where it refines)
         next_parent_k = np.repeat(k[refine], 4)
-        if previous is not None:
-            k = _keep_finer_grid(ids, k, previous.keys)
+        if prev_grids is not None:
+            k = _keep_finer_grid(ids, k, prev_grids)
         if options.hold_parent_grid:
             k = np.minimum(np.maximum(k, parent_k - 1), len(tree.grids) - 1)
         kd = k[draw]
@@ -685,12 +708,14 @@ def _refine(
     err: NDArray[np.floating],
     scale: F64,
     prev: U64,
+    ready: Callable[[int, I64, I64], NDArray[np.bool_]] | None,
 ) -> NDArray[np.bool_]:
     """Which tiles of level z (of zmax, textures to ztex) split: too ``big`` on screen above
     the finest texture level, or ``too_rough`` for their finest grid, never a ``leaf`` (nothing
     finer was built there); one split last frame (``prev``) stays split until it is well
     under the bound and its children's textures would not be magnified; on a tree made on
-    demand, only where its children's statistics are known."""
+    demand (its ``ready``; None: another tree), only where its children's statistics are
+    known."""
     z, zmax, ztex = levels
     x, y, ids = tiles
     big, too_rough, leaf = asks
@@ -706,7 +731,6 @@ def _refine(
             if z < ztex:
                 hold = _children_hold(options, camera, tree, z, x[was], y[was])
             refine[was] = rough | hold
-    ready = tree.ready if isinstance(tree, MadeOnDemand) else None
     if ready is not None and can and refine.any():
         # a tree made on demand splits where its children's statistics are known (the rest
         # are asked for and drawn whole meanwhile, as a tile whose children have not loaded)
@@ -864,17 +888,23 @@ def _capped(band: I64, t: _Drawn, finest: int, zmin: int) -> I64:
     return out
 
 
-def _keep_finer_grid(ids: U64, k: I64, prev_keys: U64) -> I64:
-    """Grid hysteresis: a tile keeps last frame's grid while the one it needs is one step coarser
-    (a finer grid only lowers the error), so a camera that hovers does not reload meshes."""
-    if prev_keys.size == 0:
-        return k
+def _previous_grids(prev_keys: U64) -> tuple[U64, I64]:
+    """Last frame's drawn tiles (sorted ids) and each one's grid, for ``_keep_finer_grid``:
+    worked out once a selection, not per level."""
     pk = np.sort(prev_keys)
-    pid = tile_id_of_array(pk)
-    pos = np.clip(np.searchsorted(pid, ids), 0, pid.size - 1)
-    hit = pid[pos] == ids
-    kprev = grid_of_array(pk[pos])
-    return np.where(hit & (kprev == k + 1), kprev, k)
+    return tile_id_of_array(pk), grid_of_array(pk).astype(np.int64)
+
+
+def _keep_finer_grid(ids: U64, k: I64, prev: tuple[U64, I64]) -> I64:
+    """Grid hysteresis: a tile keeps last frame's grid while the one it needs is one step coarser
+    (a finer grid only lowers the error), so a camera that hovers does not reload meshes.
+    ``prev``: ``_previous_grids`` of last frame's keys."""
+    pid, grids = prev
+    if pid.size == 0:
+        return k
+    pos = np.minimum(np.searchsorted(pid, ids), pid.size - 1)
+    kprev = grids[pos]
+    return np.where((pid[pos] == ids) & (kprev == k + 1), kprev, k)
 
 
 def _member(a: U64, sorted_b: U64) -> NDArray[np.bool_]:

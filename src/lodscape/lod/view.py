@@ -41,7 +41,7 @@ from lodscape.lod.select import (
     SelectOptions,
     TreeLike,
     select,
-    tile_boxes,
+    tile_far,
 )
 
 #: Frames a tile takes to glide from the surface it replaced to its own (a third of a second
@@ -222,13 +222,12 @@ class TerrainView:
             return fitted
         x, y = self.tree.roots()
         st = self.tree.level(self.tree.zmin).stats(x, y)
-        probe = camera.with_clip(1.0, 2.0)
-        boxes = tile_boxes(probe, self.tree.zmin, x, y, st.min_h, st.max_h)
+        reach = tile_far(camera, self.tree.zmin, x, y, st.min_h, st.max_h)
         # everything in the data lies within its root boxes; the horizon bounds it on a planet
         # tangent lengths sqrt(h(2R + h)): exact from orbit too, where h is not small against R
         up, rise = max(camera.alt - lo, 1.0), max(hi - lo, 1.0)
         horizon = math.sqrt(up * (2.0 * WGS84_A + up)) + math.sqrt(rise * (2.0 * WGS84_A + rise))
-        far = max(min(float(boxes.dist_far.max()), horizon), near * 10.0) * 1.01
+        far = max(min(float(reach.max()), horizon), near * 10.0) * 1.01
         fitted = camera.with_clip(near, far)
         self._fitted = (fitted, clearance)
         return fitted
