@@ -352,6 +352,7 @@ class LazyTree:
             if self._sidecar is not None:
                 self._sidecar.keep_tails(tails)
         self._tails = tails
+        self._roots: tuple[I64, I64] | None = None
         self.height_range = self._height_range()
 
     # --- the tree protocol ------------------------------------------------------------------
@@ -368,12 +369,19 @@ class LazyTree:
         return _LazyLevel(z, self)
 
     def roots(self) -> tuple[I64, I64]:
-        x0, y0, nx, ny = self._ranges[self.zmin]
-        st = self.level(self.zmin).stats(
-            *[a.ravel() for a in np.meshgrid(np.arange(nx) + x0, np.arange(ny) + y0)]
-        )
-        yy, xx = np.divmod(np.flatnonzero(st.exists), nx)
-        return (xx + x0).astype(np.int64), (yy + y0).astype(np.int64)
+        # the data's own: the same tiles every time, worked out once (a frame asks twice)
+        got = self._roots
+        if got is None:
+            x0, y0, nx, ny = self._ranges[self.zmin]
+            st = self.level(self.zmin).stats(
+                *[a.ravel() for a in np.meshgrid(np.arange(nx) + x0, np.arange(ny) + y0)]
+            )
+            yy, xx = np.divmod(np.flatnonzero(st.exists), nx)
+            got = ((xx + x0).astype(np.int64), (yy + y0).astype(np.int64))
+            for a in got:
+                a.flags.writeable = False
+            self._roots = got
+        return got
 
     def close(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
