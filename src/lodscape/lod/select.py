@@ -41,7 +41,7 @@ import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -336,15 +336,29 @@ class Boxes:
     horizontal: F64
 
 
+#: What ``_box_frames`` gives per tile: its basis (N, 3, 3), its box in that frame (lo, hi:
+#: (N, 3)), its ground size (N), and the box with its margin in ECEF: its eight corners
+#: (N, 8, 3) and its centre (N, 3).
+BoxFrames = tuple[F64, F64, F64, F64, F64, F64]
+
+
 def _box_frames(
     z: int, x: I64, y: I64, min_h: NDArray[np.floating], max_h: NDArray[np.floating]
-) -> tuple[F64, F64, F64, F64]:
+) -> BoxFrames:
     """Per tile: its local ENU basis (N, 3, 3), the box of its n×n lattice at its min and max
     height in that frame about the Earth's centre (lo, hi: (N, 3)), and its ground size; n is
     chosen per level so that the Earth's curve bulges less between lattice points than the
-    box's margin."""
+    box's margin. Then the box widened by its margin in ECEF, as ``tile_boxes`` tests it
+    (where the camera is enters only as a shift): its corners and its centre."""
     if x.size == 0:
-        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+        return (
+            np.zeros((0, 3, 3)),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
+            np.zeros(0),
+            np.zeros((0, 8, 3)),
+            np.zeros((0, 3)),
+        )
     left, bottom, right, top = bounds_array(z, x, y)
     side = 2.0 * ORIGIN / (1 << z)
     # a chord of length L sags L²/(8R) below the sphere: keep that under the margin
@@ -362,7 +376,14 @@ def _box_frames(
     ).reshape(len(x), -1, 3)
     local = np.einsum("nij,npj->npi", basis, pts)
     ground = (right - left) * np.cos(np.radians(clat))
-    return basis, local.min(axis=1), local.max(axis=1), ground
+    lo, hi = local.min(axis=1), local.max(axis=1)
+    margin = (_MARGIN * ground)[:, None]
+    lo_m, hi_m = lo - margin, hi + margin
+    corners = np.einsum(
+        "nci,nij->ncj", np.where(_CORNERS, hi_m[:, None, :], lo_m[:, None, :]), basis
+    )
+    centre = np.einsum("ni,nij->nj", (lo_m + hi_m) / 2.0, basis)
+    return basis, lo, hi, ground, corners, centre
 
 
 class _BoxFrames:
@@ -373,12 +394,12 @@ class _BoxFrames:
 
     def __init__(self, limit: int = 1 << 15) -> None:
         self.limit = limit
-        self._levels: dict[int, tuple[U64, F64, F64, F64, F64, F64, F64]] = {}
+        self._levels: dict[int, tuple[NDArray[Any], ...]] = {}
         self._lock = threading.Lock()
 
     def get(
         self, z: int, x: I64, y: I64, min_h: NDArray[np.floating], max_h: NDArray[np.floating]
-    ) -> tuple[F64, F64, F64, F64]:
+    ) -> BoxFrames:
         lo_h = np.asarray(min_h, np.float64)
         hi_h = np.asarray(max_h, np.float64)
         if x.size == 0:
@@ -393,24 +414,18 @@ class _BoxFrames:
         else:
             keys = table[0]
             row = np.minimum(np.searchsorted(keys, ids), max(keys.size - 1, 0))
-            found = (keys[row] == ids) & (table[5][row] == lo_h) & (table[6][row] == hi_h)
+            found = (keys[row] == ids) & (table[-2][row] == lo_h) & (table[-1][row] == hi_h)
         if found.all() and table is not None:
-            return table[1][row], table[2][row], table[3][row], table[4][row]
-        basis = np.empty((n, 3, 3))
-        lo = np.empty((n, 3))
-        hi = np.empty((n, 3))
-        ground = np.empty(n)
-        if table is not None and found.any():
-            r = row[found]
-            basis[found], lo[found], hi[found], ground[found] = (
-                table[1][r],
-                table[2][r],
-                table[3][r],
-                table[4][r],
-            )
+            return tuple(c[row] for c in table[1:-2])  # type: ignore[return-value]
         new = ~found
         made = _box_frames(z, x[new], y[new], lo_h[new], hi_h[new])
-        basis[new], lo[new], hi[new], ground[new] = made
+        out = tuple(np.empty((n, *c.shape[1:])) for c in made)
+        for o, c in zip(out, made, strict=True):
+            o[new] = c
+        if table is not None and found.any():
+            r = row[found]
+            for o, c in zip(out, table[1:-2], strict=True):
+                o[found] = c[r]
         with self._lock:
             table = self._levels.get(z)
             cols = [ids[new], *made, lo_h[new], hi_h[new]]
@@ -419,8 +434,8 @@ class _BoxFrames:
                 stale = np.isin(table[0], ids[new])
                 cols = [np.concatenate([t[~stale], c]) for t, c in zip(table, cols, strict=True)]
             order = np.argsort(cols[0], kind="stable")
-            self._levels[z] = tuple(c[order] for c in cols)  # type: ignore[assignment]
-        return basis, lo, hi, ground
+            self._levels[z] = tuple(c[order] for c in cols)
+        return out  # type: ignore[return-value]
 
 
 _BOX_FRAMES = _BoxFrames()
@@ -443,10 +458,11 @@ def tile_boxes(
     round, paper 004's areas, whatever the view's direction) takes them as if the camera looked
     at the box's nearest point instead: pixels per metre there.
     """
-    basis, lo0, hi0, ground = _BOX_FRAMES.get(z, x, y, min_h, max_h)
+    basis, lo0, hi0, ground, corners0, centre0 = _BOX_FRAMES.get(z, x, y, min_h, max_h)
     # the lattice's box in each tile's frame is the camera's business only through where the
     # camera is: moving the origin to the camera shifts it by the camera's position there
-    shift = basis @ camera.position
+    eye = camera.position
+    shift = basis @ eye
     margin = (_MARGIN * ground)[:, None]
     lo = lo0 - shift - margin
     hi = hi0 - shift + margin
@@ -454,7 +470,7 @@ def tile_boxes(
     gap = np.maximum(lo, 0.0) + np.maximum(-hi, 0.0)
     dist_near = np.linalg.norm(gap, axis=1)
     dist_far = np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi)), axis=1)
-    centre = np.einsum("ni,nij->nj", (lo + hi) / 2.0, basis)
+    centre = centre0 - eye
     half = (hi - lo) / 2.0
     planes = camera.frustum_planes()
     s = centre @ planes[:, :3].T + planes[:, 3]
@@ -463,9 +479,7 @@ def tile_boxes(
     if all_round:
         vertical = horizontal = camera.pixels_per_metre(dist_near)
     else:
-        corners = np.einsum(
-            "nci,nij->ncj", np.where(_CORNERS, hi[:, None, :], lo[:, None, :]), basis
-        )
+        corners = corners0 - eye
         spread = ground * math.sqrt(0.5) / EARTH_MIN_RADIUS
         vertical, horizontal = camera.box_scales(
             corners, basis[:, 2], basis[:, 0], basis[:, 1], spread, dist_near
@@ -483,7 +497,7 @@ def tile_far(
 ) -> F64:
     """``tile_boxes``' ``dist_far`` alone: the farthest any point of each tile's box is from
     the camera (no clip distances needed), what fitting a camera's far plane asks."""
-    basis, lo0, hi0, ground = _BOX_FRAMES.get(z, x, y, min_h, max_h)
+    basis, lo0, hi0, ground = _BOX_FRAMES.get(z, x, y, min_h, max_h)[:4]
     shift = basis @ camera.position
     margin = (_MARGIN * ground)[:, None]
     reach = np.maximum(np.abs(lo0 - shift - margin), np.abs(hi0 - shift + margin))
