@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from functools import cached_property
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -25,6 +26,9 @@ MIN_DISTANCE = 1e-3
 #: Metres: the ellipsoid's smallest radius of curvature (WGS84's meridian radius at the equator,
 #: rounded down): over a ground distance s its normal turns by at most s / this.
 EARTH_MIN_RADIUS = 6.3e6
+
+
+_Posed = TypeVar("_Posed", bound="Camera")
 
 
 @dataclass(frozen=True)
@@ -71,13 +75,15 @@ class Camera:
     # --- construction ------------------------------------------------------------------
 
     def with_clip(self, near: float, far: float) -> Camera:
-        clipped = replace(self, near=near, far=far)
-        # the same pose: its position and rotation are not worked out again (a frame fits
-        # its camera's clip distances every time)
-        for name in ("position", "rotation"):
-            if name in self.__dict__:
-                clipped.__dict__[name] = self.__dict__[name]
-        return clipped
+        return self.posed_as(replace(self, near=near, far=far))
+
+    def posed_as(self, other: _Posed) -> _Posed:
+        """``other`` (a copy of this camera's pose: other clip distances, another projection)
+        with this camera's position and rotation, worked out once for both: a frame fits its
+        camera's clip distances and draws it upside down every time."""
+        other.__dict__["position"] = self.position
+        other.__dict__["rotation"] = self.rotation
+        return other
 
     def moved(self, **changes: float) -> Camera:
         """A copy with some fields changed (e.g. ``cam.moved(alt=500)``)."""

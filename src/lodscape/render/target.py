@@ -229,7 +229,9 @@ class FrameTarget:
             return camera
         made = self._top_down
         if made is None or made[0] is not camera:
-            top = TopDownCamera(**{f.name: getattr(camera, f.name) for f in fields(camera)})
+            top = camera.posed_as(
+                TopDownCamera(**{f.name: getattr(camera, f.name) for f in fields(camera)})
+            )
             self._top_down = made = (camera, top)
         return made[1]
 
