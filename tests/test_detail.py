@@ -387,6 +387,13 @@ def test_patch_culling_never_removes_a_pixel(tmp_path: object) -> None:
                 assert s.last is not None
                 pictures.append(rgb)
                 tris.append((s.last.triangles, s.last.backfacing))
+            # the same view again, after the other (the cones kept for the last frame's
+            # meshes are not another frame's), and once more (kept: the same draws)
+            for _ in range(2):
+                again, _ = s.render(views[0])
+                assert s.last is not None
+                assert np.array_equal(again, pictures[-2])
+                assert (s.last.triangles, s.last.backfacing) == tris[-2]
     for a, b in zip(pictures[:2], pictures[2:], strict=True):
         assert np.array_equal(a, b)
     for (culled_tris, patches), (all_tris, none) in zip(tris[:2], tris[2:], strict=True):

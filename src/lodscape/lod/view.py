@@ -178,6 +178,11 @@ class TerrainView:
         self.cull_backfacing = cull_backfacing
         #: Geomorph between levels (``DrawItem.morph``): no vertex jumps where a tile splits.
         self.morph = True
+        #: The last frame's meshes (their infos) and their patches' cones (``facing``).
+        self._cones_of: tuple[list[MeshInfo | None], tuple[F64, F64, NDArray[np.int64]]] = (
+            [],
+            (np.zeros((0, CONE_SIZE)), np.zeros((0, 3)), np.zeros(0, np.int64)),
+        )
         #: Frames a tile takes to glide from the surface it replaced to its own.
         self.morph_frames = MORPH_FRAMES
         #: Last frame's drawn tiles: sorted ids, their grids and how far each still morphed.
@@ -408,7 +413,16 @@ class TerrainView:
         if not self.cull_backfacing or not items:
             return items, 0, 0
         infos = [meshes.get(it.key) for it in items]
-        cones, centres, owner = _cones(infos)
+        # the patches' cones of the same meshes as last frame's are last frame's (a still or
+        # slow camera draws the same tiles frame after frame)
+        kept_cones = self._cones_of
+        if len(kept_cones[0]) == len(infos) and all(
+            a is b for a, b in zip(kept_cones[0], infos, strict=True)
+        ):
+            cones, centres, owner = kept_cones[1]
+        else:
+            cones, centres, owner = _cones(infos)
+            self._cones_of = (infos, (cones, centres, owner))
         away = backfacing(cones, centres, plan.camera.position)
         if not away.any():
             return items, 0, 0
