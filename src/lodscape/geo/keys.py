@@ -2,10 +2,12 @@
 texture, an imagery layer's tile), so caches, the GPU stage and the selection share one key
 space.
 
-A key is ``tile_id << 4 | slot``: slots ``0 .. len(grids) - 1`` are the tile's mesh grids
-(coarsest first), slot 8 (``TEXTURE``) the terrain's own texture (its tint, or a tileset's
-stored imagery) and slots 9..15 the tiles of imagery layers 1..7 (``texture_key(tid, layer)``),
-which come from the user's imagery at the imagery's own levels. The GPU terrain mode's height
+A key is ``tile_id << 5 | slot``: slots ``0 .. len(grids) - 1`` are the tile's mesh grids
+(coarsest first; sixteen at most, the bounds of ``terrain.tin_tiles``' ladder), slot 16
+(``TEXTURE``) the terrain's own texture (its tint, or a tileset's stored imagery) and slots
+17..23 the tiles of imagery layers 1..7 (``texture_key(tid, layer)``), which come from the
+user's imagery at the imagery's own levels. A tile id takes 57 bits (``geo.tiles.tile_id``),
+a key 62: keys are in-memory names only, nothing stores them. The GPU terrain mode's height
 texture is made from a mesh and lives under that mesh's key. Scalar functions take and return
 ``int``; the ``*_array`` versions take and return numpy arrays of ``uint64``.
 """
@@ -43,12 +45,12 @@ __all__ = [
 
 #: The slot of a tile's own texture (layer 0); slots below it are the tile's mesh grids, the
 #: slots above it imagery layers 1..``MAX_LAYERS``.
-TEXTURE = 8
+TEXTURE = 16
 #: How many mesh grids a tile can have (the slots below ``TEXTURE``).
 MAX_GRIDS = TEXTURE
 #: How many imagery layers keys can name above the terrain's own texture.
 MAX_LAYERS = 7
-_BITS = 4
+_BITS = 5
 _SHIFT = np.uint64(_BITS)
 _MASK = np.uint64((1 << _BITS) - 1)
 _TEX = np.uint64(TEXTURE)
@@ -71,7 +73,7 @@ def texture_key(tid: int, layer: int = 0) -> int:
 
 def is_overlay(key: int) -> bool:
     """Whether a key is an imagery layer's tile (layer 1 or above)."""
-    return key & 15 > TEXTURE
+    return key & int(_MASK) > TEXTURE
 
 
 def layer_of(key: int) -> int:
