@@ -309,3 +309,25 @@ def test_box_frames_kept_between_frames_are_the_ones_made_afresh() -> None:
         for a, b in zip(got, want, strict=True):
             np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-6)
     assert frames.get(z, x[:0], y[:0], lo[:0], hi[:0])[0].shape == (0, 3, 3)
+
+
+def test_grid_hysteresis_holds_as_many_grids_as_the_tree_says(tree: TileTree) -> None:
+    """A tile keeps last frame's grid while the one it needs is at most ``steps`` coarser:
+    one regular grid, two of the TIN ladder's rungs (a fourth root of two apart: the factor
+    of 1.41 one rung of eight gave); never a coarser one than it needs."""
+    from lodscape.geo.keys import mesh_keys_zxy
+    from lodscape.lod.select import _keep_finer_grid, _previous_grids, hysteresis_steps
+    from lodscape.terrain.tin_tiles import LADDER, ErrorLadder
+
+    z = np.full(5, 12)
+    x = np.arange(100, 105)
+    y = np.full(5, 200)
+    ids = tile_id_array(z, x, y)
+    before = _previous_grids(mesh_keys_zxy(z, x, y, np.array([3, 4, 5, 6, 2])))
+    need = np.full(5, 3)
+    assert _keep_finer_grid(ids, need, before, 1).tolist() == [3, 4, 3, 3, 3]
+    assert _keep_finer_grid(ids, need, before, 2).tolist() == [3, 4, 5, 3, 3]
+    assert hysteresis_steps(tree) == 1
+    assert hysteresis_steps(ErrorLadder(tree)) == 2
+    held = LADDER[3] / LADDER[5]
+    assert 1.35 < held < 1.45

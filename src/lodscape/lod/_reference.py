@@ -16,7 +16,7 @@ import numpy as np
 from lodscape.geo.keys import grid_of, tile_id_of
 from lodscape.geo.tiles import Tile, tile_id
 from lodscape.lod.camera import EARTH_MIN_RADIUS, MIN_DISTANCE, Camera
-from lodscape.lod.select import SLOPE_ROOM, Selection, SelectOptions, TreeLike
+from lodscape.lod.select import SLOPE_ROOM, Selection, SelectOptions, TreeLike, hysteresis_steps
 
 _A = 6378137.0  # WGS84 semi-major axis
 _E2 = (1.0 / 298.257223563) * (2.0 - 1.0 / 298.257223563)  # first eccentricity squared
@@ -126,6 +126,7 @@ def select_reference(
     zmax = tree.zmax if options.max_level is None else min(tree.zmax, options.max_level)
     ztex = tree.zmax if tree.texture_zmax is None else tree.texture_zmax
     was = set(previous.refined.tolist()) if previous is not None else set()
+    steps = hysteresis_steps(tree)
     grid_before = (
         {tile_id_of(int(k)): grid_of(int(k)) for k in previous.keys.tolist()}
         if previous is not None
@@ -185,10 +186,11 @@ def select_reference(
                 visit(z + 1, cx, cy, len(err) - 1 if k is None else k)
         else:
             k = len(err) - 1 if k is None else k
-            if grid_before.get(tile_id(Tile(x, y, z))) == k + 1:
-                k += 1
+            before_k = grid_before.get(tile_id(Tile(x, y, z)))
+            if before_k is not None and k < before_k <= k + steps:
+                k = before_k
             if options.hold_parent_grid:
-                k = min(max(k, parent_k - 1), len(err) - 1)
+                k = min(max(k, parent_k - steps), len(err) - 1)
             up = max(0, z - ztex)
             while up < z - tree.zmin and px * 2 ** (up + 1) <= options.split / SLOPE_ROOM * t:
                 up += 1

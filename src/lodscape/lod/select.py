@@ -73,6 +73,7 @@ __all__ = [
     "Selection",
     "TileStats",
     "TreeLike",
+    "hysteresis_steps",
     "select",
     "tile_boxes",
     "tile_far",
@@ -638,6 +639,7 @@ def _walk(
 
     view = region_view(camera) if options.region else None
     prev_grids = _previous_grids(previous.keys) if previous is not None else None
+    steps = hysteresis_steps(tree)
     # an on-demand tree's test of which tiles' children it knows (a protocol's isinstance
     # is tens of microseconds: once a selection)
     ready = tree.ready if isinstance(tree, MadeOnDemand) else None
@@ -675,9 +677,9 @@ def _walk(
         # drawn, so it never jumps (and geomorphing glides where it refines)
         next_parent_k = np.repeat(k[refine], 4)
         if prev_grids is not None:
-            k = _keep_finer_grid(ids, k, prev_grids)
+            k = _keep_finer_grid(ids, k, prev_grids, steps)
         if options.hold_parent_grid:
-            k = np.minimum(np.maximum(k, parent_k - 1), len(tree.grids) - 1)
+            k = np.minimum(np.maximum(k, parent_k - steps), len(tree.grids) - 1)
         kd = k[draw]
         errd = err[kd, np.nonzero(draw)[0]].astype(np.float64)
         drawn.append(
@@ -909,16 +911,24 @@ def _previous_grids(prev_keys: U64) -> tuple[U64, I64]:
     return tile_id_of_array(pk), grid_of_array(pk).astype(np.int64)
 
 
-def _keep_finer_grid(ids: U64, k: I64, prev: tuple[U64, I64]) -> I64:
-    """Grid hysteresis: a tile keeps last frame's grid while the one it needs is one step coarser
-    (a finer grid only lowers the error), so a camera that hovers does not reload meshes.
-    ``prev``: ``_previous_grids`` of last frame's keys."""
+def _keep_finer_grid(ids: U64, k: I64, prev: tuple[U64, I64], steps: int = 1) -> I64:
+    """Grid hysteresis: a tile keeps last frame's grid while the one it needs is at most
+    ``steps`` grids coarser (a finer grid only lowers the error), so a camera that hovers does
+    not reload meshes. ``prev``: ``_previous_grids`` of last frame's keys."""
     pid, grids = prev
     if pid.size == 0:
         return k
     pos = np.minimum(np.searchsorted(pid, ids), pid.size - 1)
     kprev = grids[pos]
-    return np.where((pid[pos] == ids) & (kprev == k + 1), kprev, k)
+    return np.where((pid[pos] == ids) & (kprev > k) & (kprev <= k + steps), kprev, k)
+
+
+def hysteresis_steps(tree: TreeLike) -> int:
+    """How many of ``tree``'s grids a tile holds on to (``_keep_finer_grid``) and a split
+    keeps of its parent's (``SelectOptions.hold_parent_grid``): one of the regular grids,
+    which halve their segments a step; a tree's ``hysteresis_steps`` where its grids are closer
+    (``terrain.tin_tiles.ErrorLadder``'s rungs)."""
+    return int(getattr(tree, "hysteresis_steps", 1))
 
 
 def _member(a: U64, sorted_b: U64) -> NDArray[np.bool_]:

@@ -95,6 +95,11 @@ class ErrorLadder:
     heights and levels, each slot's error as ``ladder_errors`` says. Everything else is the
     wrapped tree's (a tree made on demand stays one: ``wait``, ``ready``, ``epoch``)."""
 
+    #: A tile holds on to last frame's rung while it needs one at most two rungs coarser (a
+    #: factor of 1.41, the hysteresis one step of regular grids or of eight rungs gave): a
+    #: moving camera does not cut a tile's mesh anew at every rung it passes.
+    hysteresis_steps = 2
+
     def __init__(self, tree: Any) -> None:
         object.__setattr__(self, "base", tree)
         #: Every slot meshes the base tree's finest grid.
