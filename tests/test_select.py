@@ -329,5 +329,7 @@ def test_grid_hysteresis_holds_as_many_grids_as_the_tree_says(tree: TileTree) ->
     assert _keep_finer_grid(ids, need, before, 2).tolist() == [3, 4, 5, 3, 3]
     assert hysteresis_steps(tree) == 1
     assert hysteresis_steps(ErrorLadder(tree)) == 2
-    held = LADDER[3] / LADDER[5]
-    assert 1.35 < held < 1.45
+    # two rungs hold a factor of about 1.41 wherever the ladder is dense (2 down to 0.25)
+    dense = np.array([r for r in LADDER if r >= 0.25])
+    held = dense[:-2] / dense[2:]
+    assert np.all((held > 1.35) & (held < 1.45)), held

@@ -460,17 +460,12 @@ def tile_boxes(
     at the box's nearest point instead: pixels per metre there.
     """
     basis, lo0, hi0, ground, corners0, centre0 = _BOX_FRAMES.get(z, x, y, min_h, max_h)
-    # the lattice's box in each tile's frame is the camera's business only through where the
-    # camera is: moving the origin to the camera shifts it by the camera's position there
     eye = camera.position
-    shift = basis @ eye
-    margin = (_MARGIN * ground)[:, None]
-    lo = lo0 - shift - margin
-    hi = hi0 - shift + margin
+    lo, hi = _eye_box(basis, lo0, hi0, ground, eye)
     # the camera sits at the origin of these camera-relative coordinates
     gap = np.maximum(lo, 0.0) + np.maximum(-hi, 0.0)
     dist_near = np.linalg.norm(gap, axis=1)
-    dist_far = np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi)), axis=1)
+    dist_far = _farthest(lo, hi)
     centre = centre0 - eye
     half = (hi - lo) / 2.0
     planes = camera.frustum_planes()
@@ -499,10 +494,21 @@ def tile_far(
     """``tile_boxes``' ``dist_far`` alone: the farthest any point of each tile's box is from
     the camera (no clip distances needed), what fitting a camera's far plane asks."""
     basis, lo0, hi0, ground = _BOX_FRAMES.get(z, x, y, min_h, max_h)[:4]
-    shift = basis @ camera.position
+    return _farthest(*_eye_box(basis, lo0, hi0, ground, camera.position))
+
+
+def _eye_box(basis: F64, lo0: F64, hi0: F64, ground: F64, eye: F64) -> tuple[F64, F64]:
+    """Each tile's box in its own frame with its margin, the camera at the origin: the
+    lattice's box is the camera's business only through where the camera is, which moving the
+    origin to the camera shifts it by (the camera's position in that frame)."""
+    shift = basis @ eye
     margin = (_MARGIN * ground)[:, None]
-    reach = np.maximum(np.abs(lo0 - shift - margin), np.abs(hi0 - shift + margin))
-    far: F64 = np.linalg.norm(reach, axis=1)
+    return lo0 - shift - margin, hi0 - shift + margin
+
+
+def _farthest(lo: F64, hi: F64) -> F64:
+    """The farthest any point of each camera-relative box (``_eye_box``) is from the camera."""
+    far: F64 = np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi)), axis=1)
     return far
 
 
