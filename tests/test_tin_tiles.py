@@ -22,6 +22,7 @@ from lodscape.terrain.mesh import grid_coordinates
 from lodscape.terrain.pyramid import TileStats
 from lodscape.terrain.tin_tiles import (
     LADDER,
+    SPLIT_RUNG,
     ErrorLadder,
     cache_order,
     ladder_errors,
@@ -141,9 +142,15 @@ def test_the_ladder_keeps_the_whole_grid_for_tiles_that_cannot_split(tmp_path: P
             assert isinstance(st, TileStats)
             assert st.error.shape == (len(LADDER), x.size)
             base = tree.base.level(z).stats(x, y).error
-            if z < tree.zmax:  # a tile that can split is not drawn with its whole grid
-                assert np.allclose(st.error[-1], st.error[-2])
-            else:
+            mine = ladder_errors(base)
+            if z < tree.zmax:
+                # a tile that can split is drawn no finer than SPLIT_RUNG (the whole grid
+                # among the rest): where it needs less it splits
+                assert np.array_equal(st.error[: SPLIT_RUNG + 1], mine[: SPLIT_RUNG + 1])
+                assert np.all(st.error[SPLIT_RUNG + 1 :] == st.error[SPLIT_RUNG])
+                assert np.all(mine[SPLIT_RUNG + 1] < mine[SPLIT_RUNG])
+            else:  # the finest level's tiles have every rung, and the whole grid
+                assert np.array_equal(st.error, mine)
                 assert np.allclose(st.error[-1], base[-1])
     finally:
         scene.close()

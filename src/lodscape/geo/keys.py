@@ -3,9 +3,9 @@ texture, an imagery layer's tile), so caches, the GPU stage and the selection sh
 space.
 
 A key is ``tile_id << 5 | slot``: slots ``0 .. len(grids) - 1`` are the tile's mesh grids
-(coarsest first; sixteen at most, the bounds of ``terrain.tin_tiles``' ladder), slot 16
+(coarsest first; twenty-four at most, the bounds of ``terrain.tin_tiles``' ladder), slot 24
 (``TEXTURE``) the terrain's own texture (its tint, or a tileset's stored imagery) and slots
-17..23 the tiles of imagery layers 1..7 (``texture_key(tid, layer)``), which come from the
+25..31 the tiles of imagery layers 1..7 (``texture_key(tid, layer)``), which come from the
 user's imagery at the imagery's own levels. A tile id takes 57 bits (``geo.tiles.tile_id``),
 a key 62: keys are in-memory names only, nothing stores them. The GPU terrain mode's height
 texture is made from a mesh and lives under that mesh's key. Scalar functions take and return
@@ -45,7 +45,7 @@ __all__ = [
 
 #: The slot of a tile's own texture (layer 0); slots below it are the tile's mesh grids, the
 #: slots above it imagery layers 1..``MAX_LAYERS``.
-TEXTURE = 16
+TEXTURE = 24
 #: How many mesh grids a tile can have (the slots below ``TEXTURE``).
 MAX_GRIDS = TEXTURE
 #: How many imagery layers keys can name above the terrain's own texture.
