@@ -66,6 +66,29 @@ def test_vectorised_equals_naive_reference(tree: TileTree, name: str, hold: bool
     assert _tiles(again) == sorted(select_reference(opts, moved, tree, previous=sel))
 
 
+@pytest.mark.parametrize("hold", [False, True])
+@pytest.mark.parametrize("name", CAMERAS)
+def test_vectorised_equals_naive_reference_on_the_error_ladder(
+    tree: TileTree, name: str, hold: bool
+) -> None:
+    """The TINs' ladder: rungs below its split rung cost as much as it where a tile can split
+    (a tile that meets no rung splits, or is drawn at the split rung and held from it), all
+    its rungs on the finest level."""
+    from lodscape.terrain.tin_tiles import SPLIT_RUNG, ErrorLadder
+
+    ladder = ErrorLadder(tree)
+    opts = SelectOptions(hold_parent_grid=hold)
+    cam = _clip(CAMERAS[name])
+    sel = select(opts, cam, ladder)
+    assert sel.count > 0
+    assert _tiles(sel) == sorted(select_reference(opts, cam, ladder))
+    split = sel.z < tree.zmax
+    assert np.all(sel.grid[split] <= SPLIT_RUNG)
+    moved = cam.moved(alt=cam.alt * 0.8)
+    again = select(opts, moved, ladder, previous=sel)
+    assert _tiles(again) == sorted(select_reference(opts, moved, ladder, previous=sel))
+
+
 def test_the_hysteresis_carries_between_the_frames_of_a_motion_not_across_a_cut(
     tree: TileTree,
 ) -> None:

@@ -160,6 +160,7 @@ def select_reference(
             return
         _, _, px, err, scale = m
         k = next((i for i, e in enumerate(err) if e * scale <= options.max_sse), None)
+        least = int(np.argmin(err))  # the coarsest of the least error
         big = px > options.split * t and z < ztex
         refine = z < zmax and (big or k is None)
         if z < zmax and not refine and tile_id(Tile(x, y, z)) in was:
@@ -183,9 +184,9 @@ def select_reference(
                 (2 * x, 2 * y + 1),
                 (2 * x + 1, 2 * y + 1),
             ):
-                visit(z + 1, cx, cy, len(err) - 1 if k is None else k)
+                visit(z + 1, cx, cy, least if k is None else k)
         else:
-            k = len(err) - 1 if k is None else k
+            k = least if k is None else k
             before_k = grid_before.get(tile_id(Tile(x, y, z)))
             if before_k is not None and k < before_k <= k + steps:
                 k = before_k

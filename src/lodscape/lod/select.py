@@ -538,10 +538,12 @@ def _metrics(
 def _grid_choice(
     options: SelectOptions, err: NDArray[np.float32], scale: F64
 ) -> tuple[I64, NDArray[np.bool_]]:
-    """Coarsest grid meeting the error bound at each tile's nearest point; whether none does."""
+    """Coarsest grid meeting the error bound at each tile's nearest point, else the coarsest
+    of the least error (the finest grid; a ladder's split rung where the rungs below it cost
+    as much: ``terrain.tin_tiles.SPLIT_RUNG``); whether none meets it."""
     fits = err * scale <= options.max_sse
     anyfit = np.asarray(fits.any(axis=0), dtype=bool)
-    k = np.where(anyfit, fits.argmax(axis=0), err.shape[0] - 1).astype(np.int64)
+    k = np.where(anyfit, fits.argmax(axis=0), err.argmin(axis=0)).astype(np.int64)
     return k, ~anyfit
 
 
