@@ -24,6 +24,7 @@ import numpy as np
 import lodscape
 from lodscape import SceneOptions
 from lodscape.data import sample_dem_path
+from lodscape.errors import CameraError
 from lodscape.geo.frames import ecef_to_geodetic
 from lodscape.lod.select import SelectOptions, select
 
@@ -35,8 +36,13 @@ def approach(
     dem: str, morph: bool, sse: float, frames: int, w: int, h: int, mode: str = "cpu"
 ) -> tuple[list[float], list[int]]:
     """Per frame pair the 99.9th percentile jump (px), and per frame the triangles drawn."""
+    # a streamed scene's meshes (regular grids, which geomorph; a still picture's TINs do not)
     opts = SceneOptions(
-        select=SelectOptions(max_sse=sse), morph=morph, anisotropy=1.0, terrain_mode=mode
+        select=SelectOptions(max_sse=sse),
+        morph=morph,
+        anisotropy=1.0,
+        terrain_mode=mode,
+        meshes="grid",
     )
     jumps: list[float] = []
     tris: list[int] = []
@@ -62,7 +68,7 @@ def approach(
 
 def hold_cost(dem: str, w: int, h: int) -> tuple[float, float]:
     """Median triangles of 20 views along the approach with and without hold_parent_grid."""
-    with lodscape.open(dem) as scene:
+    with lodscape.open(dem, SceneOptions(meshes="grid")) as scene:
         cam0 = replace(scene.overview_camera(w, h), pitch=-35.0)
         target = cam0.position + cam0.forward * 6000.0
         got: dict[bool, list[int]] = {True: [], False: []}
@@ -70,7 +76,10 @@ def hold_cost(dem: str, w: int, h: int) -> tuple[float, float]:
         for i in range(0, 60, 3):
             p = target + (cam0.position - target) * (1.0 - 0.015 * i)
             lon, lat, alt = (float(a) for a in ecef_to_geodetic(p))
-            cam = scene.prepare(cam0.moved(lon=lon, lat=lat, alt=alt))
+            try:
+                cam = scene.prepare(cam0.moved(lon=lon, lat=lat, alt=alt))
+            except CameraError:
+                break  # the approach reached the ground (the sample's hills rise into it)
             for hold in (True, False):
                 sel = select(SelectOptions(hold_parent_grid=hold), cam, scene.tree, prev[hold])  # type: ignore[arg-type]
                 prev[hold] = sel
