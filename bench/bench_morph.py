@@ -43,6 +43,7 @@ def approach(
         anisotropy=1.0,
         terrain_mode=mode,
         meshes="grid",
+        ellipsoid=False,
     )
     jumps: list[float] = []
     tris: list[int] = []
