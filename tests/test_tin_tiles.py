@@ -24,6 +24,7 @@ from lodscape.terrain.tin_tiles import (
     LADDER,
     SPLIT_RUNG,
     ErrorLadder,
+    SplitBeforeFinest,
     cache_order,
     ladder_errors,
     tin_tile_mesh,
@@ -154,6 +155,52 @@ def test_the_ladder_keeps_the_whole_grid_for_tiles_that_cannot_split(tmp_path: P
                 assert np.allclose(st.error[-1], base[-1])
     finally:
         scene.close()
+
+
+def test_grids_are_split_before_a_tile_takes_its_finest(tmp_path: Path) -> None:
+    """Frames that geomorph draw regular grids: a tile that can split is not drawn with its
+    finest grid (it costs its next grid's error, so a tile that needs it splits); the finest
+    level's tiles keep it. The same view then draws fewer triangles, within the bound."""
+    from lodscape.lod.select import SelectOptions, select
+    from test_screen_error import _cameras
+
+    path = tmp_path / "dem.tif"
+    write_dem(str(path), periodic_fbm(256, seed=2, relief=500.0), crs="EPSG:32617",
+              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
+    streamed = lodscape.open(path, lodscape.SceneOptions(stream=StreamOptions()))
+    still = lodscape.open(path, lodscape.SceneOptions(meshes="grid"))
+    try:
+        tree = streamed.tree
+        assert isinstance(tree, SplitBeforeFinest)
+        assert isinstance(still.tree, SplitBeforeFinest)
+        base = tree.base
+        for z in (tree.zmin, tree.zmax):
+            x, y = tree.roots() if z == tree.zmin else _some_tiles(tree, z)
+            got = tree.level(z).stats(x, y).error
+            own = np.asarray(base.level(z).stats(x, y).error)
+            assert np.array_equal(got[:-1], own[:-1])
+            if z < tree.zmax:
+                assert np.array_equal(got[-1], own[-2])
+                assert np.all(own[-1] < own[-2])
+            else:
+                assert np.array_equal(got[-1], own[-1])
+        opts = SelectOptions()
+        last = len(tree.grids) - 1
+        split_tris = whole_tris = whole_last = 0
+        for cam in _cameras(streamed, 6, seed=5):
+            fitted = streamed.prepare(cam)
+            split = select(opts, fitted, tree)
+            whole = select(opts, fitted, base)
+            assert np.all(split.grid[split.z < tree.zmax] < last)
+            assert float(split.sse.max(initial=0.0)) <= opts.max_sse
+            whole_last += int(np.sum(whole.grid[whole.z < tree.zmax] == last))
+            split_tris += split.triangles
+            whole_tris += whole.triangles
+        assert whole_last > 0  # the cameras ask for finest grids above the finest level
+        assert split_tris < whole_tris
+    finally:
+        streamed.close()
+        still.close()
 
 
 def _some_tiles(tree: Any, z: int) -> tuple[np.ndarray, np.ndarray]:

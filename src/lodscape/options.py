@@ -60,8 +60,9 @@ class SceneOptions:
     compress_textures: bool = False
     #: The CPU terrain mode's tile meshes: "tin", each an RTIN of the tile's finest grid cut at
     #: the error the frame allows (``terrain.tin_tiles``: a half to a fifth of the triangles
-    #: for the same bound); "grid", regular grids of 16, 32 or 64 segments, which geomorph;
-    #: "auto", TINs where frames do not geomorph (one-shot renders) and grids where they do.
+    #: for the same bound); "grid", regular grids of 16, 32 or 64 segments, which geomorph
+    #: (64 only where a tile cannot split: ``terrain.tin_tiles.SplitBeforeFinest``); "auto",
+    #: TINs where frames do not geomorph (one-shot renders) and grids where they do.
     #: Rasters meshed on the fly only: tilesets, fractal detail and "gpu" keep their meshes.
     meshes: str = "auto"
 

@@ -110,6 +110,10 @@ class Scene:
             by_error = getattr(self.provider, "mesh_by_error", None)
             if by_error is not None:
                 by_error()
+        elif o.terrain_mode == "cpu":
+            split_first = getattr(self.provider, "split_before_finest", None)
+            if split_first is not None:
+                split_first()
         self.tree = self.provider.tree
         self.view = TerrainView(
             self.tree,

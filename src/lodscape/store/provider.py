@@ -22,7 +22,7 @@ from lodscape.terrain.lazy import open_tree
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import RefinedTree, TileTree
 from lodscape.terrain.source import Fill, HeightSource
-from lodscape.terrain.tin_tiles import ErrorLadder, tin_tile_mesh
+from lodscape.terrain.tin_tiles import ErrorLadder, SplitBeforeFinest, tin_tile_mesh
 
 __all__ = [
     "FractalProvider",
@@ -214,6 +214,13 @@ class RasterProvider:
         if not isinstance(self.tree, ErrorLadder):
             self.tree = ErrorLadder(self.tree)
 
+    def split_before_finest(self) -> None:
+        """Draw a tile that can split no finer than its next-to-finest grid: where it needs
+        more it splits (``terrain.tin_tiles.SplitBeforeFinest``). Call before anything selects
+        over the tree; not with ``mesh_by_error``."""
+        if not isinstance(self.tree, ErrorLadder | SplitBeforeFinest):
+            self.tree = SplitBeforeFinest(self.tree)
+
     def mesh(self, key: int) -> TileMesh:
         return mesh_of(self, key)
 
@@ -253,6 +260,9 @@ class FractalProvider(RasterProvider):
     def mesh_by_error(self) -> None:
         """Keeps its grids: meshes of exact lattice heights split along their lowest
         diagonals (paper 003)."""
+
+    def split_before_finest(self) -> None:
+        """Keeps its grids as its detail tree gives them."""
 
     def decode(self, key: int, data: bytes) -> TileMesh | NDArray[np.uint8]:
         t = tile_of(key)
