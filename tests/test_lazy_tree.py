@@ -17,6 +17,7 @@ from lodscape.scene import Scene
 from lodscape.terrain.lazy import LazyTree
 from lodscape.terrain.pyramid import build_tree
 from lodscape.terrain.source import RasterSource
+from lodscape.terrain.tin_tiles import SplitBeforeFinest
 
 
 def _every_tile(lv: object) -> tuple[np.ndarray, np.ndarray]:
@@ -170,9 +171,10 @@ def test_a_scene_selects_as_the_eager_tree_once_known(tmp_path: Path) -> None:
         lazy = Scene(src, grids, tree=LazyTree(src))  # type: ignore[arg-type]
         fixed = Scene(src, grids, tree=eager)
         try:
-            assert isinstance(lazy.tree, LazyTree)
-            assert not lazy.tree._tails, "the DEM is meant to be small enough for no tail"
-            assert lazy.tree.made <= 4  # the roots at most
+            assert isinstance(lazy.tree, SplitBeforeFinest)  # both scenes' grids the same way
+            assert isinstance(lazy.tree.base, LazyTree)
+            assert not lazy.tree.base._tails, "the DEM is meant to be small enough for no tail"
+            assert lazy.tree.base.made <= 4  # the roots at most
             cams = [lazy.overview_camera(640, 360)]
             lon, lat = cams[0].lon, cams[0].lat
             for dlat, alt, pitch in [(0.01, 1500.0, -20.0), (0.02, 900.0, -8.0)]:
@@ -235,7 +237,7 @@ def test_a_streamed_frame_never_waits_for_statistics(tmp_path: Path) -> None:
         whole = LazyTree(src, keep=False)
         try:
             cam = scene.view.fit(scene.overview_camera(640, 360), None)
-            want = select(SelectOptions(), cam, whole)
+            want = select(SelectOptions(), cam, SplitBeforeFinest(whole))  # as the scene's
             tree = scene.tree
             tree.wait = False
             first = select(SelectOptions(), cam, tree)

@@ -114,3 +114,31 @@ def test_a_slow_approach_never_pops_with_morphing(dem: str, terrain_mode: str) -
     # reprojection's own: sub-pixel sampling of slopes)
     assert max(with_morph) < 1.0, with_morph
     assert max(with_morph) < 0.6 * max(without), (with_morph, without)
+
+
+def test_a_split_takes_on_its_parents_glide() -> None:
+    """Where a tile gliding onto its grid splits, its children drawn one grid coarser (their
+    grid is the parent's, their half grid the parent's coarser one) take on where the glide
+    was; a child at the parent's own grid starts at its half grid (the parent's surface)."""
+    from types import SimpleNamespace
+
+    from _synthetic import AnalyticSource
+    from lodscape.lod.view import TerrainView
+    from lodscape.terrain.pyramid import build_tree
+
+    view = TerrainView(build_tree(AnalyticSource()))
+    view.morph_frames = 10
+
+    def frame(z: list[int], x: list[int], y: list[int], grid: list[int]) -> np.ndarray:
+        sel = SimpleNamespace(
+            z=np.array(z), x=np.array(x), y=np.array(y), grid=np.array(grid), count=len(z)
+        )
+        return view._morphs(sel)  # type: ignore[arg-type]
+
+    # a parent (12, 100, 200) that refined its grid 0 -> 1 two frames ago, still gliding
+    assert frame([12], [100], [200], [0]).tolist() == [0.0]
+    assert frame([12], [100], [200], [1]).tolist() == [0.9]
+    assert np.allclose(frame([12], [100], [200], [1]), [0.8])
+    # it splits: three children one grid coarser, one at its grid
+    got = frame([13, 13, 13, 13], [200, 201, 200, 201], [400, 400, 401, 401], [0, 0, 1, 0])
+    assert np.allclose(got, [0.7, 0.7, 0.9, 0.7])

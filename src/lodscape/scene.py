@@ -110,7 +110,7 @@ class Scene:
             by_error = getattr(self.provider, "mesh_by_error", None)
             if by_error is not None:
                 by_error()
-        elif o.terrain_mode == "cpu":
+        else:  # grids (the GPU terrain mode's too): the finest only where a tile cannot split
             split_first = getattr(self.provider, "split_before_finest", None)
             if split_first is not None:
                 split_first()

@@ -329,8 +329,12 @@ class TerrainView:
         - one that replaces its own coarser grid (one step), or its parent drawn with the same
           grid (whose surface over the tile is the tile's grid of half the segments), starts
           at 1: it shows exactly what was there;
-        - anything else (its parent drawn with the next finer grid, which is the tile's own
-          surface; a merge; the first frame) starts at 0.
+        - one whose parent was drawn with the next finer grid (the tile's own surface, and the
+          parent's next coarser grid the tile's of half the segments) takes on where the
+          parent's glide was (a tile splits rather than take its finest grid,
+          ``terrain.tin_tiles.SplitBeforeFinest``: often while it still glides onto the grid
+          before; a jump of 1.4 px at a 4 px bound on ``bench_morph``'s fBm without this);
+        - anything else (a merge; the first frame) starts at 0.
 
         The offsets a mesh moves by (``TileMesh.morph``) lead onto its grid of half the
         segments, so the picture never jumps where a tile splits or refines its grid; a merge
@@ -350,6 +354,10 @@ class TerrainView:
             j = np.minimum(np.searchsorted(prev_ids, parent), prev_ids.size - 1)
             split = ~same_tile & (prev_ids[j] == parent) & (prev_grid[j] == sel.grid)
             k[finer_grid | split] = 1.0 - step
+            # its parent drawn with the next finer grid, still gliding onto it: the tile's grid
+            # and its grid of half the segments are that glide's two ends, so it glides on
+            glide = ~same_tile & (prev_ids[j] == parent) & (prev_grid[j] == sel.grid + 1)
+            k[glide] = np.maximum(prev_k[j][glide] - step, 0.0)
         order = np.argsort(ids)
         self._shown = (ids[order], sel.grid[order], k[order])
         return k
