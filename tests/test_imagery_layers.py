@@ -154,6 +154,27 @@ def test_layers_composite_bottom_to_top_with_their_alpha(site: dict[str, str]) -
         assert (rgb[..., 0] > 200).mean() > 0.95
 
 
+def test_layers_change_the_textures_not_how_the_meshes_are_made(site: dict[str, str]) -> None:
+    """Over a raster, a picture's tiles are meshed by error and a streamed scene's grids
+    split before their finest, layers or not."""
+    from lodscape.stream import StreamOptions
+    from lodscape.terrain.tin_tiles import ErrorLadder, SplitBeforeFinest
+
+    with lodscape.open(site["dem"]) as plain:
+        level = plain.provider.texture_levels[0]
+    # no finer than the DEM's textures (finer imagery carries the raster on below its data)
+    layer = {"imagery": [site["red"]], "imagery_maxzoom": level}
+    with lodscape.open(site["dem"], **layer) as scene:
+        assert isinstance(scene.tree, ErrorLadder)
+        assert scene.tree is scene.provider.base.tree
+        lon, lat = _centre(scene)
+        rgb, _ = scene.render(_down(scene, lon, lat, 3000.0, 64))
+        assert (rgb[..., 0] > 200).mean() > 0.95
+    opts = lodscape.SceneOptions(stream=StreamOptions())
+    with lodscape.open(site["dem"], opts, **layer) as scene:
+        assert isinstance(scene.tree, SplitBeforeFinest)
+
+
 def test_an_orthophoto_in_another_crs_lands_where_its_georeference_says(
     site: dict[str, str], tmp_path: Path
 ) -> None:

@@ -379,6 +379,21 @@ class LayeredProvider(_Retextured):
         own = self._own if self._own is not None else self.base.texture_levels[0]
         return (int(own), *(int(layer.max_zoom) for layer in self.layers))
 
+    def mesh_by_error(self) -> None:
+        """The base's meshes by error, if it makes them (its ``decode`` cuts them): the
+        imagery over a raster changes its textures, not its meshes."""
+        self._base_meshes("mesh_by_error")
+
+    def split_before_finest(self) -> None:
+        """The base's grids split before their finest, if it makes them."""
+        self._base_meshes("split_before_finest")
+
+    def _base_meshes(self, name: str) -> None:
+        call = getattr(self.base, name, None)
+        if call is not None:
+            call()
+            self.tree = self.base.tree
+
     def fetch(self, key: int) -> bytes:
         if not is_texture(key) or layer_of(key) == 0:
             return self.base.fetch(key)
