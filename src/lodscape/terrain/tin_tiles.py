@@ -26,6 +26,7 @@ import and kernels would cost a first picture 0.8 s.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cache
 from typing import Any
 
@@ -81,45 +82,47 @@ def ladder_threshold(error: NDArray[np.floating], slot: int) -> float:
     return float(LADDER[slot] * float(np.asarray(error)[0]))
 
 
+def _split_first(err: NDArray[np.float32], st: TileStats, cut: int) -> NDArray[np.float32]:
+    """``err`` (grids, N) with the grids finer than ``cut`` costing ``cut``'s error where a
+    tile can split: a tile that needs less splits."""
+    can_split = True if st.leaf is None else ~np.asarray(st.leaf, bool)
+    err[cut + 1 :] = np.where(can_split, err[cut], err[cut + 1 :])
+    return err
+
+
 class _Level:
-    def __init__(self, base: Any, finest: bool) -> None:
+    """A level of a tree over another's, its tiles' errors as ``errors(stats, finest)`` says."""
+
+    def __init__(
+        self,
+        base: Any,
+        finest: bool,
+        errors: Callable[[TileStats, bool], NDArray[np.float32]],
+    ) -> None:
         self.base = base
         self.z = base.z
         self.finest = finest
+        self.errors = errors
 
     def stats(self, x: NDArray[np.int64], y: NDArray[np.int64]) -> TileStats:
         st = self.base.stats(x, y)
-        err = ladder_errors(st.error)
-        # rungs below SPLIT_RUNG (the whole grid among them) only where the tile cannot split:
-        # elsewhere they cost SPLIT_RUNG's error, so a tile that needs less splits
-        if not self.finest:
-            can_split = True if st.leaf is None else ~np.asarray(st.leaf, bool)
-            err[SPLIT_RUNG + 1 :] = np.where(can_split, err[SPLIT_RUNG], err[SPLIT_RUNG + 1 :])
-        return TileStats(st.exists, st.min_h, st.max_h, err, st.leaf)
+        return TileStats(st.exists, st.min_h, st.max_h, self.errors(st, self.finest), st.leaf)
 
 
-class ErrorLadder:
-    """A tile tree whose "grids" are the ``LADDER``'s slots over its finest grid: the same tiles,
-    heights and levels, each slot's error as ``ladder_errors`` says. Everything else is the
-    wrapped tree's (a tree made on demand stays one: ``wait``, ``ready``, ``epoch``)."""
-
-    #: A tile holds on to last frame's rung while it needs one at most two rungs coarser (a
-    #: factor of 1.41, the hysteresis one step of regular grids or of eight rungs gave): a
-    #: moving camera does not cut a tile's mesh anew at every rung it passes.
-    hysteresis_steps = 2
+class _Over:
+    """A tile tree over another: the same tiles, heights and levels, each tile's errors as
+    ``_errors`` gives them (``finest``: on the finest level, where no tile splits); everything
+    else is the wrapped tree's (a tree made on demand stays one: ``wait``, ``ready``,
+    ``epoch``)."""
 
     def __init__(self, tree: Any) -> None:
         object.__setattr__(self, "base", tree)
-        #: Every slot meshes the base tree's finest grid.
-        object.__setattr__(self, "grids", (int(tree.grids[-1]),) * len(LADDER))
 
     def level(self, z: int) -> _Level:
-        return _Level(self.base.level(z), z >= self.base.zmax)
+        return _Level(self.base.level(z), z >= self.base.zmax, self._errors)
 
-    def threshold(self, z: int, x: int, y: int, slot: int) -> float:
-        """The RTIN bound of tile (z, x, y)'s ladder slot, from its recorded grid errors."""
-        st = self.base.level(z).stats(np.array([x], np.int64), np.array([y], np.int64))
-        return ladder_threshold(np.asarray(st.error)[:, 0], slot)
+    def _errors(self, st: TileStats, finest: bool) -> NDArray[np.float32]:
+        raise NotImplementedError
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.base, name)
@@ -129,42 +132,43 @@ class ErrorLadder:
         setattr(self.base, name, value)
 
 
-class _SplitLevel:
-    def __init__(self, base: Any, finest: bool) -> None:
-        self.base = base
-        self.z = base.z
-        self.finest = finest
+class ErrorLadder(_Over):
+    """A tile tree whose "grids" are the ``LADDER``'s slots over its finest grid: the same tiles,
+    heights and levels, each slot's error as ``ladder_errors`` says, the rungs below
+    ``SPLIT_RUNG`` (the whole grid among them) only where a tile cannot split."""
 
-    def stats(self, x: NDArray[np.int64], y: NDArray[np.int64]) -> TileStats:
-        st = self.base.stats(x, y)
-        if self.finest:
-            return st  # type: ignore[no-any-return]
-        can_split = True if st.leaf is None else ~np.asarray(st.leaf, bool)
-        err = np.array(st.error, copy=True)
-        err[-1] = np.where(can_split, err[-2], err[-1])
-        return TileStats(st.exists, st.min_h, st.max_h, err, st.leaf)
+    #: A tile holds on to last frame's rung while it needs one at most two rungs coarser (a
+    #: factor of 1.41, the hysteresis one step of regular grids or of eight rungs gave): a
+    #: moving camera does not cut a tile's mesh anew at every rung it passes.
+    hysteresis_steps = 2
+
+    def __init__(self, tree: Any) -> None:
+        super().__init__(tree)
+        #: Every slot meshes the base tree's finest grid.
+        object.__setattr__(self, "grids", (int(tree.grids[-1]),) * len(LADDER))
+
+    def _errors(self, st: TileStats, finest: bool) -> NDArray[np.float32]:
+        err = ladder_errors(st.error)
+        return err if finest else _split_first(err, st, SPLIT_RUNG)
+
+    def threshold(self, z: int, x: int, y: int, slot: int) -> float:
+        """The RTIN bound of tile (z, x, y)'s ladder slot, from its recorded grid errors."""
+        st = self.base.level(z).stats(np.array([x], np.int64), np.array([y], np.int64))
+        return ladder_threshold(np.asarray(st.error)[:, 0], slot)
 
 
-class SplitBeforeFinest:
+class SplitBeforeFinest(_Over):
     """A tile tree of regular grids whose tiles that can split are not drawn with their finest
     grid: it costs what their next grid does, so a tile that needs it splits. Four children at
     the next grid draw as many triangles as their parent at its finest (the same vertices), and
     fewer where some of them can be coarser, each charged at its own nearer box: on
     ``bench_morph``'s approach with geomorphing, the 513² fBm's frames 35,008 → 14,720
     triangles (median) and the sample's 11,776 → 5,120, the largest jump the same or less
-    (BENCHMARKS, ninth pass). Everything else is the wrapped tree's, as ``ErrorLadder``."""
+    (BENCHMARKS, ninth pass)."""
 
-    def __init__(self, tree: Any) -> None:
-        object.__setattr__(self, "base", tree)
-
-    def level(self, z: int) -> _SplitLevel:
-        return _SplitLevel(self.base.level(z), z >= self.base.zmax)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.base, name)
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        setattr(self.base, name, value)
+    def _errors(self, st: TileStats, finest: bool) -> NDArray[np.float32]:
+        err = np.array(st.error, dtype=np.float32, copy=True)
+        return err if finest else _split_first(err, st, len(err) - 2)
 
 
 @cache
