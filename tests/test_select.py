@@ -53,40 +53,28 @@ def _tiles(sel: Selection) -> list[tuple[int, int, int, int, int]]:
     return sorted(zip(*(c.tolist() for c in cols), strict=True))
 
 
+@pytest.mark.parametrize("ladder", [False, True])
 @pytest.mark.parametrize("hold", [False, True])
 @pytest.mark.parametrize("name", CAMERAS)
-def test_vectorised_equals_naive_reference(tree: TileTree, name: str, hold: bool) -> None:
-    opts = SelectOptions(hold_parent_grid=hold)
-    cam = _clip(CAMERAS[name])
-    sel = select(opts, cam, tree)
-    assert sel.count > 0
-    assert _tiles(sel) == sorted(select_reference(opts, cam, tree))
-    moved = cam.moved(alt=cam.alt * 0.8)
-    again = select(opts, moved, tree, previous=sel)
-    assert _tiles(again) == sorted(select_reference(opts, moved, tree, previous=sel))
-
-
-@pytest.mark.parametrize("hold", [False, True])
-@pytest.mark.parametrize("name", CAMERAS)
-def test_vectorised_equals_naive_reference_on_the_error_ladder(
-    tree: TileTree, name: str, hold: bool
+def test_vectorised_equals_naive_reference(
+    tree: TileTree, name: str, hold: bool, ladder: bool
 ) -> None:
-    """The TINs' ladder: rungs below its split rung cost as much as it where a tile can split
-    (a tile that meets no rung splits, or is drawn at the split rung and held from it), all
-    its rungs on the finest level."""
+    """On the tree's grids and on the TINs' ladder over it, whose rungs below its split rung
+    cost as much as it where a tile can split (a tile that meets no rung splits, or is drawn
+    at the split rung and held from it), all its rungs on the finest level."""
     from lodscape.terrain.tin_tiles import SPLIT_RUNG, ErrorLadder
 
-    ladder = ErrorLadder(tree)
+    over = ErrorLadder(tree) if ladder else tree
     opts = SelectOptions(hold_parent_grid=hold)
     cam = _clip(CAMERAS[name])
-    sel = select(opts, cam, ladder)
+    sel = select(opts, cam, over)
     assert sel.count > 0
-    assert _tiles(sel) == sorted(select_reference(opts, cam, ladder))
-    split = sel.z < tree.zmax
-    assert np.all(sel.grid[split] <= SPLIT_RUNG)
+    assert _tiles(sel) == sorted(select_reference(opts, cam, over))
+    if ladder:
+        assert np.all(sel.grid[sel.z < tree.zmax] <= SPLIT_RUNG)
     moved = cam.moved(alt=cam.alt * 0.8)
-    again = select(opts, moved, ladder, previous=sel)
-    assert _tiles(again) == sorted(select_reference(opts, moved, ladder, previous=sel))
+    again = select(opts, moved, over, previous=sel)
+    assert _tiles(again) == sorted(select_reference(opts, moved, over, previous=sel))
 
 
 def test_the_hysteresis_carries_between_the_frames_of_a_motion_not_across_a_cut(

@@ -62,9 +62,9 @@ LADDER: tuple[float, ...] = (*(2.0 ** (1 - k / 4) for k in range(23)), 0.0)
 #: error); where it needs less it splits, and the rungs below (and the whole grid) are for the
 #: tiles that cannot: the finest level's, a tileset's leaves. Four children, each cut by its
 #: own error and its own distance, draw fewer triangles than their parent cut finer: on the
-#: 2049² fBm's views 38-62 % fewer than when tiles split only below 0.125 (and two to three
-#: times the tiles), the measured error's 99.9th percentile up from 1.06-1.55 px to 1.53-1.62
-#: (BENCHMARKS, ninth pass).
+#: spine's views (``bench_spine.py``) 34-46 % fewer than sixteen rungs splitting below 0.125
+#: (on 1.6-1.8 times the tiles), the measured error's 99.9th percentile up from 1.06-1.46 px
+#: to 1.15-1.57 (BENCHMARKS, ninth pass).
 SPLIT_RUNG = 10
 _LADDER = np.asarray(LADDER, np.float64)[:, None]
 
