@@ -157,6 +157,51 @@ def test_the_ladder_keeps_the_whole_grid_for_tiles_that_cannot_split(tmp_path: P
         scene.close()
 
 
+def test_a_rung_change_cuts_the_kept_rtin_again(tmp_path: Path) -> None:
+    """A tile met at another rung (the camera moved) is cut from its kept RTIN: no heights
+    read again, the same mesh as one made from nothing."""
+    path = tmp_path / "dem.tif"
+    write_dem(str(path), periodic_fbm(256, seed=5, relief=400.0), crs="EPSG:32617",
+              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
+    scene = lodscape.open(path, lodscape.SceneOptions(meshes="tin"))
+    try:
+        provider = scene.provider
+        tree = scene.tree
+        assert isinstance(tree, ErrorLadder)
+        reads: list[int] = []
+        sample_grid = provider.source.sample_grid
+
+        def counted(*args: Any) -> Any:
+            reads.append(1)
+            return sample_grid(*args)
+
+        provider.source.sample_grid = counted  # type: ignore[method-assign]
+        x, y = _some_tiles(tree, tree.zmax)
+        z, tx, ty = tree.zmax, int(x[0]), int(y[0])
+        tid = tile_id(Tile(tx, ty, z))
+        first = provider.fetch(mesh_key(tid, 3))
+        provider.decode(mesh_key(tid, 3), first)  # meshed once: its RTIN kept
+        assert len(reads) == 1
+        heights = np.frombuffer(first, np.float32).reshape(65, 65)
+        for slot in (3, 9, 17, len(LADDER) - 1):
+            key = mesh_key(tid, slot)
+            data = provider.fetch(key)
+            assert data == first
+            got = provider.decode(key, data)
+            fresh = tin_tile_mesh(key, z, tx, ty, heights, tree.threshold(z, tx, ty, slot))
+            assert fresh is not None
+            assert got is not None
+            assert np.array_equal(got.indices, fresh.indices)
+            assert np.array_equal(got.vertices, fresh.vertices)
+            assert np.array_equal(got.center, fresh.center)
+        assert len(reads) == 1  # the heights were read once
+        # the mesh at the whole grid has every vertex; the coarser rungs fewer
+        coarse = provider.decode(mesh_key(tid, 3), first)
+        assert coarse.vertices.shape[0] < got.vertices.shape[0]
+    finally:
+        scene.close()
+
+
 def test_grids_are_split_before_a_tile_takes_its_finest(tmp_path: Path) -> None:
     """Frames that geomorph draw regular grids: a tile that can split is not drawn with its
     finest grid (it costs its next grid's error, so a tile that needs it splits); the finest

@@ -7,13 +7,15 @@ Every method but ``close`` is safe to call from worker threads; none touches the
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Sequence
 from typing import Any, Protocol, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
-from lodscape.geo.keys import MAX_LAYERS, grid_of, is_texture, layer_of, tile_of
+from lodscape._lru import ByteLRU
+from lodscape.geo.keys import MAX_LAYERS, grid_of, is_texture, layer_of, tile_id_of, tile_of
 from lodscape.geo.tiles import ORIGIN, Bbox, lonlat_to_merc, merc_to_lonlat, tile_size
 from lodscape.imagery import TintImagery
 from lodscape.imagery.sources import ImageryError
@@ -22,7 +24,7 @@ from lodscape.terrain.lazy import open_tree
 from lodscape.terrain.mesh import TileMesh, build_mesh, grid_coordinates
 from lodscape.terrain.pyramid import RefinedTree, TileTree
 from lodscape.terrain.source import Fill, HeightSource
-from lodscape.terrain.tin_tiles import ErrorLadder, SplitBeforeFinest, tin_tile_mesh
+from lodscape.terrain.tin_tiles import ErrorLadder, SplitBeforeFinest, TinTile
 
 __all__ = [
     "FractalProvider",
@@ -125,6 +127,12 @@ def fill_of(source: Any) -> Fill:
     return Fill("none")
 
 
+#: Bytes of the tiles' uncut RTINs (``TinTile``: heights and errors, about 85 KB a 65² tile)
+#: a raster meshed by error keeps, the most recently meshed: a tile cut at another rung (the
+#: camera moved) is a cut alone, not heights read and errors measured again.
+TIN_CACHE_BYTES = 32 << 20
+
+
 class RasterProvider:
     """A height source meshed on the fly: regular grids per tile, or RTINs cut by error
     (``mesh_by_error``); tint + hillshade imagery."""
@@ -153,6 +161,10 @@ class RasterProvider:
             alpha=alpha,
             sea_level=sea_level,
         )
+        # the RTINs of the tiles meshed by error lately, by tile id (fetch and decode run on
+        # the loader's workers)
+        self._tins: ByteLRU[int, TinTile] = ByteLRU()
+        self._tins_lock = threading.Lock()
 
     def ground_height(self, lon: float, lat: float) -> float | None:
         xm, ym = lonlat_to_merc([lon], [lat])
@@ -181,6 +193,12 @@ class RasterProvider:
         t = tile_of(key)
         if is_texture(key):
             return self.imagery.texture(t.z, t.x, t.y).tobytes()
+        if isinstance(self.tree, ErrorLadder):
+            # every ladder slot meshes the same grid: a tile met before has its heights
+            with self._tins_lock:
+                kept = self._tins.get(tile_id_of(key))
+            if kept is not None:
+                return kept.data
         segments = self.tree.grids[grid_of(key)]
         xs, ys = grid_coordinates(t.z, t.x, t.y, segments)
         spacing = float(tile_size(t.z)) / segments
@@ -202,10 +220,25 @@ class RasterProvider:
         heights = np.frombuffer(data, dtype=np.float32).reshape(s, s)
         if isinstance(self.tree, ErrorLadder):
             bound = self.tree.threshold(t.z, t.x, t.y, grid_of(key))
-            made = tin_tile_mesh(key, t.z, t.x, t.y, heights, bound)
+            made = self._tin(key, heights, data).mesh(key, bound)
             if made is not None:
                 return made
         return build_mesh(key, t.z, t.x, t.y, heights)
+
+    def _tin(self, key: int, heights: NDArray[np.float32], data: bytes) -> TinTile:
+        """Tile ``key``'s uncut RTIN of ``heights``: the one kept where it has the same heights
+        (a rung change), else made and kept."""
+        tid = tile_id_of(key)
+        with self._tins_lock:
+            kept = self._tins.get(tid)
+        if kept is not None and kept.data == data:
+            return kept
+        t = tile_of(key)
+        made = TinTile(t.z, t.x, t.y, heights, bytes(data))
+        with self._tins_lock:
+            self._tins.put(tid, made, made.nbytes)
+            self._tins.shrink(TIN_CACHE_BYTES)
+        return made
 
     def mesh_by_error(self) -> None:
         """Mesh tiles as RTINs cut at the error each frame allows (``terrain.tin_tiles``)
@@ -254,6 +287,12 @@ class FractalProvider(RasterProvider):
         t = tile_of(key)
         if is_texture(key):
             return self.imagery.texture(t.z, t.x, t.y).tobytes()
+        if isinstance(self.tree, ErrorLadder):
+            # every ladder slot meshes the same grid: a tile met before has its heights
+            with self._tins_lock:
+                kept = self._tins.get(tile_id_of(key))
+            if kept is not None:
+                return kept.data
         segments = self.tree.grids[grid_of(key)]
         return bytes(self.heights.tile(t.z, t.x, t.y, segments).tobytes())
 

@@ -44,6 +44,7 @@ __all__ = [
     "SPLIT_RUNG",
     "ErrorLadder",
     "SplitBeforeFinest",
+    "TinTile",
     "cache_order",
     "ladder_errors",
     "ladder_threshold",
@@ -198,35 +199,65 @@ def cache_order(verts: NDArray[np.integer], tris: NDArray[np.integer]) -> NDArra
     return tris[np.argsort(z[cx] | (z[cy] << 1), kind="stable")]
 
 
+class TinTile:
+    """A tile's RTIN before any cut: its (S+1)² grid ``heights`` (row 0 north, S a power of
+    two; ``data``: the bytes a provider fetched them as, if any), where they stand, and the
+    RTIN's errors; ``mesh`` cuts it at any bound. A tile's ladder slots all mesh the same grid, so a
+    provider that keeps a tile's ``TinTile`` makes a rung change a cut alone: no heights read,
+    no errors measured again (``store.provider.RasterProvider``)."""
+
+    def __init__(
+        self, z: int, x: int, y: int, heights: NDArray[np.floating], data: bytes = b""
+    ) -> None:
+        self.z, self.x, self.y = z, x, y
+        self.data = data
+        self.heights = np.asarray(heights, np.float64)
+        s = self.heights.shape[0] - 1
+        #: Not all heights finite: no RTIN (a regular grid is made instead).
+        self.finite = bool(np.isfinite(self.heights).all())
+        xs, ys = grid_coordinates(z, x, y, s)
+        self.lon, self.lat = merc_to_lonlat(xs, ys)
+        self.errors: NDArray[np.float64] | None = None
+        if self.finite:
+            lon = np.broadcast_to(self.lon[None, :], self.heights.shape)
+            lat = np.broadcast_to(self.lat[:, None], self.heights.shape)
+            # heights above the tangent plane at the centre: the RTIN's flat triangles are
+            # measured against the curved lattice, sag included
+            mid = s // 2
+            c = geodetic_to_ecef(float(self.lon[mid]), float(self.lat[mid]), 0.0)
+            up = up_vector(float(self.lon[mid]), float(self.lat[mid]))
+            above = (geodetic_to_ecef(lon, lat, self.heights) - c) @ up
+            self.errors = rtin_numpy.errors(above)
+
+    @property
+    def nbytes(self) -> int:
+        errors = 0 if self.errors is None else self.errors.nbytes
+        return len(self.data) + self.heights.nbytes + errors
+
+    def mesh(self, key: int, threshold: float) -> TileMesh | None:
+        """The RTIN mesh within ``threshold`` metres of every grid point, with skirts; None
+        where the heights are not all finite."""
+        if self.errors is None:
+            return None
+        s = self.heights.shape[0] - 1
+        verts, tris = rtin_numpy.mesh(self.errors, max(float(threshold), 0.0))
+        ordered = cache_order(verts, tris)
+        col = verts[:, 0].astype(np.int64)
+        row = verts[:, 1].astype(np.int64)
+        sides = [
+            np.nonzero(col == 0)[0],
+            np.nonzero(row == s)[0],
+            np.nonzero(col == s)[0],
+            np.nonzero(row == 0)[0],
+        ]
+        lon, lat, h = self.lon[col], self.lat[row], self.heights[row, col]
+        return tin_mesh(key, self.z, self.x, self.y, lon, lat, h, ordered, sides)
+
+
 def tin_tile_mesh(
     key: int, z: int, x: int, y: int, heights: NDArray[np.floating], threshold: float
 ) -> TileMesh | None:
     """Tile (z, x, y)'s RTIN mesh of its (S+1)² grid ``heights`` (row 0 north, S a power of
     two), within ``threshold`` metres of every grid point, with skirts; None where the heights
     are not all finite (a regular grid is made instead)."""
-    h = np.asarray(heights, np.float64)
-    s = h.shape[0] - 1
-    if not np.isfinite(h).all():
-        return None
-    xs, ys = grid_coordinates(z, x, y, s)
-    lon, lat = merc_to_lonlat(xs[None, :], ys[:, None])
-    lon = np.broadcast_to(lon, h.shape)
-    lat = np.broadcast_to(lat, h.shape)
-    # heights above the tangent plane at the centre: the RTIN's flat triangles are measured
-    # against the curved lattice, sag included
-    mid = s // 2
-    c = geodetic_to_ecef(float(lon[mid, mid]), float(lat[mid, mid]), 0.0)
-    up = up_vector(float(lon[mid, mid]), float(lat[mid, mid]))
-    p = geodetic_to_ecef(lon, lat, h)
-    above = (p - c) @ up
-    verts, tris = rtin_numpy.mesh(rtin_numpy.errors(above), max(float(threshold), 0.0))
-    ordered = cache_order(verts, tris)
-    col = verts[:, 0].astype(np.int64)
-    row = verts[:, 1].astype(np.int64)
-    sides = [
-        np.nonzero(col == 0)[0],
-        np.nonzero(row == s)[0],
-        np.nonzero(col == s)[0],
-        np.nonzero(row == 0)[0],
-    ]
-    return tin_mesh(key, z, x, y, lon[row, col], lat[row, col], h[row, col], ordered, sides)
+    return TinTile(z, x, y, heights).mesh(key, threshold)
