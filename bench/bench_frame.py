@@ -1,10 +1,15 @@
 """Frame benchmark: selections per frame and CPU time per frame, for this checkout and (with
 ``--before REV``) an earlier commit of the repository, in one script.
 
-Three workloads, through the public API only (so an older lodscape runs them too):
+Four workloads, through the public API only (so an older lodscape runs them too):
 - **views**: the spine's four test views (straight down, oblique, low and grazing, steep and
   near) of a 2049² spectral fBm DEM at 1280×720, one-shot renders (the blocking loader), each
   drawn ``--repeat`` times once everything is resident;
+- **moving**: a camera moving by one-shot renders, as a script rendering a video frame by
+  frame does: from the oblique view, 10 m lower and turned 1° each frame, ``MOVING_FRAMES``
+  frames after the first (loaded apart); per frame the wall time and the CPU the engine
+  reports (selection and loading: the tiles that come into view, and the tiles cut at
+  another bound, since TINs are cut at what the frame allows);
 - **flight**: the issue-4 flight (300 m/s, 300 m above the smoothed ground, 30 frames/s,
   640×360, 16 MiB per stage) over the same DEM built into a tileset, streaming on a simulated
   clock;
@@ -24,7 +29,7 @@ both, the whole frame's wall time and the CPU time of the frame's thread. Median
 ``--rounds`` the two commits run in turn and each ratio is the median over the rounds, with
 its range.
 
-    python bench/bench_frame.py [--before REV] [--rounds 3] [--only globe] [--work DIR]
+    python bench/bench_frame.py [--before REV] [--rounds 3] [--only views|moving|globe] [--work DIR]
         [--seconds 10] [--repeat 7]
 """
 
@@ -40,6 +45,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +58,8 @@ from _synthetic import spine_views
 from bench_flight import BUDGET_MB, FPS, cameras, dataset
 
 ROOT = Path(__file__).resolve().parents[1]
+#: Frames of the moving workload.
+MOVING_FRAMES = 30
 
 
 class Counter:
@@ -142,6 +150,26 @@ def measure_globe(dem: Path, repeat: int) -> dict[str, Any]:
     return out
 
 
+def measure_moving(dem: Path) -> dict[str, Any]:
+    """One-shot renders of a moving camera (the moving workload)."""
+    with lodscape.open(dem, SceneOptions(anisotropy=1.0)) as scene:
+        start = spine_views(scene, 1280, 720)["oblique"]
+        scene.render(start)  # the first picture, loaded apart
+        total, cpu = [], []
+        for i in range(1, MOVING_FRAMES + 1):
+            cam = replace(start, heading=start.heading + i, alt=start.alt - 10.0 * i)
+            t = time.perf_counter()
+            scene.render(cam)
+            total.append((time.perf_counter() - t) * 1e3)
+            assert scene.last is not None
+            cpu.append(scene.last.select_ms + scene.last.load_ms)
+    return {
+        "frame_ms": statistics.median(total),
+        "cpu_ms": statistics.median(cpu),
+        "range_ms": [round(min(total), 1), round(max(total), 1)],
+    }
+
+
 def measure(
     dem: Path, tileset: Path, seconds: float, repeat: int, only: str | None = None
 ) -> dict[str, Any]:
@@ -153,6 +181,8 @@ def measure(
 
     if only == "globe":
         return {"lodscape": lodscape.__file__, "globe": measure_globe(dem, repeat)}
+    if only == "moving":
+        return {"lodscape": lodscape.__file__, "moving": measure_moving(dem)}
     views_only = only == "views"
 
     with contextlib.suppress(ImportError):
@@ -184,6 +214,7 @@ def measure(
             }
     if views_only:
         return out
+    out["moving"] = measure_moving(dem)
     cams = cameras(dem, seconds)
     opts = SceneOptions(gpu_budget_mb=BUDGET_MB, anisotropy=1.0, stream=StreamOptions())
     main0, work0 = counter.main, counter.workers
@@ -208,6 +239,12 @@ def _report(label: str, r: dict[str, Any]) -> None:
             f"  view {name:<11} selections/frame {v['selections']:.0f}  "
             f"CPU {v['cpu_ms']:6.2f} ms  whole frame {v['frame_ms']:6.1f} ms  frame's thread "
             f"{v['thread_ms']:6.1f} ms  camera fit {v['fit_ms']:5.2f} ms"
+        )
+    m = r.get("moving")
+    if m is not None:
+        print(
+            f"  moving ({MOVING_FRAMES} one-shot frames) frame {m['frame_ms']:6.1f} ms "
+            f"{m['range_ms']}  CPU {m['cpu_ms']:6.1f} ms"
         )
     f = r.get("flight")
     if f is not None:
@@ -264,7 +301,9 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=None, help="keep the DEM and tileset here")
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--repeat", type=int, default=7)
-    ap.add_argument("--only", choices=["views", "globe"], default=None, help="one workload")
+    ap.add_argument(
+        "--only", choices=["views", "moving", "globe"], default=None, help="one workload"
+    )
     ap.add_argument("--rounds", type=int, default=1, help="alternate the commits this often")
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -302,6 +341,9 @@ def main() -> None:
         for name in nows[0].get("views", {}):
             for key in ("cpu_ms", "frame_ms", "thread_ms"):
                 print(_ratios(f"view {name} {key.split('_')[0]}", pairs("views", name, key)))
+        if "moving" in nows[0]:
+            for key in ("cpu_ms", "frame_ms"):
+                print(_ratios(f"moving {key.split('_')[0]}", pairs("moving", key)))
         if "flight" in nows[0]:
             print(_ratios("flight CPU", pairs("flight", "cpu_ms")))
         for name in nows[0].get("globe", {}):
