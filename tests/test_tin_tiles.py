@@ -157,6 +157,47 @@ def test_the_ladder_keeps_the_whole_grid_for_tiles_that_cannot_split(tmp_path: P
         scene.close()
 
 
+def test_the_level_above_the_finest_is_cut_from_the_truth(tmp_path: Path) -> None:
+    """Tiles one level above the finest are meshed from the grid twice as fine as their finest,
+    the truth the tree measures against (their children's finest grids): a slot costs its bound
+    alone, not plus the finest grid's own error, and the mesh keeps it against the truth."""
+    path = tmp_path / "dem.tif"
+    write_dem(str(path), periodic_fbm(256, seed=4, relief=500.0), crs="EPSG:32617",
+              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
+    scene = lodscape.open(path, lodscape.SceneOptions(meshes="tin"))
+    try:
+        tree = scene.tree
+        assert isinstance(tree, ErrorLadder)
+        z = tree.from_truth
+        assert z == tree.zmax - 1
+        assert (tree.segments(z), tree.segments(z + 1)) == (128, 64)
+        x, y = _some_tiles(tree, z)
+        got = tree.level(z).stats(x, y).error
+        base = tree.base.level(z).stats(x, y).error
+        bounds = (np.asarray(LADDER)[:, None] * base[0]).astype(np.float32)
+        rungs = slice(0, SPLIT_RUNG + 1)
+        assert np.array_equal(got[rungs], bounds[rungs])
+        # the sum the other levels pay: the finest grid misses the truth
+        assert np.all(ladder_errors(base)[rungs] > got[rungs])
+        provider = scene.provider
+        for i in range(min(4, x.size)):
+            tx, ty = int(x[i]), int(y[i])
+            key = mesh_key(tile_id(Tile(tx, ty, z)), 6)
+            data = provider.fetch(key)
+            h = np.frombuffer(data, np.float32).reshape(129, 129)
+            mesh = provider.decode(key, data)
+            bound = tree.threshold(z, tx, ty, 6)
+            assert _lattice_error(z, tx, ty, h, mesh) <= bound * 1.001 + 0.05
+            # the grid is the truth: the children's finest grids, sampled on their own
+            for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+                child = mesh_key(tile_id(Tile(2 * tx + dx, 2 * ty + dy, z + 1)), 0)
+                ch = np.frombuffer(provider.fetch(child), np.float32).reshape(65, 65)
+                part = h[64 * dy : 64 * dy + 65, 64 * dx : 64 * dx + 65]
+                assert np.allclose(part, ch, atol=0.01), float(np.abs(part - ch).max())
+    finally:
+        scene.close()
+
+
 def test_a_rung_change_cuts_the_kept_rtin_again(tmp_path: Path) -> None:
     """A tile met at another rung (the camera moved) is cut from its kept RTIN: no heights
     read again, the same mesh as one made from nothing."""

@@ -199,7 +199,9 @@ class RasterProvider:
                 kept = self._tins.get(tile_id_of(key))
             if kept is not None:
                 return kept.data
-        segments = self.tree.grids[grid_of(key)]
+            segments = self.tree.segments(t.z)
+        else:
+            segments = self.tree.grids[grid_of(key)]
         xs, ys = grid_coordinates(t.z, t.x, t.y, segments)
         spacing = float(tile_size(t.z)) / segments
         # the protocol's grid sampling projects a lattice and the edges, not every point; a
@@ -216,25 +218,29 @@ class RasterProvider:
         if is_texture(key):
             n = self.imagery.tile_size
             return np.frombuffer(data, dtype=np.uint8).reshape(n, n, 4)
-        s = self.tree.grids[grid_of(key)] + 1
-        heights = np.frombuffer(data, dtype=np.float32).reshape(s, s)
         if isinstance(self.tree, ErrorLadder):
             bound = self.tree.threshold(t.z, t.x, t.y, grid_of(key))
-            made = self._tin(key, heights, data).mesh(key, bound)
-            if made is not None:
-                return made
+            tin = self._tin(key, data)
+            made = tin.mesh(key, bound)
+            # heights not all finite: the regular grid they were sampled on
+            return build_mesh(key, t.z, t.x, t.y, tin.heights) if made is None else made
+        s = self.tree.grids[grid_of(key)] + 1
+        heights = np.frombuffer(data, dtype=np.float32).reshape(s, s)
         return build_mesh(key, t.z, t.x, t.y, heights)
 
-    def _tin(self, key: int, heights: NDArray[np.float32], data: bytes) -> TinTile:
-        """Tile ``key``'s uncut RTIN of ``heights``: the one kept where it has the same heights
-        (a rung change), else made and kept."""
+    def _tin(self, key: int, data: bytes) -> TinTile:
+        """Tile ``key``'s uncut RTIN of its heights ``data``: the one kept where it has the same
+        heights (a rung change), else made and kept."""
         tid = tile_id_of(key)
         with self._tins_lock:
             kept = self._tins.get(tid)
         if kept is not None and kept.data == data:
             return kept
         t = tile_of(key)
-        made = TinTile(t.z, t.x, t.y, heights, bytes(data))
+        data = bytes(data)
+        s = self.tree.segments(t.z) + 1
+        heights = np.frombuffer(data, dtype=np.float32).reshape(s, s)
+        made = TinTile(t.z, t.x, t.y, heights, data)
         with self._tins_lock:
             self._tins.put(tid, made, made.nbytes)
             self._tins.shrink(TIN_CACHE_BYTES)

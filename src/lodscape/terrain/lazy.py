@@ -301,6 +301,8 @@ class LazyTree:
 
     twist = None
     roughness = None
+    #: The finest level's finest grid samples the truth (``pyramid.TileTree``'s).
+    finest_is_truth = True
 
     def __init__(
         self,

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -150,6 +150,9 @@ class TileTree:
     twist: NDArray[np.float32] | None = None
     #: RMS height difference between neighbouring points of the data's lattice, metres.
     roughness: float | None = None
+    #: The finest level's finest grid samples the truth its errors are measured against: the
+    #: grid twice as fine one level up is the truth's (``terrain.tin_tiles.ErrorLadder``).
+    finest_is_truth: ClassVar[bool] = True
 
     @property
     def zmin(self) -> int:

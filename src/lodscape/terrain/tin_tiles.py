@@ -9,8 +9,10 @@ its error is on screen. An RTIN (``terrain.rtin``) splits only where its error b
 The selection needs each candidate mesh's error before any mesh is made, so a tile's candidates
 are a fixed ladder of bounds, ``LADDER[j]`` times its coarsest grid's recorded error (the tile's
 roughness at its own scale), the last one 0 (the whole grid). Slot j's error is its bound plus
-the finest grid's own recorded error against the data (one triangle inequality): ``ErrorLadder``
-wraps a tile tree so that its statistics give those errors per slot, and the selection picks the
+the finest grid's own recorded error against the data (one triangle inequality), except on the
+level above the finest, whose tiles are meshed from a grid twice as fine: the data's own (the
+truth the tree measures against), so a slot's error is its bound alone. ``ErrorLadder`` wraps a
+tile tree so that its statistics give those errors per slot, and the selection picks the
 coarsest slot within ``max_sse`` as it picked the coarsest grid. A mesh key names the tile and
 the slot (``geo.keys``' grid index).
 
@@ -145,12 +147,37 @@ class ErrorLadder(_Over):
 
     def __init__(self, tree: Any) -> None:
         super().__init__(tree)
-        #: Every slot meshes the base tree's finest grid.
+        #: Every slot meshes the base tree's finest grid (twice as fine on ``from_truth``).
         object.__setattr__(self, "grids", (int(tree.grids[-1]),) * len(LADDER))
+        #: The level whose tiles are meshed from the truth itself: the one above the finest,
+        #: whose grid twice as fine as its finest is the truth's where the tree's finest
+        #: level's finest grid samples the truth (``finest_is_truth``: ``terrain.pyramid``'s
+        #: and ``terrain.lazy``'s trees; not a server's). Its RTINs are measured against the
+        #: data, not against a grid that misses it by that grid's own error, so its slots
+        #: cost their bounds alone: on the 2049² fBm's oblique view that sum was a third of
+        #: its tiles' charge. None: no such level.
+        top = int(tree.zmax) - 1
+        truth = getattr(tree, "finest_is_truth", False) and top >= int(tree.zmin)
+        object.__setattr__(self, "from_truth", top if truth else None)
+
+    def level(self, z: int) -> _Level:
+        if z == self.from_truth:
+            return _Level(self.base.level(z), False, self._truth_errors)
+        return super().level(z)
+
+    def segments(self, z: int) -> int:
+        """Segments a side of the grid level ``z``'s tiles are meshed from."""
+        return int(self.grids[-1]) * (2 if z == self.from_truth else 1)
 
     def _errors(self, st: TileStats, finest: bool) -> NDArray[np.float32]:
         err = ladder_errors(st.error)
         return err if finest else _split_first(err, st, SPLIT_RUNG)
+
+    def _truth_errors(self, st: TileStats, finest: bool) -> NDArray[np.float32]:
+        """A tile meshed from the truth: each slot's error is its bound (the whole grid's, 0)."""
+        e = np.asarray(st.error, np.float64)
+        err: NDArray[np.float32] = (_LADDER * e[0]).astype(np.float32)
+        return _split_first(err, st, SPLIT_RUNG)
 
     def threshold(self, z: int, x: int, y: int, slot: int) -> float:
         """The RTIN bound of tile (z, x, y)'s ladder slot, from its recorded grid errors."""
@@ -211,7 +238,7 @@ class TinTile:
     ) -> None:
         self.z, self.x, self.y = z, x, y
         self.data = data
-        self.heights = np.asarray(heights, np.float64)
+        self.heights = np.asarray(heights)
         s = self.heights.shape[0] - 1
         #: Not all heights finite: no RTIN (a regular grid is made instead).
         self.finite = bool(np.isfinite(self.heights).all())
@@ -226,13 +253,14 @@ class TinTile:
             mid = s // 2
             c = geodetic_to_ecef(float(self.lon[mid]), float(self.lat[mid]), 0.0)
             up = up_vector(float(self.lon[mid]), float(self.lat[mid]))
-            above = (geodetic_to_ecef(lon, lat, self.heights) - c) @ up
+            above = (geodetic_to_ecef(lon, lat, self.heights.astype(np.float64)) - c) @ up
             self.errors = rtin_numpy.errors(above)
 
     @property
     def nbytes(self) -> int:
+        # the heights are a view of ``data`` where it was given
         errors = 0 if self.errors is None else self.errors.nbytes
-        return len(self.data) + self.heights.nbytes + errors
+        return (len(self.data) or self.heights.nbytes) + errors
 
     def mesh(self, key: int, threshold: float) -> TileMesh | None:
         """The RTIN mesh within ``threshold`` metres of every grid point, with skirts; None
@@ -250,7 +278,8 @@ class TinTile:
             np.nonzero(col == s)[0],
             np.nonzero(row == 0)[0],
         ]
-        lon, lat, h = self.lon[col], self.lat[row], self.heights[row, col]
+        lon, lat = self.lon[col], self.lat[row]
+        h = self.heights[row, col].astype(np.float64)
         return tin_mesh(key, self.z, self.x, self.y, lon, lat, h, ordered, sides)
 
 
