@@ -23,6 +23,7 @@ from lodscape.terrain.pyramid import TileStats
 from lodscape.terrain.tin_tiles import (
     LADDER,
     SPLIT_RUNG,
+    TRUTH_SPLIT_RUNG,
     ErrorLadder,
     SplitBeforeFinest,
     cache_order,
@@ -175,8 +176,10 @@ def test_the_level_above_the_finest_is_cut_from_the_truth(tmp_path: Path) -> Non
         got = tree.level(z).stats(x, y).error
         base = tree.base.level(z).stats(x, y).error
         bounds = (np.asarray(LADDER)[:, None] * base[0]).astype(np.float32)
-        rungs = slice(0, SPLIT_RUNG + 1)
+        rungs = slice(0, TRUTH_SPLIT_RUNG + 1)
         assert np.array_equal(got[rungs], bounds[rungs])
+        # finer than its split rung it splits (the rest cost what that rung does)
+        assert np.all(got[TRUTH_SPLIT_RUNG + 1 :] == got[TRUTH_SPLIT_RUNG])
         # the sum the other levels pay: the finest grid misses the truth
         assert np.all(ladder_errors(base)[rungs] > got[rungs])
         provider = scene.provider
