@@ -4,6 +4,8 @@ with them keeps the screen-space bound on far fewer triangles than the grids."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -130,11 +132,7 @@ def test_the_ladder_charges_each_slot_its_bound_over_the_finest_grid() -> None:
 
 
 def test_the_ladder_keeps_the_whole_grid_for_tiles_that_cannot_split(tmp_path: Path) -> None:
-    path = tmp_path / "dem.tif"
-    write_dem(str(path), periodic_fbm(256, seed=2, relief=500.0), crs="EPSG:32617",
-              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
-    scene = lodscape.open(path, lodscape.SceneOptions(meshes="tin"))
-    try:
+    with _tin_scene(tmp_path, seed=2) as scene:
         tree = scene.tree
         assert isinstance(tree, ErrorLadder)
         assert tree.grids == (64,) * len(LADDER)
@@ -154,19 +152,13 @@ def test_the_ladder_keeps_the_whole_grid_for_tiles_that_cannot_split(tmp_path: P
             else:  # the finest level's tiles have every rung, and the whole grid
                 assert np.array_equal(st.error, mine)
                 assert np.allclose(st.error[-1], base[-1])
-    finally:
-        scene.close()
 
 
 def test_the_level_above_the_finest_is_cut_from_the_truth(tmp_path: Path) -> None:
     """Tiles one level above the finest are meshed from the grid twice as fine as their finest,
     the truth the tree measures against (their children's finest grids): a slot costs its bound
     alone, not plus the finest grid's own error, and the mesh keeps it against the truth."""
-    path = tmp_path / "dem.tif"
-    write_dem(str(path), periodic_fbm(256, seed=4, relief=500.0), crs="EPSG:32617",
-              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
-    scene = lodscape.open(path, lodscape.SceneOptions(meshes="tin"))
-    try:
+    with _tin_scene(tmp_path, seed=4) as scene:
         tree = scene.tree
         assert isinstance(tree, ErrorLadder)
         z = tree.from_truth
@@ -197,18 +189,12 @@ def test_the_level_above_the_finest_is_cut_from_the_truth(tmp_path: Path) -> Non
                 ch = np.frombuffer(provider.fetch(child), np.float32).reshape(65, 65)
                 part = h[64 * dy : 64 * dy + 65, 64 * dx : 64 * dx + 65]
                 assert np.allclose(part, ch, atol=0.01), float(np.abs(part - ch).max())
-    finally:
-        scene.close()
 
 
 def test_a_rung_change_cuts_the_kept_rtin_again(tmp_path: Path) -> None:
     """A tile met at another rung (the camera moved) is cut from its kept RTIN: no heights
     read again, the same mesh as one made from nothing."""
-    path = tmp_path / "dem.tif"
-    write_dem(str(path), periodic_fbm(256, seed=5, relief=400.0), crs="EPSG:32617",
-              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
-    scene = lodscape.open(path, lodscape.SceneOptions(meshes="tin"))
-    try:
+    with _tin_scene(tmp_path, seed=5, relief=400.0) as scene:
         provider = scene.provider
         tree = scene.tree
         assert isinstance(tree, ErrorLadder)
@@ -242,8 +228,6 @@ def test_a_rung_change_cuts_the_kept_rtin_again(tmp_path: Path) -> None:
         # the mesh at the whole grid has every vertex; the coarser rungs fewer
         coarse = provider.decode(mesh_key(tid, 3), first)
         assert coarse.vertices.shape[0] < got.vertices.shape[0]
-    finally:
-        scene.close()
 
 
 def test_grids_are_split_before_a_tile_takes_its_finest(tmp_path: Path) -> None:
@@ -253,9 +237,7 @@ def test_grids_are_split_before_a_tile_takes_its_finest(tmp_path: Path) -> None:
     from lodscape.lod.select import SelectOptions, select
     from test_screen_error import _cameras
 
-    path = tmp_path / "dem.tif"
-    write_dem(str(path), periodic_fbm(256, seed=2, relief=500.0), crs="EPSG:32617",
-              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
+    path = _fbm_dem(tmp_path, seed=2, relief=500.0)
     streamed = lodscape.open(path, lodscape.SceneOptions(stream=StreamOptions()))
     still = lodscape.open(path, lodscape.SceneOptions(meshes="grid"))
     try:
@@ -290,6 +272,24 @@ def test_grids_are_split_before_a_tile_takes_its_finest(tmp_path: Path) -> None:
     finally:
         streamed.close()
         still.close()
+
+
+def _fbm_dem(tmp_path: Path, seed: int, relief: float) -> Path:
+    """A 256² fBm (10 m, UTM 17N) written as a GeoTIFF."""
+    path = tmp_path / "dem.tif"
+    write_dem(str(path), periodic_fbm(256, seed=seed, relief=relief), crs="EPSG:32617",
+              west=700000.0, north=4070000.0, res=10.0)  # fmt: skip
+    return path
+
+
+@contextmanager
+def _tin_scene(tmp_path: Path, seed: int, relief: float = 500.0) -> Iterator[Any]:
+    """A scene meshed by error over ``_fbm_dem``."""
+    scene = lodscape.open(_fbm_dem(tmp_path, seed, relief), lodscape.SceneOptions(meshes="tin"))
+    try:
+        yield scene
+    finally:
+        scene.close()
 
 
 def _some_tiles(tree: Any, z: int) -> tuple[np.ndarray, np.ndarray]:
