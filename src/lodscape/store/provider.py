@@ -129,9 +129,8 @@ def fill_of(source: Any) -> Fill:
 
 #: Bytes of the tiles' uncut RTINs (``TinTile``: heights and errors, 51 KB a 65² tile, 200 KB
 #: a 129² one) a raster meshed by error keeps, the most recently meshed: a tile cut at another
-#: rung (the camera moved) is a cut alone, not heights read and errors measured again. The
-#: 2049² fBm's moving camera (``bench_frame.py``) keeps 56 MB; at 32 its loading took a fifth
-#: longer.
+#: rung (the camera moved) is a cut alone, not heights read and errors measured again. Sized
+#: for a frame's tiles on the 2049² fBm's views (300-400, a share of them 129²).
 TIN_CACHE_BYTES = 64 << 20
 
 

@@ -71,11 +71,9 @@ LADDER: tuple[float, ...] = (*(2.0 ** (1 - k / 4) for k in range(23)), 0.0)
 #: to 1.15-1.57 (BENCHMARKS, ninth pass).
 SPLIT_RUNG = 10
 #: The split rung of the level meshed from the truth (``ErrorLadder.from_truth``): 2^-0.5 =
-#: 0.707 of its coarsest grid's error, where that level split while its finest grid's own
-#: error (about 0.3 of the coarsest grid's on the sample, the 2049² fBm and the tests' DEMs)
-#: was part of its charge. At SPLIT_RUNG (cut finer on the finer grid instead of split) the
-#: sample's, the fBm's and the tests' frames drew 2-7 % more triangles (BENCHMARKS, tenth
-#: pass).
+#: 0.707 of its coarsest grid's error, about where that level split while its finest grid's
+#: own error was part of its charge (SPLIT_RUNG plus that error); at SPLIT_RUNG such a tile is
+#: cut finer on its finer grid where four children would draw fewer triangles.
 TRUTH_SPLIT_RUNG = 6
 _LADDER = np.asarray(LADDER, np.float64)[:, None]
 
@@ -162,8 +160,7 @@ class ErrorLadder(_Over):
         #: level's finest grid samples the truth (``finest_is_truth``: ``terrain.pyramid``'s
         #: and ``terrain.lazy``'s trees; not a server's). Its RTINs are measured against the
         #: data, not against a grid that misses it by that grid's own error, so its slots
-        #: cost their bounds alone: on the 2049² fBm's oblique view that sum was a third of
-        #: its tiles' charge. None: no such level.
+        #: cost their bounds alone. None: no such level.
         top = int(tree.zmax) - 1
         truth = getattr(tree, "finest_is_truth", False) and top >= int(tree.zmin)
         object.__setattr__(self, "from_truth", top if truth else None)
@@ -248,12 +245,11 @@ class TinTile:
         self.data = data
         self.heights = np.asarray(heights)
         s = self.heights.shape[0] - 1
-        #: Not all heights finite: no RTIN (a regular grid is made instead).
-        self.finite = bool(np.isfinite(self.heights).all())
         xs, ys = grid_coordinates(z, x, y, s)
         self.lon, self.lat = merc_to_lonlat(xs, ys)
+        #: None where the heights are not all finite: no RTIN (a regular grid is made instead).
         self.errors: NDArray[np.float64] | None = None
-        if self.finite:
+        if np.isfinite(self.heights).all():
             lon = np.broadcast_to(self.lon[None, :], self.heights.shape)
             lat = np.broadcast_to(self.lat[:, None], self.heights.shape)
             # heights above the tangent plane at the centre: the RTIN's flat triangles are
