@@ -19,6 +19,7 @@ from lodscape.lod.camera import EARTH_MIN_RADIUS, MIN_DISTANCE, Camera
 from lodscape.lod.select import (
     SLOPE_ROOM,
     SUB_MAX,
+    SUB_MIN_SPAN,
     SUB_PER_VIEW,
     Selection,
     SelectOptions,
@@ -103,6 +104,8 @@ def _parts(camera: Camera, corners: np.ndarray) -> int:
         ra = np.clip(view[:, 0] / depth, -tx, tx)
         rb = np.clip(view[:, 1] / depth, -ty, ty)
         span = max(float(np.ptp(ra)) / (2 * tx), float(np.ptp(rb)) / (2 * ty))
+    if span < SUB_MIN_SPAN:
+        return 1
     return min(max(math.ceil(span * SUB_PER_VIEW - 1e-9), 1), SUB_MAX)
 
 

@@ -494,6 +494,7 @@ def tile_boxes(
 #: twice as much, for a little more of the bound spent).
 SUB_PER_VIEW = 8
 SUB_MAX = 8
+SUB_MIN_SPAN = 0.25
 
 
 def _sub_count(camera: Camera, corners: F64) -> I64:
@@ -512,6 +513,7 @@ def _sub_count(camera: Camera, corners: F64) -> I64:
     )
     span = np.where(depth.min(axis=-1) < floor, 1.0, span)
     k: I64 = np.clip(np.ceil(span * SUB_PER_VIEW - 1e-9), 1, SUB_MAX).astype(np.int64)
+    k[span < SUB_MIN_SPAN] = 1
     return k
 
 
@@ -537,13 +539,14 @@ def _sub_scales(
     )
     if lo.shape[0] == 0:
         return vertical, horizontal
-    ks = _sub_count(camera, corners)
-    ks[~inside] = 1
-    if parts is not None:
-        ks[~parts(vertical, ground * horizontal)] = 1
-    m = np.flatnonzero(ks > 1)
+    pick = inside if parts is None else inside & parts(vertical, ground * horizontal)
+    m = np.flatnonzero(pick)
+    if m.size == 0:
+        return vertical, horizontal
+    ks = _sub_count(camera, corners[m])
+    m, ks = m[ks > 1], ks[ks > 1]
     if m.size:
-        vertical[m] = _parts_vertical(camera, planes, basis[m], lo[m], hi[m], spread[m], ks[m])
+        vertical[m] = _parts_vertical(camera, planes, basis[m], lo[m], hi[m], spread[m], ks)
     return vertical, horizontal
 
 
