@@ -489,9 +489,10 @@ def tile_boxes(
 #: its nearest corner may be out of view). Its vertical scale (what its height error is charged
 #: at) is the worst of k × k parts side by side, each its full height, in view, with k
 #: SUB_PER_VIEW times the share of the view its image spans, rounded up (at most SUB_MAX): the
-#: parts cover the box, so the worst of them bounds it. Parts an eighth of the view across
-#: cost a selection about a third more CPU than whole boxes on the spine's views (a sixteenth:
-#: twice as much, for a little more of the bound spent).
+#: parts cover the box, so the worst of them bounds it. Boxes spanning less than SUB_MIN_SPAN
+#: of the view are measured whole (their two places are near each other, and a frame has many
+#: of them); so are boxes out of view, boxes that split for their texture whatever their error,
+#: and boxes drawn with their coarsest grid anyway.
 SUB_PER_VIEW = 8
 SUB_MAX = 8
 SUB_MIN_SPAN = 0.25
