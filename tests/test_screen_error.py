@@ -145,8 +145,7 @@ def test_the_bound_holds_on_screen_and_is_used(dem: tuple[Path, np.ndarray, dict
         assert np.all(tails_a <= BOUND + floors_a), (tails, floors)
         # where the frame is much coarser than the data, the bound is spent: a picture's TINs
         # cut each tile where its error reaches its budget (on the geographic DEM their median
-        # is 1.02 px, 0.92 with each box measured whole (``select.SUB_PER_VIEW``), 0.88 with
-        # eight rungs a factor of 1.4 apart; regular grids, a factor of
+        # is 0.92 px, 0.88 with eight rungs a factor of 1.4 apart; regular grids, a factor of
         # two apart in error, about 0.5 px, and fail
         # here; when coarse tiles' errors were sums of bounds level by level, 0.41 px)
         spent = tails_a[np.array(coarse)]

@@ -9,8 +9,7 @@ projection draws them over the tile's box (``Camera.box_scales``: the depth alon
 at its nearest point, never nearer than the near plane, and the worst place of its image):
 H = h·d/Z·σ (paper 000's h·d/dist, σ the most a ground direction stretches there) the most
 pixels its side covers, and a height error e seen as e·d/Z·γ pixels (γ the part of the vertical
-across the line of sight, off-axis stretch included: Lindstrom's projected error, as a bound;
-over a box large on screen, the worst of its parts', ``SUB_PER_VIEW``):
+across the line of sight, off-axis stretch included: Lindstrom's projected error, as a bound):
 - culled when its box (its min/max heights included) lies outside a frustum plane;
 - split when H > split·T; kept split while the previous frame had it split and every child still
   covers merge·T pixels or more (hysteresis, no flicker);
@@ -63,7 +62,7 @@ from lodscape.geo.tiles import (
     tile_from_id_array,
     tile_id_array,
 )
-from lodscape.lod.camera import EARTH_MIN_RADIUS, MIN_DISTANCE, Camera
+from lodscape.lod.camera import EARTH_MIN_RADIUS, Camera
 from lodscape.lod.region import region_view
 
 __all__ = [
@@ -451,7 +450,6 @@ def tile_boxes(
     min_h: NDArray[np.floating],
     max_h: NDArray[np.floating],
     all_round: bool = False,
-    parts: Callable[[F64, F64], NDArray[np.bool_]] | None = None,
 ) -> Boxes:
     """Frustum test and distances for N tiles of one level, each boxed in its local ENU frame.
 
@@ -477,140 +475,12 @@ def tile_boxes(
     if all_round:
         vertical = horizontal = camera.pixels_per_metre(dist_near)
     else:
-        vertical, horizontal = _sub_scales(
-            camera, planes, basis, lo, hi, ground, corners0 - eye, inside, parts
+        corners = corners0 - eye
+        spread = ground * math.sqrt(0.5) / EARTH_MIN_RADIUS
+        vertical, horizontal = camera.box_scales(
+            corners, basis[:, 2], basis[:, 0], basis[:, 1], spread, dist_near
         )
     return Boxes(inside, dist_near, dist_far, ground, centre, vertical, horizontal)
-
-
-#: A box large on screen is measured in parts: ``Camera.box_scales`` charges a box at its
-#: nearest depth and at its image's worst place, which over a box that fills the view are far
-#: apart (a tile under a camera looking down is nearest where its image stretches least, and
-#: its nearest corner may be out of view). Its vertical scale (what its height error is charged
-#: at) is the worst of k × k parts side by side, each its full height, in view, with k
-#: SUB_PER_VIEW times the share of the view its image spans, rounded up (at most SUB_MAX): the
-#: parts cover the box, so the worst of them bounds it. Boxes spanning less than SUB_MIN_SPAN
-#: of the view are measured whole (their two places are near each other, and a frame has many
-#: of them); so are boxes out of view, boxes that split for their texture whatever their error,
-#: and boxes drawn with their coarsest grid anyway.
-SUB_PER_VIEW = 8
-SUB_MAX = 8
-SUB_MIN_SPAN = 0.25
-
-
-def _sub_count(camera: Camera, corners: F64) -> I64:
-    """k per box: how many parts a side its measure takes (``SUB_PER_VIEW``), from its corners
-    relative to the camera (N, 8, 3): the share of the view its image spans."""
-    cam = corners @ camera.rotation.T
-    depth = -cam[..., 2]
-    floor = max(camera.near or 0.0, MIN_DISTANCE)
-    ty = math.tan(math.radians(camera.fov_y) / 2.0)
-    tx = ty * camera.aspect
-    zs = np.maximum(depth, floor)
-    a = np.clip(cam[..., 0] / zs, -tx, tx)
-    b = np.clip(cam[..., 1] / zs, -ty, ty)
-    span = np.maximum(
-        (a.max(axis=-1) - a.min(axis=-1)) / (2 * tx), (b.max(axis=-1) - b.min(axis=-1)) / (2 * ty)
-    )
-    span = np.where(depth.min(axis=-1) < floor, 1.0, span)
-    k: I64 = np.clip(np.ceil(span * SUB_PER_VIEW - 1e-9), 1, SUB_MAX).astype(np.int64)
-    k[span < SUB_MIN_SPAN] = 1
-    return k
-
-
-def _sub_scales(
-    camera: Camera,
-    planes: F64,
-    basis: F64,
-    lo: F64,
-    hi: F64,
-    ground: F64,
-    corners: F64,
-    inside: NDArray[np.bool_],
-    parts: Callable[[F64, F64], NDArray[np.bool_]] | None,
-) -> tuple[F64, F64]:
-    """``Camera.box_scales`` of each camera-relative box (``_eye_box``; ``corners`` its eight
-    corners relative to the camera), the vertical as the worst of its parts in view
-    (``SUB_PER_VIEW``) for the boxes in view that ``parts`` picks given their whole boxes'
-    vertical scale and the pixels their side covers (None: all)."""
-    spread = ground * math.sqrt(0.5) / EARTH_MIN_RADIUS
-    gap = np.maximum(lo, 0.0) + np.maximum(-hi, 0.0)
-    vertical, horizontal = camera.box_scales(
-        corners, basis[:, 2], basis[:, 0], basis[:, 1], spread, np.linalg.norm(gap, axis=1)
-    )
-    if lo.shape[0] == 0:
-        return vertical, horizontal
-    pick = inside if parts is None else inside & parts(vertical, ground * horizontal)
-    m = np.flatnonzero(pick)
-    if m.size == 0:
-        return vertical, horizontal
-    ks = _sub_count(camera, corners[m])
-    m, ks = m[ks > 1], ks[ks > 1]
-    if m.size:
-        vertical[m] = _parts_vertical(camera, planes, basis[m], lo[m], hi[m], spread[m], ks)
-    return vertical, horizontal
-
-
-def _parts_vertical(
-    camera: Camera, planes: F64, basis: F64, lo: F64, hi: F64, spread: F64, k: I64
-) -> F64:
-    """The worst vertical ``Camera.box_scales`` over each box's k × k parts in the view (k per
-    box), all boxes' parts at once."""
-    rot = camera.rotation
-    axes = basis @ rot.T  # (n, 3, 3): east, north, up in view space
-    count = k * k
-    owner = np.repeat(np.arange(k.size), count)
-    first = np.cumsum(count) - count
-    r = np.arange(owner.size) - first[owner]
-    kk = k[owner]
-    i, j = r % kk, r // kk
-    side_e, side_n = hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1]
-    x = lo[owner, 0, None] + np.stack([i, i + 1], axis=1) / kk[:, None] * side_e[owner, None]
-    y = lo[owner, 1, None] + np.stack([j, j + 1], axis=1) / kk[:, None] * side_n[owner, None]
-    h = np.stack([lo[:, 2], hi[:, 2]], axis=1)[owner]  # (P, 2)
-    ax = axes[owner]
-    # the parts' eight corners in view space (P, 2, 2, 2, 3): east, north, height
-    pts = (
-        (x[:, :, None] * ax[:, None, 0, :])[:, :, None, None, :]
-        + (y[:, :, None] * ax[:, None, 1, :])[:, None, :, None, :]
-        + (h[:, :, None] * ax[:, None, 2, :])[:, None, None, :, :]
-    ).reshape(-1, 8, 3)
-    floor = max(camera.near or 0.0, MIN_DISTANCE)
-    ty = math.tan(math.radians(camera.fov_y) / 2.0)
-    tx = ty * camera.aspect
-    depth = -pts[..., 2:3]
-    ab = pts[..., :2] / np.maximum(depth, floor)
-    pv = planes[:, :3] @ rot.T  # the frustum's planes in view space
-    sides = pts @ pv.T + planes[:, 3]  # (P, 8, 6)
-    least = np.concatenate([depth, ab], axis=-1).min(axis=1)
-    most = np.concatenate([ab, sides], axis=-1).max(axis=1)
-    zmin = least[:, 0]
-    crosses = zmin < floor
-    a0 = np.where(crosses, -tx, np.clip(least[:, 1], -tx, tx))
-    a1 = np.where(crosses, tx, np.clip(most[:, 0], -tx, tx))
-    b0 = np.where(crosses, -ty, np.clip(least[:, 2], -ty, ty))
-    b1 = np.where(crosses, ty, np.clip(most[:, 1], -ty, ty))
-    # in view: not wholly beyond one frustum plane
-    seen = np.all(most[:, 2:] >= 0.0, axis=1)
-    u = ax[:, 2, :]
-    ux, uy, uf = u[:, 0], u[:, 1], -u[:, 2]
-    vertical = np.maximum(
-        np.maximum(np.hypot(ux - a0 * uf, uy - b0 * uf), np.hypot(ux - a0 * uf, uy - b1 * uf)),
-        np.maximum(np.hypot(ux - a1 * uf, uy - b0 * uf), np.hypot(ux - a1 * uf, uy - b1 * uf)),
-    )
-    stretch = np.sqrt(1.0 + np.maximum(a0 * a0, a1 * a1) + np.maximum(b0 * b0, b1 * b1))
-    gap = np.maximum(np.stack([x[:, 0], y[:, 0], h[:, 0]], 1), 0.0) + np.maximum(
-        -np.stack([x[:, 1], y[:, 1], h[:, 1]], 1), 0.0
-    )
-    corner = 1.0 / math.sqrt(1.0 + tx * tx + ty * ty)
-    nearest = np.linalg.norm(gap, axis=1) * corner
-    scale = camera.pixels_per_metre(np.maximum(zmin, nearest)) * (
-        vertical + spread[owner] * stretch
-    )
-    v = np.maximum.reduceat(np.where(seen, scale, 0.0), first)
-    # a box out of view has no part in it: it keeps the worst of all its parts
-    out: F64 = np.where(v > 0.0, v, np.maximum.reduceat(scale, first))
-    return out
 
 
 def tile_far(
@@ -659,27 +529,10 @@ class _Metrics:
 
 
 def _metrics(
-    camera: Camera,
-    z: int,
-    x: I64,
-    y: I64,
-    st: TileStats,
-    all_round: bool = False,
-    split_px: float = math.inf,
-    max_sse: float = 0.0,
+    camera: Camera, z: int, x: I64, y: I64, st: TileStats, all_round: bool = False
 ) -> _Metrics:
-    """``tile_boxes`` and the grids' errors; a tile's vertical scale measured in parts
-    (``SUB_PER_VIEW``) where it can change what is drawn: not where its side covers more than
-    ``split_px`` pixels (it splits for its texture whatever its error) nor where its coarsest
-    grid's error is within ``max_sse`` at its whole box's scale (it is drawn with that grid)."""
-    err = np.asarray(st.error, dtype=np.float32)
-
-    def parts(vertical: F64, px: F64) -> NDArray[np.bool_]:
-        keep: NDArray[np.bool_] = (px <= split_px) & (err[0] * vertical > max_sse)
-        return keep
-
-    box = tile_boxes(camera, z, x, y, st.min_h, st.max_h, all_round, parts)
-    return _Metrics(box, err, box.vertical)
+    box = tile_boxes(camera, z, x, y, st.min_h, st.max_h, all_round)
+    return _Metrics(box, np.asarray(st.error, dtype=np.float32), box.vertical)
 
 
 def _grid_choice(
@@ -811,9 +664,7 @@ def _walk(
         if x.size == 0:
             break
         st = st.take(ok)
-        # a tile too big on screen above ``ztex`` splits whatever its error: charged its whole box
-        split_px = options.split * tsize if z < ztex else math.inf
-        m = _metrics(camera, z, x, y, st, reach is not None, split_px, options.max_sse)
+        m = _metrics(camera, z, x, y, st, reach is not None)
         keep = m.boxes.inside if reach is None else reach(m.boxes.centre, m.boxes.dist_near)
         culled += int((~keep).sum())
         x, y, parent_k = x[keep], y[keep], parent_k[keep]
@@ -1105,7 +956,7 @@ def _children_hold(
     cy = (2 * y[:, None] + np.array([0, 0, 1, 1])).ravel()
     st = tree.level(z + 1).stats(cx, cy)
     ok = st.exists
-    m = _metrics(camera, z + 1, cx, cy, st, split_px=-1.0)  # their size alone
+    m = _metrics(camera, z + 1, cx, cy, st)
     # absent or culled children do not hold their parent back
     small = ok & m.boxes.inside & (m.px < options.merge * tree.tile_size)
     held = ~np.asarray(small.reshape(-1, 4).any(axis=1), dtype=bool)
