@@ -130,3 +130,56 @@ def _turned(v: np.ndarray, t: np.ndarray) -> set[tuple[tuple[int, int], ...]]:
         first = int(np.lexsort((p[:, 1], p[:, 0]))[0])
         out.add(tuple((int(x), int(y)) for x, y in np.roll(p, -first, axis=0)))
     return out
+
+
+@pytest.mark.parametrize("m", [2, 8])
+def test_a_cut_with_blocks_keeps_each_triangles_error_and_its_blocks_within_the_bound(
+    m: int,
+) -> None:
+    """``rtin_numpy.with_blocks``: cut at E, each triangle's own error over the grid plus the
+    largest block it reaches stays within E (E no less than the largest block), the mesh is
+    conforming, a uniform map is the plain cut at E less it, and an uneven one needs no more
+    triangles than the plain cut at E less its largest block."""
+    from lodscape.terrain import rtin_numpy
+
+    h = _grids()["fbm-65"]
+    err = rtin_numpy.errors(h)
+    np.testing.assert_array_equal(rtin_numpy.merged(err), err)  # errors are merged already
+    side = 64 // m
+    rng = np.random.default_rng(m)
+    blocks = rng.uniform(0.0, 4.0, (m, m))
+    field = rtin_numpy.with_blocks(err, blocks)
+    uniform = rtin_numpy.with_blocks(err, np.full((m, m), 3.0))
+    for bound in (4.0, 12.0, 40.0):
+        v, t = rtin_numpy.mesh(field, bound)
+        assert len(t) <= len(rtin_numpy.mesh(err, bound - blocks.max())[1])
+        vu, tu = rtin_numpy.mesh(uniform, bound)
+        vp, tp = rtin_numpy.mesh(err, bound - 3.0)
+        assert np.array_equal(vu, vp)
+        assert np.array_equal(tu, tp)
+        for tri in t:
+            p = v[tri].astype(np.float64)
+            lo, hi = p.min(axis=0), p.max(axis=0)
+            cols, rows = np.mgrid[int(lo[0]) : int(hi[0]) + 1, int(lo[1]) : int(hi[1]) + 1]
+            q = np.column_stack([cols.ravel(), rows.ravel()]).astype(np.float64)
+            a, b, c = p
+            w2 = np.linalg.solve(np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]]),
+                                 (q - a).T).T  # fmt: skip
+            w = np.column_stack([1.0 - w2.sum(axis=1), w2])
+            inside = (w >= -1e-9).all(axis=1)
+            qi = q[inside].astype(np.int64)
+            own = np.abs(w[inside] @ h[v[tri][:, 1], v[tri][:, 0]] - h[qi[:, 1], qi[:, 0]]).max()
+            # the blocks whose inside the triangle reaches
+            r0, c0 = int(lo[1]) // side, int(lo[0]) // side
+            r1 = max(-(-int(hi[1]) // side), r0 + 1)
+            c1 = max(-(-int(hi[0]) // side), c0 + 1)
+            assert own + blocks[r0:r1, c0:c1].max() <= bound + 1e-9
+        pts = [tuple(x) for x in v.tolist()]
+        edges = Counter(
+            tuple(sorted((pts[tri[i]], pts[tri[j]])))
+            for tri in t.tolist()
+            for i, j in ((0, 1), (1, 2), (2, 0))
+        )
+        for (p0, p1), count in edges.items():
+            on_border = any(p0[k] == p1[k] and p0[k] in (0, 64) for k in (0, 1))
+            assert count == (1 if on_border else 2), (p0, p1, count)

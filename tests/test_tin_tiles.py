@@ -17,7 +17,7 @@ from _synthetic import fbm_heights, periodic_fbm, write_dem
 from lodscape import Camera
 from lodscape.geo.frames import geodetic_to_ecef, up_vector
 from lodscape.geo.keys import mesh_key
-from lodscape.geo.tiles import Tile, merc_to_lonlat, tile_id
+from lodscape.geo.tiles import Tile, merc_to_lonlat, tile_id, tile_size
 from lodscape.stream import StreamOptions
 from lodscape.terrain import rtin_numpy
 from lodscape.terrain.mesh import grid_coordinates
@@ -393,3 +393,85 @@ def test_tin_triangles_are_drawn_in_an_order_a_vertex_cache_reuses(bound: float)
     surface = mesh.indices[on_ground[mesh.indices].all(axis=1)]
     assert len(surface) > 10
     assert _shaded_per_triangle(surface) < 0.8
+
+
+def _surface_error(mesh: Any, h: np.ndarray, truth: np.ndarray, valid: np.ndarray) -> float:
+    """The largest vertical difference between a tile's mesh (its heights ``h`` on an
+    (S+1)² grid) and ``truth`` on a grid ``f`` times as fine over the same square, where
+    ``valid`` (the data's own points, not its fill)."""
+    s = h.shape[0] - 1
+    f = (truth.shape[0] - 1) // s
+    v = mesh.vertices.astype(np.float64)
+    n = int((v[:, 5] == 0.0).sum())
+    tris = mesh.indices.astype(np.int64)
+    tris = tris[(tris < n).all(axis=1)]  # skirts out
+    cr = np.rint(v[:n, 3:5] * s).astype(np.int64)  # (column, row) on the tile's grid
+    hv = h[cr[:, 1], cr[:, 0]].astype(np.float64)
+    rows, cols = np.mgrid[0 : s * f + 1, 0 : s * f + 1] / f
+    worst = 0.0
+    for t in tris:
+        a, b, c = cr[t].astype(np.float64)
+        lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+        box = (cols >= lo[0]) & (cols <= hi[0]) & (rows >= lo[1]) & (rows <= hi[1])
+        q = np.column_stack([cols[box], rows[box]])
+        m = np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]])
+        uv = np.linalg.solve(m, (q - a).T).T
+        w = np.column_stack([1.0 - uv.sum(axis=1), uv])
+        inside = (w >= -1e-9).all(axis=1)
+        flat = w[inside] @ hv[t]
+        ij = np.rint(q[inside] * f).astype(np.int64)
+        off = np.abs(flat - truth[ij[:, 1], ij[:, 0]])[valid[ij[:, 1], ij[:, 0]]]
+        worst = max(worst, float(off.max(initial=0.0)))
+    return worst
+
+
+def test_a_tile_is_cut_against_its_grids_own_error_block_by_block(tmp_path: Path) -> None:
+    """A tile above the level meshed from the truth is cut at its slot's whole charge (its
+    bound plus its finest grid's own error), each triangle's error over the grid counted with
+    the grid's own error in the blocks it reaches (its descendants' recorded errors): within
+    the charge against the truth, on fewer triangles than the bound over the grid alone where
+    the ground is rough in part of the tile and smooth in the rest."""
+    z = periodic_fbm(512, seed=9, relief=600.0)
+    z[:, 256:] = z[:, 256:] * 0.05 + 0.95 * float(z.mean())  # the east half nearly flat
+    path = tmp_path / "dem.tif"
+    write_dem(str(path), z, crs="EPSG:32617", west=700000.0, north=4070000.0, res=10.0)
+    scene = lodscape.open(path, lodscape.SceneOptions(meshes="tin"))
+    try:
+        tree, provider = scene.tree, scene.provider
+        assert isinstance(tree, ErrorLadder)
+        zt = tree.zmax - 2
+        assert zt > tree.zmin
+        assert zt != tree.from_truth
+        x, y = _some_tiles(tree, zt)
+        fewer = ignored = 0
+        for i in range(x.size):
+            tx, ty = int(x[i]), int(y[i])
+            # the truth under the tile: the data at the finest level's finest grids
+            xs, ys = grid_coordinates(zt, tx, ty, 256)
+            got, valid = provider.source.sample_grid(xs, ys, float(tile_size(zt)) / 256)
+            truth, valid = np.asarray(got, np.float64), np.asarray(valid, bool)
+            if valid.mean() < 0.1:
+                continue  # the data's edge: little to measure
+            for slot in (4, SPLIT_RUNG):
+                key = mesh_key(tile_id(Tile(tx, ty, zt)), slot)
+                bound, blocks = tree.cut(zt, tx, ty, slot)
+                assert blocks is not None
+                assert blocks.shape == (4, 4)
+                charge = float(tree.level(zt).stats(np.array([tx]), np.array([ty])).error[slot, 0])
+                assert bound == pytest.approx(charge, rel=1e-5)
+                data = provider.fetch(key)
+                h = np.frombuffer(data, np.float32).reshape(65, 65)
+                mesh = provider.decode(key, data)
+                assert _surface_error(mesh, h, truth, valid) <= bound + 0.15
+                plain = tin_tile_mesh(key, zt, tx, ty, h, tree.threshold(zt, tx, ty, slot))
+                assert plain is not None
+                assert mesh.indices.size <= plain.indices.size
+                fewer += mesh.indices.size < plain.indices.size
+                # the whole charge against the grid alone, the blocks left out: over it
+                blind = tin_tile_mesh(key, zt, tx, ty, h, bound)
+                assert blind is not None
+                ignored += _surface_error(blind, h, truth, valid) > bound + 0.15
+        assert fewer >= 4  # the rough tiles' smooth blocks take the allowance
+        assert ignored > 0
+    finally:
+        scene.close()

@@ -220,9 +220,9 @@ class RasterProvider:
             n = self.imagery.tile_size
             return np.frombuffer(data, dtype=np.uint8).reshape(n, n, 4)
         if isinstance(self.tree, ErrorLadder):
-            bound = self.tree.threshold(t.z, t.x, t.y, grid_of(key))
+            bound, blocks = self.tree.cut(t.z, t.x, t.y, grid_of(key))
             tin = self._tin(key, data)
-            made = tin.mesh(key, bound)
+            made = tin.mesh(key, bound, blocks)
             # heights not all finite: the regular grid they were sampled on
             return build_mesh(key, t.z, t.x, t.y, tin.heights) if made is None else made
         s = self.tree.grids[grid_of(key)] + 1

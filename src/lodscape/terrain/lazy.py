@@ -416,6 +416,19 @@ class LazyTree:
         """What a grid of ``level`` is taken to miss of the data below it, per tile."""
         return self._tails.get(level, _NO_TAIL)
 
+    def known(self, z: int, x: I64, y: I64) -> NDArray[np.bool_]:
+        """Which tiles (z, x, y) ``stats`` can give now with nothing made or read: their
+        chunks are in memory, or they lie outside the data (no chunk needed)."""
+        r = self.zmin + CHUNK_LEVELS * ((z - self.zmin) // CHUNK_LEVELS)
+        k = z - r
+        x0, y0, nx, ny = self._ranges[z]
+        out = []
+        with self._lock:
+            for a, b in zip(np.asarray(x).tolist(), np.asarray(y).tolist(), strict=True):
+                inside = x0 <= a < x0 + nx and y0 <= b < y0 + ny
+                out.append(not inside or (r, a >> k, b >> k) in self._chunks)
+        return np.array(out, bool)
+
     def stats(self, z: int, x: I64, y: I64) -> TileStats:
         x = np.asarray(x, np.int64)
         y = np.asarray(y, np.int64)

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
-__all__ = ["errors", "mesh"]
+__all__ = ["errors", "merged", "mesh", "with_blocks"]
 
 F64 = NDArray[np.float64]
 Idx = NDArray[np.intp]
@@ -62,6 +62,75 @@ def errors(heights: NDArray[np.floating]) -> F64:
         _square(h, s, err)
         s *= 2
     return err
+
+
+def merged(field: NDArray[np.floating]) -> F64:
+    """``field`` (a value per grid point, slots as ``errors`` has them) merged as ``errors``
+    merges its own: each slot raised to the largest of the slots of the triangles inside its
+    own, so that a cut on it (``mesh``) that splits a triangle has split its parents, on both
+    sides of its edge (no T-junction)."""
+    out = np.array(field, dtype=np.float64, copy=True)
+    size = out.shape[0]
+    tile = size - 1
+    if size <= 2:
+        return out
+    d_h, d_v = out[::2, 1::2], out[1::2, ::2]
+    out[1::2, 1::2] = np.maximum.reduce(
+        [out[1::2, 1::2], d_h[:-1, :], d_h[1:, :], d_v[:, :-1], d_v[:, 1:]]
+    )
+    s = 4
+    while s <= tile:
+        half, quarter = s // 2, s // 4
+        pad = np.pad(out, quarter, constant_values=0.0)
+        for y0, x0 in ((0, half), (half, 0)):
+            e = out[y0::s, x0::s]
+            for dy in (0, 2 * quarter):
+                for dx in (0, 2 * quarter):
+                    e = np.maximum(e, pad[y0 + dy :: s, x0 + dx :: s][: e.shape[0], : e.shape[1]])
+            out[y0::s, x0::s] = e
+        n = tile // s
+        c = out
+        out[half::s, half::s] = np.maximum.reduce(
+            [
+                c[half::s, half::s],
+                c[0:-1:s, half::s][:n, :n],
+                c[s::s, half::s][:n, :n],
+                c[half::s, 0:-1:s][:n, :n],
+                c[half::s, s::s][:n, :n],
+            ]
+        )
+        s *= 2
+    return out
+
+
+def with_blocks(err: NDArray[np.floating], blocks: NDArray[np.floating]) -> F64:
+    """``errors``' ``err`` plus, at each slot, the largest of ``blocks`` (an m×m map over the
+    grid, m a power of two dividing its side: a bound on each block's own error, as a grid's
+    against the data it samples) over the blocks its triangles reach, merged (``merged``).
+    Cut at a bound E (``mesh``), every triangle left is within E of what the blocks bound:
+    its own error against the grid is its slot's ``err``, the grid's under it its blocks'."""
+    size = err.shape[0]
+    tile = size - 1
+    b = np.asarray(blocks, np.float64)
+    m = b.shape[0]
+    if b.shape != (m, m) or m < 1 or tile % m or (m & (m - 1)):
+        raise ValueError(f"Expected an m×m map of blocks, m a power of two dividing {tile}")
+    side = tile // m
+    # the largest block over each rectangle of blocks [k0, k1] × [j0, j1]
+    table = np.zeros((m, m, m, m))
+    for k0 in range(m):
+        rows = np.maximum.accumulate(b[k0:], axis=0)  # rows k0 .. k1, per column
+        for j0 in range(m):
+            table[k0, k0:, j0, j0:] = np.maximum.accumulate(rows[:, j0:], axis=1)
+    r, c = np.mgrid[0:size, 0:size]
+    # a slot's triangles lie within half its level's square of it: the lowest bit of r | c
+    rc = r | c
+    h = np.where(rc == 0, tile, rc & -rc)
+    lo_r = np.clip((r - h) // side, 0, m - 1)
+    hi_r = np.clip(-(-(r + h) // side) - 1, 0, m - 1)
+    lo_c = np.clip((c - h) // side, 0, m - 1)
+    hi_c = np.clip(-(-(c + h) // side) - 1, 0, m - 1)
+    return merged(np.asarray(err, np.float64) + table[lo_r, hi_r, lo_c, hi_c])
 
 
 @cache

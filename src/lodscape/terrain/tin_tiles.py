@@ -11,7 +11,10 @@ are a fixed ladder of bounds, ``LADDER[j]`` times its coarsest grid's recorded e
 roughness at its own scale), the last one 0 (the whole grid). Slot j's error is its bound plus
 the finest grid's own recorded error against the data (one triangle inequality), except on the
 level above the finest, whose tiles are meshed from a grid twice as fine: the data's own (the
-truth the tree measures against), so a slot's error is its bound alone. ``ErrorLadder`` wraps a
+truth the tree measures against), so a slot's error is its bound alone. The sum is spent block
+by block where the tree knows the finest grid's own error per block (its descendants' errors:
+``ErrorLadder.cut``): a triangle over well-sampled blocks takes the allowance the roughest block
+does not use, within the same sum. ``ErrorLadder`` wraps a
 tile tree so that its statistics give those errors per slot, and the selection picks the
 coarsest slot within ``max_sse`` as it picked the coarsest grid. A mesh key names the tile and
 the slot (``geo.keys``' grid index).
@@ -189,6 +192,40 @@ class ErrorLadder(_Over):
         st = self.base.level(z).stats(np.array([x], np.int64), np.array([y], np.int64))
         return ladder_threshold(np.asarray(st.error)[:, 0], slot)
 
+    def cut(self, z: int, x: int, y: int, slot: int) -> tuple[float, NDArray[np.float64] | None]:
+        """What tile (z, x, y)'s ladder slot is cut at (``TinTile.mesh``'s bound and blocks):
+        where the tree knows the finest grid's own error block by block, the slot's whole
+        charge (its bound plus that grid's error, what the selection charged) against each
+        triangle's error over the grid plus its blocks' (``rtin_numpy.with_blocks``), so
+        that a block the grid samples well takes the allowance the roughest block does not
+        use; else its bound over the grid (``threshold``).
+
+        The blocks are the tile's descendants ``k`` levels down (the finest level's at most,
+        ``k`` the tree's grids less one: 4×4 of them; fewer levels where those are not at
+        hand), whose grid of 16·2^(depth-k) segments
+        has the tile's finest grid's vertices and triangles there, so that their recorded
+        error is that grid's own over their square; each capped by the tile's own recorded
+        error (two bounds of one error). Only statistics the tree has at hand are used
+        (``known``: a tree made on demand reads nothing for them)."""
+        base = self.base
+        one = (np.array([x], np.int64), np.array([y], np.int64))
+        e = np.asarray(base.level(z).stats(*one).error, np.float64)[:, 0]
+        bound = ladder_threshold(e, slot)
+        depth = len(base.grids) - 1
+        if z == self.from_truth or not e[-1] > 0.0:
+            return bound, None
+        known = getattr(base, "known", None)
+        for k in range(min(depth, int(base.zmax) - z), 0, -1):
+            n = 1 << k
+            dy, dx = np.divmod(np.arange(n * n, dtype=np.int64), n)
+            xs, ys = (x << k) + dx, (y << k) + dy
+            if known is not None and not bool(np.all(known(z + k, xs, ys))):
+                continue  # fewer, larger blocks from nearer descendants
+            st = base.level(z + k).stats(xs, ys)
+            own = np.where(st.exists, np.asarray(st.error, np.float64)[depth - k], 0.0)
+            return bound + float(e[-1]), np.minimum(own, e[-1]).reshape(n, n)
+        return bound, None
+
 
 class SplitBeforeFinest(_Over):
     """A tile tree of regular grids whose tiles that can split are not drawn with their finest
@@ -249,6 +286,8 @@ class TinTile:
         self.lon, self.lat = merc_to_lonlat(xs, ys)
         #: None where the heights are not all finite: no RTIN (a regular grid is made instead).
         self.errors: NDArray[np.float64] | None = None
+        #: The last block map ``mesh`` was given and the errors with it.
+        self._blocks: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         if np.isfinite(self.heights).all():
             lon = np.broadcast_to(self.lon[None, :], self.heights.shape)
             lat = np.broadcast_to(self.lat[:, None], self.heights.shape)
@@ -263,16 +302,29 @@ class TinTile:
     @property
     def nbytes(self) -> int:
         # the heights are a view of ``data`` where it was given
-        errors = 0 if self.errors is None else self.errors.nbytes
+        errors = 0 if self.errors is None else 2 * self.errors.nbytes  # with a block map's
         return (len(self.data) or self.heights.nbytes) + errors
 
-    def mesh(self, key: int, threshold: float) -> TileMesh | None:
+    def mesh(
+        self, key: int, threshold: float, blocks: NDArray[np.floating] | None = None
+    ) -> TileMesh | None:
         """The RTIN mesh within ``threshold`` metres of every grid point, with skirts; None
-        where the heights are not all finite."""
+        where the heights are not all finite. With ``blocks`` (an m×m map of what the grid
+        misses of the data per block: ``ErrorLadder.cut``), within ``threshold`` of the data,
+        each triangle's error against the grid plus its blocks' (``rtin_numpy.with_blocks``;
+        ``threshold`` no less than the largest block)."""
         if self.errors is None:
             return None
         s = self.heights.shape[0] - 1
-        verts, tris = rtin_numpy.mesh(self.errors, max(float(threshold), 0.0))
+        field = self.errors
+        if blocks is not None:
+            b = np.ascontiguousarray(blocks, np.float64)
+            got = self._blocks
+            if got is None or not np.array_equal(got[0], b):
+                got = (b, rtin_numpy.with_blocks(self.errors, b))
+                self._blocks = got
+            field = got[1]
+        verts, tris = rtin_numpy.mesh(field, max(float(threshold), 0.0))
         ordered = cache_order(verts, tris)
         col = verts[:, 0].astype(np.int64)
         row = verts[:, 1].astype(np.int64)
