@@ -34,8 +34,13 @@ def test_mesh_keeps_the_bound_at_every_grid_point(name: str, max_error: float) -
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     area = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) / 2
     assert area.sum() == pytest.approx(n * n)
-    # conforming: an edge inside the square is shared by exactly two triangles (a T-junction
-    # would leave a longer edge with one triangle and two shorter ones with one each)
+    _assert_conforming(v, t, n)
+
+
+def _assert_conforming(v: np.ndarray, t: np.ndarray, n: int) -> None:
+    """Conforming: an edge inside the n×n square is shared by exactly two triangles (a
+    T-junction would leave a longer edge with one triangle and two shorter ones with one
+    each)."""
     pts = [tuple(p) for p in v.tolist()]
     edges = Counter(
         tuple(sorted((pts[tri[a]], pts[tri[b]])))
@@ -174,12 +179,4 @@ def test_a_cut_with_blocks_keeps_each_triangles_error_and_its_blocks_within_the_
             r1 = max(-(-int(hi[1]) // side), r0 + 1)
             c1 = max(-(-int(hi[0]) // side), c0 + 1)
             assert own + blocks[r0:r1, c0:c1].max() <= bound + 1e-9
-        pts = [tuple(x) for x in v.tolist()]
-        edges = Counter(
-            tuple(sorted((pts[tri[i]], pts[tri[j]])))
-            for tri in t.tolist()
-            for i, j in ((0, 1), (1, 2), (2, 0))
-        )
-        for (p0, p1), count in edges.items():
-            on_border = any(p0[k] == p1[k] and p0[k] in (0, 64) for k in (0, 1))
-            assert count == (1 if on_border else 2), (p0, p1, count)
+        _assert_conforming(v, t, 64)
