@@ -298,3 +298,55 @@ def test_the_sidecar_is_reused_and_dropped_when_the_file_changes(
     assert made3 > 0
     assert found3 == 0
     assert len(list((cache / "trees").glob("*.sqlite"))) == 1  # the same sidecar, renewed
+
+
+def test_a_chunk_keeps_its_tiles_grid_error_block_by_block(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each tile's finest grid's own error block by block (``LazyTree.grid_blocks``: what a
+    ladder's cut spends its charge against) is what its chunk measured: the largest is the
+    tile's recorded error, a chunk root's blocks are its descendants' errors two levels down,
+    a chunk not in memory gives none (nothing is made for them), and the sidecar keeps them."""
+    monkeypatch.setenv("LODSCAPE_CACHE", str(tmp_path / "cache"))
+    h = periodic_fbm(1024, seed=8, relief=500.0)
+    path = write_dem(str(tmp_path / "dem.tif"), h, crs="EPSG:32617", west=500000.0,
+                     north=4000000.0, res=1.0)  # fmt: skip
+    with RasterSource(path) as src:
+        tree = LazyTree(src)
+        kept: dict[tuple[int, int, int], np.ndarray] = {}
+        try:
+            b = 1 << (len(tree.grids) - 1)
+            x, y = tree.roots()
+            deep = tree.zmin + 3
+            assert deep < tree.zmax
+            made = tree.made
+            assert tree.grid_blocks(deep, int(x[0]) << 3, int(y[0]) << 3) is None
+            assert tree.made == made  # nothing made for it
+            for z in range(tree.zmin, deep + 2):
+                n = 1 << (z - tree.zmin)
+                dy, dx = np.divmod(np.arange(n * n), n)
+                xs = ((x[:, None] * n) + dx).ravel()
+                ys = ((y[:, None] * n) + dy).ravel()
+                st = tree.level(z).stats(xs, ys)
+                for i in np.flatnonzero(st.exists):
+                    got = tree.grid_blocks(z, int(xs[i]), int(ys[i]))
+                    assert got is not None
+                    assert got.shape == (b, b)
+                    assert float(got.max()) == pytest.approx(float(st.error[-1, i]), abs=1e-4)
+                    kept[(z, int(xs[i]), int(ys[i]))] = got.copy()
+            # a chunk root's blocks: its descendants' own 16-segment errors
+            z, tx, ty = tree.zmin, int(x[0]), int(y[0])
+            dy, dx = np.divmod(np.arange(b * b), b)
+            under = tree.level(z + 2).stats((tx << 2) + dx, (ty << 2) + dy)
+            got = kept[(z, tx, ty)].ravel()
+            np.testing.assert_allclose(got[under.exists], under.error[0][under.exists], atol=1e-5)
+        finally:
+            tree.close()
+        again = LazyTree(src)
+        try:
+            for (z, tx, ty), want in kept.items():
+                again.level(z).stats(np.array([tx]), np.array([ty]))
+                np.testing.assert_array_equal(again.grid_blocks(z, tx, ty), want)
+            assert again.made == 0  # every chunk from the sidecar
+        finally:
+            again.close()

@@ -137,6 +137,10 @@ class _Chunk:
     max_h: tuple[F32, ...]
     #: (len(grids), 2^k, 2^k) per level.
     error: tuple[F32, ...]
+    #: (2^k·B, 2^k·B) per level, B = 2^(len(grids) - 1): the recorded 16-segment errors of the
+    #: tiles whose grids have a level's tiles' finest grid's vertices, B×B blocks a tile
+    #: (``LazyTree.grid_blocks``).
+    blocks: tuple[F32, ...] = ()
 
 
 def _pool(a: NDArray[np.floating], f: int, op: str = "max") -> F32:
@@ -261,11 +265,12 @@ def _encode(c: _Chunk) -> bytes:
     for k in range(len(c.exists)):
         parts += [c.exists[k].astype(np.uint8).tobytes(), c.min_h[k].tobytes()]
         parts += [c.max_h[k].tobytes(), c.error[k].astype(np.float32).tobytes()]
+        parts += [c.blocks[k].astype(np.float32).tobytes()]
     return b"".join(parts)
 
 
 def _decode(data: bytes, levels: int, grids: int) -> _Chunk | None:
-    ex, lo, hi, er = [], [], [], []
+    ex, lo, hi, er, bl = [], [], [], [], []
     at = 0
     try:
         for k in range(levels):
@@ -278,11 +283,14 @@ def _decode(data: bytes, levels: int, grids: int) -> _Chunk | None:
             at += 4 * n * n
             er.append(np.frombuffer(data, np.float32, grids * n * n, at).reshape(grids, n, n))
             at += 4 * grids * n * n
+            m = n << (grids - 1)
+            bl.append(np.frombuffer(data, np.float32, m * m, at).reshape(m, m))
+            at += 4 * m * m
     except ValueError:
         return None  # cut short: made again
     if at != len(data):
         return None
-    return _Chunk(tuple(ex), tuple(lo), tuple(hi), tuple(er))
+    return _Chunk(tuple(ex), tuple(lo), tuple(hi), tuple(er), tuple(bl))
 
 
 def open_tree(source: SampleSource, *, tile_size: int = 256, grids: tuple[int, ...] = GRIDS) -> Any:
@@ -397,7 +405,7 @@ class LazyTree:
         if ident is None:
             return None
         params = (
-            f"tree v5|tile {self.tile_size}|grids {self.grids}|chunk {CHUNK_LEVELS}|"
+            f"tree v6|tile {self.tile_size}|grids {self.grids}|chunk {CHUNK_LEVELS}|"
             f"tail {TAIL_SAMPLES}×{TAIL_MARGIN}"
         )
         # one sidecar per raster (its name leaves out size and time: a changed file finds and
@@ -416,18 +424,18 @@ class LazyTree:
         """What a grid of ``level`` is taken to miss of the data below it, per tile."""
         return self._tails.get(level, _NO_TAIL)
 
-    def known(self, z: int, x: I64, y: I64) -> NDArray[np.bool_]:
-        """Which tiles (z, x, y) ``stats`` can give now with nothing made or read: their
-        chunks are in memory, or they lie outside the data (no chunk needed)."""
+    def grid_blocks(self, z: int, x: int, y: int) -> F32 | None:
+        """Tile (z, x, y)'s finest grid's own error block by block, B×B (``_Chunk.blocks``),
+        from its chunk where that is in memory (nothing made or read); else None."""
         r = self.zmin + CHUNK_LEVELS * ((z - self.zmin) // CHUNK_LEVELS)
         k = z - r
-        x0, y0, nx, ny = self._ranges[z]
-        out = []
         with self._lock:
-            for a, b in zip(np.asarray(x).tolist(), np.asarray(y).tolist(), strict=True):
-                inside = x0 <= a < x0 + nx and y0 <= b < y0 + ny
-                out.append(not inside or (r, a >> k, b >> k) in self._chunks)
-        return np.array(out, bool)
+            c = self._chunks.get((r, x >> k, y >> k))
+        if c is None or k >= len(c.blocks):
+            return None
+        b = 1 << self._depth
+        lx, ly = x - ((x >> k) << k), y - ((y >> k) << k)
+        return c.blocks[k][ly * b : (ly + 1) * b, lx * b : (lx + 1) * b]
 
     def stats(self, z: int, x: I64, y: I64) -> TileStats:
         x = np.asarray(x, np.int64)
@@ -603,7 +611,7 @@ class LazyTree:
                 _pool(cex.astype(np.float32), 2) > 0
             )
             per_level.insert(0, (ex, lo, hi, e16))
-        exists, mins, maxs, errors = [], [], [], []
+        exists, mins, maxs, errors, own_blocks = [], [], [], [], []
         for k in range(min(CHUNK_LEVELS, self._zmax - r + 1)):
             ex, lo, hi, _ = per_level[k]
             z = r + k
@@ -623,7 +631,13 @@ class LazyTree:
             mins.append(lo)
             maxs.append(hi)
             errors.append(np.stack(errs).astype(np.float32))
-        return _Chunk(tuple(exists), tuple(mins), tuple(maxs), tuple(errors))
+            # the tiles whose 16-segment grids are this level's finest grid, block by block
+            # (as ``errs``' last grid is their largest)
+            fe16 = per_level[k + self._depth][3]
+            fys = (cy << (k + self._depth)) + np.arange(fe16.shape[0])
+            own = fe16 + sag(z + self._depth, self.grids[0], fys)[:, None].astype(np.float32)
+            own_blocks.append(own.astype(np.float32))
+        return _Chunk(tuple(exists), tuple(mins), tuple(maxs), tuple(errors), tuple(own_blocks))
 
     def _finest(self, r: int) -> int:
         """The finest level a chunk of root level ``r`` samples: one below its last level's

@@ -201,30 +201,35 @@ class ErrorLadder(_Over):
         use; else its bound over the grid (``threshold``).
 
         The blocks are the tile's descendants ``k`` levels down (the finest level's at most,
-        ``k`` the tree's grids less one: 4×4 of them; fewer levels where those are not at
-        hand), whose grid of 16·2^(depth-k) segments
-        has the tile's finest grid's vertices and triangles there, so that their recorded
-        error is that grid's own over their square; each capped by the tile's own recorded
-        error (two bounds of one error). Only statistics the tree has at hand are used
-        (``known``: a tree made on demand reads nothing for them)."""
+        ``k`` the tree's grids less one: 4×4 of them; fewer near the finest level), whose
+        grid of 16·2^(depth-k) segments has the tile's finest grid's vertices and triangles
+        there, so that their recorded error is that grid's own over their square; each capped
+        by the tile's own recorded error (two bounds of one error). A tree made on demand
+        keeps each tile's blocks with its chunk (``LazyTree.grid_blocks``): no other chunk is
+        made for them. Only a tree whose errors are measured against the data
+        (``finest_is_truth``; not a server's, whose errors are stated)."""
         base = self.base
         one = (np.array([x], np.int64), np.array([y], np.int64))
         e = np.asarray(base.level(z).stats(*one).error, np.float64)[:, 0]
         bound = ladder_threshold(e, slot)
         depth = len(base.grids) - 1
-        if z == self.from_truth or not e[-1] > 0.0:
+        measured = getattr(base, "finest_is_truth", False)  # not a server's stated errors
+        if z == self.from_truth or not measured or not e[-1] > 0.0:
             return bound, None
-        known = getattr(base, "known", None)
-        for k in range(min(depth, int(base.zmax) - z), 0, -1):
-            n = 1 << k
-            dy, dx = np.divmod(np.arange(n * n, dtype=np.int64), n)
-            xs, ys = (x << k) + dx, (y << k) + dy
-            if known is not None and not bool(np.all(known(z + k, xs, ys))):
-                continue  # fewer, larger blocks from nearer descendants
-            st = base.level(z + k).stats(xs, ys)
-            own = np.where(st.exists, np.asarray(st.error, np.float64)[depth - k], 0.0)
-            return bound + float(e[-1]), np.minimum(own, e[-1]).reshape(n, n)
-        return bound, None
+        kept = getattr(base, "grid_blocks", None)
+        if kept is not None:  # a tree made on demand keeps them with the tile's chunk
+            got = kept(z, x, y)
+            if got is None:
+                return bound, None
+            return bound + float(e[-1]), np.minimum(np.asarray(got, np.float64), e[-1])
+        k = min(depth, int(base.zmax) - z)
+        if k <= 0:
+            return bound, None
+        n = 1 << k
+        dy, dx = np.divmod(np.arange(n * n, dtype=np.int64), n)
+        st = base.level(z + k).stats((x << k) + dx, (y << k) + dy)
+        own = np.where(st.exists, np.asarray(st.error, np.float64)[depth - k], 0.0)
+        return bound + float(e[-1]), np.minimum(own, e[-1]).reshape(n, n)
 
 
 class SplitBeforeFinest(_Over):
