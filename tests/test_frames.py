@@ -374,3 +374,44 @@ def test_an_imagery_layer_is_loaded_at_its_own_levels_and_never_waited_for(
     finally:
         blocking.close()
         rig.close()
+
+
+def test_a_still_camera_over_a_still_terrain_reuses_its_plan(
+    provider: RasterProvider, cam: Camera
+) -> None:
+    """A frame whose camera, options, resident keys and tree are the last frame's, after a
+    selection that made itself again from them, is planned as the last one was (as
+    GeoMipTerrain's update is idle while its focal point stays): the selection a fresh one
+    would make. A load that came, a camera that moved or geomorphing frames select again."""
+    from lodscape.lod.select import select
+    from lodscape.lod.view import _same_selection
+
+    rig = Rig(provider)
+    rig.view.morph = False  # a still picture's view
+    try:
+        reused = []
+        for _ in range(40):
+            plan, _ = rig.step(cam)
+            reused.append(rig.view.reused)
+        assert rig.view.selections == 40
+        # streamed: frames select while loads come, then the plan stands
+        assert reused[0] == 0
+        assert 0 < reused[-1] < 40
+        assert reused[-1] - reused[-5] == 4
+        resident = rig.loader.resident()
+        fresh = select(
+            rig.view.select_options, plan.camera, provider.tree, rig.view.previous,
+            np.union1d(resident, rig.view._roots), rig.view.texture_levels,
+        )  # fmt: skip
+        assert _same_selection(fresh, plan.selection)
+        # moved: selected again
+        n = rig.view.reused
+        rig.step(cam.moved(lat=cam.lat + 1e-4))
+        assert rig.view.reused == n
+        # geomorphing frames never stand still (their tiles glide a step a frame)
+        rig.view.morph = True
+        for _ in range(4):
+            rig.step(cam)
+        assert rig.view.reused == n
+    finally:
+        rig.close()
