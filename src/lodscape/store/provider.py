@@ -97,6 +97,12 @@ class Provider(Protocol):
     def close(self) -> None: ...
 
 
+def _same_blocks(a: NDArray[np.float64] | None, b: NDArray[np.float64] | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return bool(np.array_equal(a, b))
+
+
 def mesh_of(provider: Provider, key: int) -> TileMesh:
     """fetch then decode a mesh key (the one-shot path, off the streamer)."""
     made = provider.decode(key, provider.fetch(key))
@@ -221,27 +227,28 @@ class RasterProvider:
             return np.frombuffer(data, dtype=np.uint8).reshape(n, n, 4)
         if isinstance(self.tree, ErrorLadder):
             bound, blocks = self.tree.cut(t.z, t.x, t.y, grid_of(key))
-            tin = self._tin(key, data)
-            made = tin.mesh(key, bound, blocks)
+            tin = self._tin(key, data, blocks)
+            made = tin.mesh(key, bound)
             # heights not all finite: the regular grid they were sampled on
             return build_mesh(key, t.z, t.x, t.y, tin.heights) if made is None else made
         s = self.tree.grids[grid_of(key)] + 1
         heights = np.frombuffer(data, dtype=np.float32).reshape(s, s)
         return build_mesh(key, t.z, t.x, t.y, heights)
 
-    def _tin(self, key: int, data: bytes) -> TinTile:
-        """Tile ``key``'s uncut RTIN of its heights ``data``: the one kept where it has the same
-        heights (a rung change), else made and kept."""
+    def _tin(self, key: int, data: bytes, blocks: NDArray[np.float64] | None) -> TinTile:
+        """Tile ``key``'s uncut RTIN of its heights ``data`` and the grid's error ``blocks``
+        (``ErrorLadder.cut``): the one kept where it has the same (a rung change), else made
+        and kept."""
         tid = tile_id_of(key)
         with self._tins_lock:
             kept = self._tins.get(tid)
-        if kept is not None and kept.data == data:
+        if kept is not None and kept.data == data and _same_blocks(kept.blocks, blocks):
             return kept
         t = tile_of(key)
         data = bytes(data)
         s = self.tree.segments(t.z) + 1
         heights = np.frombuffer(data, dtype=np.float32).reshape(s, s)
-        made = TinTile(t.z, t.x, t.y, heights, data)
+        made = TinTile(t.z, t.x, t.y, heights, data, blocks)
         with self._tins_lock:
             self._tins.put(tid, made, made.nbytes)
             self._tins.shrink(TIN_CACHE_BYTES)

@@ -281,18 +281,26 @@ class TinTile:
     no errors measured again (``store.provider.RasterProvider``)."""
 
     def __init__(
-        self, z: int, x: int, y: int, heights: NDArray[np.floating], data: bytes = b""
+        self,
+        z: int,
+        x: int,
+        y: int,
+        heights: NDArray[np.floating],
+        data: bytes = b"",
+        blocks: NDArray[np.floating] | None = None,
     ) -> None:
         self.z, self.x, self.y = z, x, y
         self.data = data
+        #: What the grid misses of the data block by block (``ErrorLadder.cut``), if given:
+        #: the errors are then each triangle's over the grid plus its blocks'
+        #: (``rtin_numpy.with_blocks``), and a cut keeps them within its bound against the data.
+        self.blocks = None if blocks is None else np.asarray(blocks, np.float64)
         self.heights = np.asarray(heights)
         s = self.heights.shape[0] - 1
         xs, ys = grid_coordinates(z, x, y, s)
         self.lon, self.lat = merc_to_lonlat(xs, ys)
         #: None where the heights are not all finite: no RTIN (a regular grid is made instead).
         self.errors: NDArray[np.float64] | None = None
-        #: The last block map ``mesh`` was given and the errors with it.
-        self._blocks: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         if np.isfinite(self.heights).all():
             lon = np.broadcast_to(self.lon[None, :], self.heights.shape)
             lat = np.broadcast_to(self.lat[:, None], self.heights.shape)
@@ -303,33 +311,23 @@ class TinTile:
             up = up_vector(float(self.lon[mid]), float(self.lat[mid]))
             above = (geodetic_to_ecef(lon, lat, self.heights.astype(np.float64)) - c) @ up
             self.errors = rtin_numpy.errors(above)
+            if self.blocks is not None:
+                self.errors = rtin_numpy.with_blocks(self.errors, self.blocks)
 
     @property
     def nbytes(self) -> int:
         # the heights are a view of ``data`` where it was given
-        errors = 0 if self.errors is None else 2 * self.errors.nbytes  # with a block map's
+        errors = 0 if self.errors is None else self.errors.nbytes
         return (len(self.data) or self.heights.nbytes) + errors
 
-    def mesh(
-        self, key: int, threshold: float, blocks: NDArray[np.floating] | None = None
-    ) -> TileMesh | None:
-        """The RTIN mesh within ``threshold`` metres of every grid point, with skirts; None
-        where the heights are not all finite. With ``blocks`` (an m×m map of what the grid
-        misses of the data per block: ``ErrorLadder.cut``), within ``threshold`` of the data,
-        each triangle's error against the grid plus its blocks' (``rtin_numpy.with_blocks``;
-        ``threshold`` no less than the largest block)."""
+    def mesh(self, key: int, threshold: float) -> TileMesh | None:
+        """The RTIN mesh within ``threshold`` metres of every grid point, with skirts (of the
+        data, with ``blocks``: ``threshold`` no less than the largest); None where the heights
+        are not all finite."""
         if self.errors is None:
             return None
         s = self.heights.shape[0] - 1
-        field = self.errors
-        if blocks is not None:
-            b = np.ascontiguousarray(blocks, np.float64)
-            got = self._blocks
-            if got is None or not np.array_equal(got[0], b):
-                got = (b, rtin_numpy.with_blocks(self.errors, b))
-                self._blocks = got
-            field = got[1]
-        verts, tris = rtin_numpy.mesh(field, max(float(threshold), 0.0))
+        verts, tris = rtin_numpy.mesh(self.errors, max(float(threshold), 0.0))
         ordered = cache_order(verts, tris)
         col = verts[:, 0].astype(np.int64)
         row = verts[:, 1].astype(np.int64)
