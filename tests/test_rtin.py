@@ -162,21 +162,10 @@ def test_a_cut_with_blocks_keeps_each_triangles_error_and_its_blocks_within_the_
         vp, tp = rtin_numpy.mesh(err, bound - 3.0)
         assert np.array_equal(vu, vp)
         assert np.array_equal(tu, tp)
-        for tri in t:
-            p = v[tri].astype(np.float64)
-            lo, hi = p.min(axis=0), p.max(axis=0)
-            cols, rows = np.mgrid[int(lo[0]) : int(hi[0]) + 1, int(lo[1]) : int(hi[1]) + 1]
-            q = np.column_stack([cols.ravel(), rows.ravel()]).astype(np.float64)
-            a, b, c = p
-            w2 = np.linalg.solve(np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]]),
-                                 (q - a).T).T  # fmt: skip
-            w = np.column_stack([1.0 - w2.sum(axis=1), w2])
-            inside = (w >= -1e-9).all(axis=1)
-            qi = q[inside].astype(np.int64)
-            own = np.abs(w[inside] @ h[v[tri][:, 1], v[tri][:, 0]] - h[qi[:, 1], qi[:, 0]]).max()
-            # the blocks whose inside the triangle reaches
-            r0, c0 = int(lo[1]) // side, int(lo[0]) // side
-            r1 = max(-(-int(hi[1]) // side), r0 + 1)
-            c1 = max(-(-int(hi[0]) // side), c0 + 1)
-            assert own + blocks[r0:r1, c0:c1].max() <= bound + 1e-9
+        for i, tri in enumerate(t):
+            # its own error over the grid, and the blocks whose inside it reaches
+            own = mesh_error(h, v, t[i : i + 1])
+            (c0, r0), (c1, r1) = v[tri].min(axis=0) // side, -(-v[tri].max(axis=0) // side)
+            reach = blocks[r0 : max(r1, r0 + 1), c0 : max(c1, c0 + 1)]
+            assert own + reach.max() <= bound + 1e-9
         _assert_conforming(v, t, 64)

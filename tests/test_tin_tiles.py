@@ -34,6 +34,22 @@ from lodscape.terrain.tin_tiles import (
 )
 
 
+def _inside(
+    corners: np.ndarray, cols: np.ndarray, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The points (column, row) of a grid ``cols``, ``rows`` inside a triangle of (3, 2)
+    ``corners``, its edges included, and their barycentric weights."""
+    a, b, c = corners
+    lo, hi = np.floor(corners.min(axis=0)), np.ceil(corners.max(axis=0))
+    box = (cols >= lo[0]) & (cols <= hi[0]) & (rows >= lo[1]) & (rows <= hi[1])
+    q = np.column_stack([cols[box], rows[box]]).astype(np.float64)
+    m = np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]])
+    uv = np.linalg.solve(m, (q - a).T).T
+    w = np.column_stack([1.0 - uv.sum(axis=1), uv])
+    inside = (w >= -1e-9).all(axis=1)
+    return q[inside], w[inside]
+
+
 def _lattice_error(z: int, x: int, y: int, h: np.ndarray, mesh: Any) -> float:
     """The largest distance, along the local vertical, between a lattice point (on the curved
     Earth) and the mesh's flat triangle over it."""
@@ -52,18 +68,11 @@ def _lattice_error(z: int, x: int, y: int, h: np.ndarray, mesh: Any) -> float:
     worst = 0.0
     rows, cols = np.mgrid[0 : s + 1, 0 : s + 1]
     for t in tris:
-        a, b, c = cr[t]
-        lo, hi = np.floor(np.minimum(np.minimum(a, b), c)), np.ceil(np.maximum(np.maximum(a, b), c))
-        box = (cols >= lo[0]) & (cols <= hi[0]) & (rows >= lo[1]) & (rows <= hi[1])
-        q = np.column_stack([cols[box], rows[box]]).astype(np.float64)
-        m = np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]])
-        uv = np.linalg.solve(m, (q - a).T).T
-        w = np.column_stack([1.0 - uv.sum(axis=1), uv])
-        inside = (w >= -1e-9).all(axis=1)
-        if not inside.any():
+        q, w = _inside(cr[t], cols, rows)
+        if not len(q):
             continue
-        flat = w[inside] @ pos[t]
-        ij = q[inside].astype(np.int64)
+        flat = w @ pos[t]
+        ij = q.astype(np.int64)
         real = p[ij[:, 1], ij[:, 0]]
         ups = up_vector(lon[ij[:, 1], ij[:, 0]], lat[ij[:, 1], ij[:, 0]])
         worst = max(worst, float(np.abs(np.einsum("ij,ij->i", real - flat, ups)).max()))
@@ -410,16 +419,9 @@ def _surface_error(mesh: Any, h: np.ndarray, truth: np.ndarray, valid: np.ndarra
     rows, cols = np.mgrid[0 : s * f + 1, 0 : s * f + 1] / f
     worst = 0.0
     for t in tris:
-        a, b, c = cr[t].astype(np.float64)
-        lo, hi = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
-        box = (cols >= lo[0]) & (cols <= hi[0]) & (rows >= lo[1]) & (rows <= hi[1])
-        q = np.column_stack([cols[box], rows[box]])
-        m = np.array([[b[0] - a[0], c[0] - a[0]], [b[1] - a[1], c[1] - a[1]]])
-        uv = np.linalg.solve(m, (q - a).T).T
-        w = np.column_stack([1.0 - uv.sum(axis=1), uv])
-        inside = (w >= -1e-9).all(axis=1)
-        flat = w[inside] @ hv[t]
-        ij = np.rint(q[inside] * f).astype(np.int64)
+        q, w = _inside(cr[t].astype(np.float64), cols, rows)
+        flat = w @ hv[t]
+        ij = np.rint(q * f).astype(np.int64)
         off = np.abs(flat - truth[ij[:, 1], ij[:, 0]])[valid[ij[:, 1], ij[:, 0]]]
         worst = max(worst, float(off.max(initial=0.0)))
     return worst

@@ -140,7 +140,7 @@ class _Chunk:
     #: (2^k·B, 2^k·B) per level, B = 2^(len(grids) - 1): the recorded 16-segment errors of the
     #: tiles whose grids have a level's tiles' finest grid's vertices, B×B blocks a tile
     #: (``LazyTree.grid_blocks``).
-    blocks: tuple[F32, ...] = ()
+    blocks: tuple[F32, ...]
 
 
 def _pool(a: NDArray[np.floating], f: int, op: str = "max") -> F32:
@@ -431,7 +431,7 @@ class LazyTree:
         k = z - r
         with self._lock:
             c = self._chunks.get((r, x >> k, y >> k))
-        if c is None or k >= len(c.blocks):
+        if c is None:
             return None
         b = 1 << self._depth
         lx, ly = x - ((x >> k) << k), y - ((y >> k) << k)
