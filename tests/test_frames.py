@@ -302,15 +302,19 @@ def test_prefetched_resources_wait_in_memory(provider: RasterProvider, cam: Came
     roomy = Rig(provider, ahead=(1.0, 3.0))
     try:
         wanted: set[int] = set()
+        held = 0
         for c in path:
             full.step(c, dt=0.1)
             plan, _ = roomy.step(c, dt=0.1)
             wanted |= {int(k) for k in plan.loads} | set(plan.required)
+            memory = set(full.loader.streamer.memory)
             # at no frame is a prefetched tile in memory on the full GPU as well
-            assert not set(full.loader.streamer.memory) & set(full.gpu.live)
+            assert not memory & set(full.gpu.live)
+            held = max(held, len(memory))
         assert full.view.selections == 30
-        # the memory radius holds decoded tiles the frames have not wanted yet
-        assert len(full.loader.streamer.memory) > 0
+        # the memory radius holds decoded tiles the frames have not wanted yet (how many at a
+        # given frame follows how the selection changes ahead: counted over the flight)
+        assert held > 0
         # with room on the GPU, prefetched tiles went up before any frame asked for them
         assert set(roomy.gpu.uploads) - wanted
     finally:

@@ -16,6 +16,7 @@ from lodscape.lod.select import (
     SLOPE_ROOM,
     Selection,
     SelectOptions,
+    parts_vertical,
     select,
     tile_boxes,
     tile_far,
@@ -205,6 +206,62 @@ def test_tile_far_is_the_boxes_farthest_distance(tree: TileTree) -> None:
             boxes = tile_boxes(_clip(cam), z, x, y, st.min_h, st.max_h)
             assert np.array_equal(far, boxes.dist_far)
             assert np.all(far >= boxes.dist_near)
+
+
+def test_a_box_large_on_screen_is_charged_in_parts_what_its_points_ask() -> None:
+    """A tile filling the view is charged in parts (``parts_vertical``), per metre of height
+    error, the most that a metre up moves the image of any of its points on screen (a bound),
+    and not much more; the whole box's charge takes its nearest depth and its image's most
+    stretched place from opposite ends of the view (about twice its points' here)."""
+    from lodscape.geo.frames import ecef_to_geodetic, enu_basis, geodetic_to_ecef
+    from lodscape.geo.tiles import bounds_array, merc_to_lonlat
+
+    rng = np.random.default_rng(7)
+    z, tx, ty = 13, 2177, 3197  # about 3.9 km a side at 36.7 N
+    lo_h, hi_h = 300.0, 420.0
+    left, bottom, right, top = (
+        float(v[0]) for v in bounds_array(z, np.array([tx]), np.array([ty]))
+    )
+    parts_ratio, whole_ratio = [], []
+    for _ in range(12):
+        fx, fy = rng.uniform(0.3, 0.7, 2)
+        lon, lat = (
+            float(v)
+            for v in merc_to_lonlat(left + fx * (right - left), bottom + fy * (top - bottom))
+        )
+        cam = Camera(
+            lon, lat, hi_h + float(rng.uniform(300.0, 1500.0)), heading=float(rng.uniform(0, 360)),
+            pitch=float(rng.uniform(-90.0, -35.0)), width=480, height=320,
+        ).with_clip(10.0, 1e5)  # fmt: skip
+        one = (np.array([tx]), np.array([ty]), np.array([lo_h]), np.array([hi_h]))
+        whole = tile_boxes(cam, z, *one).vertical[0]
+        ks, parts = parts_vertical(cam, z, *one)
+        assert ks[0] > 1
+        # points of the tile at any height in its range, those on screen
+        n = 200_000
+        mx = left + rng.uniform(0, 1, n) * (right - left)
+        my = bottom + rng.uniform(0, 1, n) * (top - bottom)
+        plon, plat = merc_to_lonlat(mx, my)
+        p = geodetic_to_ecef(plon, plat, rng.uniform(lo_h, hi_h, n)) - cam.position
+        q = p @ cam.rotation.T
+        t = np.tan(np.radians(cam.fov_y) / 2)
+        seen = (-q[:, 2] > cam.near) & (np.abs(q[:, 1] / -q[:, 2]) <= t)
+        seen &= np.abs(q[:, 0] / -q[:, 2]) <= t * cam.aspect
+        assert seen.sum() > 2000
+        up = enu_basis(*ecef_to_geodetic(p[seen] + cam.position)[:2])[:, 2]
+
+        def image(v: np.ndarray, cam: Camera = cam) -> np.ndarray:
+            w = v @ cam.rotation.T
+            out: np.ndarray = cam.scale * w[:, :2] / -w[:, 2:3]
+            return out
+
+        step = 1e-3
+        moved = np.linalg.norm(image(p[seen] + step * up) - image(p[seen]), axis=1) / step
+        assert moved.max() <= parts[0] * (1 + 1e-6)
+        parts_ratio.append(moved.max() / parts[0])
+        whole_ratio.append(moved.max() / whole)
+    assert np.median(parts_ratio) > 0.7, parts_ratio
+    assert np.median(whole_ratio) < 0.6, whole_ratio
 
 
 def test_hysteresis_stops_flicker(tree: TileTree) -> None:

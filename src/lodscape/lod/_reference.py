@@ -16,7 +16,16 @@ import numpy as np
 from lodscape.geo.keys import grid_of, tile_id_of
 from lodscape.geo.tiles import Tile, tile_id
 from lodscape.lod.camera import EARTH_MIN_RADIUS, MIN_DISTANCE, Camera
-from lodscape.lod.select import SLOPE_ROOM, Selection, SelectOptions, TreeLike, hysteresis_steps
+from lodscape.lod.select import (
+    SLOPE_ROOM,
+    SUB_MAX,
+    SUB_MIN_SPAN,
+    SUB_PER_VIEW,
+    Selection,
+    SelectOptions,
+    TreeLike,
+    hysteresis_steps,
+)
 
 _A = 6378137.0  # WGS84 semi-major axis
 _E2 = (1.0 / 298.257223563) * (2.0 - 1.0 / 298.257223563)  # first eccentricity squared
@@ -40,9 +49,10 @@ def _ecef(lon: np.ndarray, lat: np.ndarray, h: np.ndarray | float) -> np.ndarray
 
 def _box(
     camera: Camera, z: int, x: int, y: int, lo_h: float, hi_h: float
-) -> tuple[bool, float, float, np.ndarray, np.ndarray]:
+) -> tuple[bool, float, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(in the view, distance to the nearest point of the box, ground size, the box's corners
-    relative to the camera, the ENU rows) of one tile: its lattice at both heights, boxed with
+    relative to the camera, the ENU rows, the box's low and high corners in that frame about
+    the camera) of one tile: its lattice at both heights, boxed with
     a margin in the ENU frame at the tile's centre."""
     side = 2.0 * _HALF / 2**z
     left, top = -_HALF + x * side, _HALF - y * side
@@ -64,19 +74,80 @@ def _box(
     ground = side * cp
     lo = local.min(axis=0) - _MARGIN * ground
     hi = local.max(axis=0) + _MARGIN * ground
-    gap = np.maximum(lo, 0.0) + np.maximum(-hi, 0.0)
-    dist = float(math.sqrt(float(gap @ gap)))
-    # the box's eight corners in clip space: outside when all are beyond one clip plane
-    corners = np.array(
-        [[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])]
-    )
-    view = corners @ enu @ camera.rotation.T
+    corners = _corners(lo, hi) @ enu
+    return _in_view(camera, corners), _gap(lo, hi), ground, corners, enu, lo, hi
+
+
+def _in_view(camera: Camera, corners: np.ndarray) -> bool:
+    """Whether a box (its eight corners relative to the camera) is not wholly beyond one clip
+    plane: its corners in clip space."""
+    view = corners @ camera.rotation.T
     clip = np.c_[view, np.ones(8)] @ camera.projection().T
     w = clip[:, 3]
-    outside = any(
+    return not any(
         bool(np.all(w + sign * clip[:, axis] < 0.0)) for axis in range(3) for sign in (1.0, -1.0)
     )
-    return not outside, dist, ground, corners @ enu, enu
+
+
+def _parts(camera: Camera, corners: np.ndarray) -> int:
+    """How many parts a side a box is measured in: SUB_PER_VIEW times the share of the view
+    its image spans, rounded up (the whole view where it reaches behind the
+    near plane), at most SUB_MAX."""
+    view = corners @ camera.rotation.T
+    depth = -view[:, 2]
+    floor = max(camera.near or 0.0, MIN_DISTANCE)
+    ty = math.tan(math.radians(camera.fov_y) / 2.0)
+    tx = ty * camera.width / camera.height
+    if depth.min() < floor:
+        span = 1.0
+    else:
+        ra = np.clip(view[:, 0] / depth, -tx, tx)
+        rb = np.clip(view[:, 1] / depth, -ty, ty)
+        span = max(float(np.ptp(ra)) / (2 * tx), float(np.ptp(rb)) / (2 * ty))
+    if span < SUB_MIN_SPAN:
+        return 1
+    return min(max(math.ceil(span * SUB_PER_VIEW - 1e-9), 1), SUB_MAX)
+
+
+def _vertical(
+    camera: Camera, lo: np.ndarray, hi: np.ndarray, enu: np.ndarray, ground: float
+) -> float:
+    """Pixels per metre of height error: the worst over the box's parts in view (all of them
+    where none is), each part a k-th of the box's east and north sides at its full height."""
+    corners = _corners(lo, hi) @ enu
+    k = _parts(camera, corners)
+    if k == 1:
+        return _scales(camera, corners, enu, ground, _gap(lo, hi))[0]
+    seen, unseen = 0.0, 0.0
+    for i in range(k):
+        for j in range(k):
+            plo = np.array(
+                [lo[0] + (hi[0] - lo[0]) * i / k, lo[1] + (hi[1] - lo[1]) * j / k, lo[2]]
+            )
+            phi = np.array(
+                [
+                    lo[0] + (hi[0] - lo[0]) * (i + 1) / k,
+                    lo[1] + (hi[1] - lo[1]) * (j + 1) / k,
+                    hi[2],
+                ]
+            )
+            c = _corners(plo, phi) @ enu
+            v = _scales(camera, c, enu, ground, _gap(plo, phi))[0]
+            if _in_view(camera, c):
+                seen = max(seen, v)
+            unseen = max(unseen, v)
+    return seen if seen > 0.0 else unseen
+
+
+def _corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return np.array(
+        [[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])]
+    )
+
+
+def _gap(lo: np.ndarray, hi: np.ndarray) -> float:
+    gap = np.maximum(lo, 0.0) + np.maximum(-hi, 0.0)
+    return float(math.sqrt(float(gap @ gap)))
 
 
 def _scales(
@@ -144,14 +215,17 @@ def select_reference(
     )
     out: list[tuple[int, int, int, int, int]] = []
 
+    boxes: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray, np.ndarray, float]] = {}
+
     def metrics(z: int, x: int, y: int) -> tuple[bool, bool, float, np.ndarray, float] | None:
         st = tree.level(z).stats(np.array([x]), np.array([y]))
         if not st.exists[0]:
             return None
-        inside, dist, ground, corners, enu = _box(
+        inside, dist, ground, corners, enu, lo, hi = _box(
             camera, z, x, y, float(st.min_h[0]), float(st.max_h[0])
         )
         vertical, horizontal = _scales(camera, corners, enu, ground, dist)
+        boxes[(z, x, y)] = (lo, hi, enu, ground)
         return inside, True, ground * horizontal, st.error[:, 0], vertical
 
     def visit(z: int, x: int, y: int, parent_k: int = -1) -> None:
@@ -187,6 +261,10 @@ def select_reference(
                 visit(z + 1, cx, cy, least if k is None else k)
         else:
             k = least if k is None else k
+            if k > 0 and px >= SUB_MIN_SPAN * min(camera.width, camera.height):
+                # a tile drawn large on screen is charged at the worst of its parts in view
+                v = min(_vertical(camera, *boxes[(z, x, y)]), scale)
+                k = min(k, next((i for i, e in enumerate(err) if e * v <= options.max_sse), least))
             before_k = grid_before.get(tile_id(Tile(x, y, z)))
             if before_k is not None and k < before_k <= k + steps:
                 k = before_k
