@@ -480,7 +480,7 @@ def tile_boxes(
         vertical = horizontal = camera.pixels_per_metre(dist_near)
     else:
         corners = corners0 - eye
-        spread = ground * math.sqrt(0.5) / EARTH_MIN_RADIUS
+        spread = _spread(ground)
         vertical, horizontal = camera.box_scales(
             corners, basis[:, 2], basis[:, 0], basis[:, 1], spread, dist_near
         )
@@ -603,7 +603,7 @@ def parts_vertical(
     big = np.flatnonzero(ks > 1)
     if big.size:
         lo, hi = _eye_box(basis[big], lo0[big], hi0[big], ground[big], eye)
-        spread = ground[big] * math.sqrt(0.5) / EARTH_MIN_RADIUS
+        spread = _spread(ground[big])
         planes = camera.frustum_planes()
         out[big] = _parts_vertical(camera, planes, basis[big], lo, hi, spread, ks[big])
     return ks, out
@@ -642,6 +642,13 @@ def _coarser_in_parts(
     k[m] = np.minimum(k[m], kk)
     scale[m] = v
     return k, scale
+
+
+def _spread(ground: F64) -> F64:
+    """Radians the ellipsoid's normal turns by within boxes of ground size ``ground``: from
+    their centre to a corner, over the least radius of curvature."""
+    out: F64 = ground * math.sqrt(0.5) / EARTH_MIN_RADIUS
+    return out
 
 
 def tile_far(
