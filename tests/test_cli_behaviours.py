@@ -201,6 +201,41 @@ def test_mixed_crs_only_when_allowed(
     assert "ll.tif" in text
 
 
+def test_a_mosaic_of_rasters_far_apart_builds_whole(
+    dem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two rasters an ocean apart, in their own CRSs: the tileset opens, every level from its
+    coarsest has tiles over each, and no warning is printed about points the other's CRS
+    cannot hold (a 513² sample of their joint box, or its centre, meets neither of them)."""
+    import warnings
+
+    from lodscape.geo.tiles import tile
+    from lodscape.store.tileset import TilesetProvider
+
+    other = write_dem(
+        str(tmp_path / "europe.tif"), fbm_heights(65, seed=3), crs="EPSG:32633", west=500000.0,
+        north=5000000.0, res=20.0,
+    )  # fmt: skip
+    out = tmp_path / "apart.lods"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        code, _, err = run_cli(
+            ["build", dem, other, "-o", str(out), "-q", "--allow-mixed-crs"], capsys
+        )
+    assert code == 0, err
+    assert "Warning" not in err
+    places = [_centre(dem)[:2], _centre(other)[:2]]
+    with closing(TilesetProvider(out)) as t:
+        tree = t.tree
+        assert tree.zmin <= 3  # their joint box spans an ocean
+        for z in range(tree.zmin, tree.zmax + 1):
+            st = tree.level(z)
+            for lon, lat in places:
+                t_ = tile(lon, lat, z)
+                got = st.stats(np.array([t_.x], np.int64), np.array([t_.y], np.int64))
+                assert bool(got.exists[0]), (z, lon, lat)
+
+
 def test_the_error_budget_trades_triangles_for_error(
     dem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

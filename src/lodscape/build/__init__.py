@@ -430,7 +430,11 @@ def _is_points(path: str | os.PathLike[str]) -> bool:
 
 
 def _height_range(source: HeightSource) -> tuple[float, float]:
-    """Lowest and highest height over a 513² sample of the data (for the imagery's colours)."""
+    """The data's lowest and highest height (for the imagery's colours): what its source
+    knows (a raster's overview, a mosaic's members'), else over a 513² sample of it."""
+    known = getattr(source, "data_range", None)
+    if known is not None:
+        return float(known[0]), float(known[1])
     b = source.bounds_merc
     xs = np.linspace(b.left, b.right, 513)
     ys = np.linspace(b.top, b.bottom, 513)

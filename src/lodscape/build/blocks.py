@@ -36,7 +36,7 @@ from lodscape.build.tiles import (
     made_without_data,
     tile_budget,
 )
-from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, bounds_array
+from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, bounds_array
 from lodscape.store.tileset import SHARD_SCHEMA, TIN_GRID, TileRecord, TilesetError
 from lodscape.terrain.source import HeightSource
 
@@ -127,21 +127,33 @@ def touching(
     source: HeightSource, z: int, x: NDArray[np.int64], y: NDArray[np.int64]
 ) -> NDArray[np.bool_]:
     """Which tiles of level z touch the data's footprint: a 5×5 lattice over each tile, and the
-    tile's point nearest the footprint's centre (a footprint smaller than the lattice's
-    spacing falls between its points)."""
+    tile's point nearest the centre of each footprint the data is made of (a footprint smaller
+    than the lattice's spacing falls between its points; a mosaic's members far apart leave
+    their joint box's centre on none of them)."""
     if x.size == 0:
         return np.zeros(0, bool)
     f = np.linspace(0.0, 1.0, 5)
-    b = source.bounds_merc
-    cx, cy = (b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0
     left, bottom, right, top = bounds_array(z, x, y)
     px = left[:, None, None] + f[None, None, :] * (right - left)[:, None, None]
     py = bottom[:, None, None] + f[None, :, None] * (top - bottom)[:, None, None]
     pxb, pyb = np.broadcast_arrays(px, py)
-    lattice = np.asarray(source.covers(pxb, pyb)).reshape(x.size, -1).any(axis=1)
-    near = np.asarray(source.covers(np.clip(cx, left, right), np.clip(cy, bottom, top)))
-    hit: NDArray[np.bool_] = lattice | near
+    hit: NDArray[np.bool_] = np.asarray(source.covers(pxb, pyb)).reshape(x.size, -1).any(axis=1)
+    for b in footprints(source):
+        cx, cy = (b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0
+        hit |= np.asarray(source.covers(np.clip(cx, left, right), np.clip(cy, bottom, top)))
     return hit
+
+
+def footprints(source: HeightSource) -> list[Bbox]:
+    """The boxes (Web Mercator) of the data ``source`` is made of: each member's of a mosaic
+    (``terrain.source.MosaicSource``), through a fill's wrapper; else its own."""
+    members = getattr(source, "sources", None)
+    if members is not None:
+        return [b for s in members for b in footprints(s)]
+    wrapped = getattr(source, "source", None)  # a fill over another source
+    if wrapped is not None and wrapped is not source:
+        return footprints(wrapped)
+    return [source.bounds_merc]
 
 
 def planned(source: HeightSource, block: Block) -> dict[int, NDArray[np.int64]]:

@@ -424,6 +424,10 @@ class _GridSource:
         """Level-0 pixel-edge coordinates (col, row) of EPSG:3857 points, and which are inside."""
         xs, ys = self._transformer("to_src").transform(xm, ym)
         xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
+        # a point the source's CRS cannot hold (far outside a UTM zone: infinite) is outside it,
+        # not a warning (inf × a zero term is NaN with one)
+        xs = np.where(np.isfinite(xs), xs, np.nan)
+        ys = np.where(np.isfinite(ys), ys, np.nan)
         inv = self._inv
         col = inv.a * xs + inv.b * ys + inv.c
         row = inv.d * xs + inv.e * ys + inv.f
@@ -1208,6 +1212,13 @@ class MosaicSource:
             float(boxes[:, 3].max()),
         )
         self.resolution_merc = float(self.sources[0].resolution_merc)
+        # the lowest and highest valid height of them all, where each knows its own (a
+        # raster's overview does): sources far apart leave a sample over their joint box
+        # nothing to find
+        known = [getattr(s, "data_range", None) for s in self.sources]
+        if all(r is not None for r in known):
+            #: The lowest and highest valid height of the data (metres).
+            self.data_range = (min(r[0] for r in known), max(r[1] for r in known))  # type: ignore[index]
 
     def _combine(
         self, parts: Sequence[tuple[NDArray[np.float32], NDArray[np.bool_]]]
