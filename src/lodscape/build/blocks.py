@@ -137,10 +137,12 @@ def touching(
     px = left[:, None, None] + f[None, None, :] * (right - left)[:, None, None]
     py = bottom[:, None, None] + f[None, :, None] * (top - bottom)[:, None, None]
     pxb, pyb = np.broadcast_arrays(px, py)
-    hit = np.asarray(source.covers(pxb, pyb), bool).reshape(x.size, -1).any(axis=1)
+    lattice = np.asarray(source.covers(pxb, pyb), bool).reshape(x.size, -1)
+    hit: NDArray[np.bool_] = np.any(lattice, axis=1)
     for b in footprints(source):
         cx, cy = (b.left + b.right) / 2.0, (b.bottom + b.top) / 2.0
-        hit |= np.asarray(source.covers(np.clip(cx, left, right), np.clip(cy, bottom, top)))
+        near = np.asarray(source.covers(np.clip(cx, left, right), np.clip(cy, bottom, top)), bool)
+        hit = hit | near
     return hit
 
 
