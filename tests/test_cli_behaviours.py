@@ -225,6 +225,31 @@ def test_a_mosaic_of_rasters_far_apart_builds_whole(
     assert code == 0, err
     assert "Warning" not in err
     places = [_centre(dem)[:2], _centre(other)[:2]]
+    # the tiles tested for data while planning are each raster's, not the ocean's between them
+    import lodscape.build.blocks as blocks
+    from lodscape.build import BuildOptions, _prepare
+    from lodscape.terrain.pyramid import level_range
+
+    tested = []
+
+    def counted(source, z, x, y):  # type: ignore[no-untyped-def]
+        tested.append(x.size)
+        return touching(source, z, x, y)
+
+    touching = blocks.touching
+    *_, span, _, source = _prepare(
+        [dem, other], tmp_path / "plan.lods", BuildOptions(allow_mixed_crs=True)
+    )
+    with closing(source), pytest.MonkeyPatch.context() as mp:
+        mp.setattr(blocks, "touching", counted)
+        assert len(blocks.footprints(source)) == 2
+        for band in blocks.bands(span.zmax, span.zmin):
+            tested.clear()
+            planned = sum(len(row) for row in blocks.plan_blocks(source, band))
+            own = sum(
+                r[2] * r[3] for r in (level_range(b, band.root) for b in blocks.footprints(source))
+            )
+            assert 2 <= planned <= sum(tested) <= own, (band, planned, sum(tested), own)
     with closing(TilesetProvider(out)) as t:
         tree = t.tree
         assert tree.zmin <= 3  # their joint box spans an ocean

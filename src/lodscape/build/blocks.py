@@ -398,12 +398,26 @@ def plan_blocks(source: HeightSource, band: Band, rows: int = 1) -> Iterator[lis
     is never whole in memory); a block the coarse overview finds no data in is ``empty``."""
     from lodscape.terrain.pyramid import level_range
 
+    # each footprint's tiles (a mosaic's members far apart: not every tile of their joint box)
+    ranges = np.array([level_range(b, band.root) for b in footprints(source)], np.int64)
     x0, y0, nx, ny = level_range(source.bounds_merc, band.root)
-    xs = np.arange(x0, x0 + nx, dtype=np.int64)
     has_data = getattr(source, "has_data", None)
     for y in range(y0, y0 + ny, rows):
-        yy = np.repeat(np.arange(y, min(y + rows, y0 + ny), dtype=np.int64), nx)
-        xx = np.tile(xs, yy.size // nx)
+        cols, lines = [], []
+        for r in range(y, min(y + rows, y0 + ny)):
+            on = (ranges[:, 1] <= r) & (r < ranges[:, 1] + ranges[:, 3])
+            if not on.any():
+                continue
+            xs = np.unique(
+                np.concatenate(
+                    [np.arange(a, a + n, dtype=np.int64) for a, n in ranges[on][:, [0, 2]]]
+                )
+            )
+            cols.append(xs)
+            lines.append(np.full(xs.size, r, np.int64))
+        if not cols:
+            continue
+        xx, yy = np.concatenate(cols), np.concatenate(lines)
         hit = touching(source, band.root, xx, yy)
         xx, yy = xx[hit], yy[hit]
         empty = np.zeros(xx.size, bool)
