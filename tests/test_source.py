@@ -420,6 +420,35 @@ def test_across_the_antimeridian(tmp_path: Path) -> None:
         assert source.bounds_merc.right - source.bounds_merc.left > 3.9e7
 
 
+@pytest.mark.parametrize("turn", [360.0, -360.0])
+def test_longitudes_a_whole_turn_off(tmp_path: Path, turn: float) -> None:
+    """Data kept in 0..360° longitudes (or below -180°) wholly on one side of the antimeridian
+    is where it is a turn away: the same footprint, heights and pixels as the same raster in
+    -180..180° (it was refused as crossing the antimeridian)."""
+    rng = np.random.default_rng(4)
+    data = rng.uniform(0.0, 900.0, (48, 64)).astype(np.float32)
+    west = -170.0 if turn > 0 else 170.0
+    plain = write_tif(tmp_path / "plain.tif", data, from_origin(west, 58.0, 0.01, 0.01))
+    turned = write_tif(tmp_path / "turned.tif", data, from_origin(west + turn, 58.0, 0.01, 0.01))
+    with RasterSource(str(plain)) as a, RasterSource(str(turned)) as b:
+        assert tuple(b.bounds_merc) == pytest.approx(tuple(a.bounds_merc), abs=1e-6)
+        assert b.resolution_merc == pytest.approx(a.resolution_merc)
+        bx = a.bounds_merc
+        xs = np.linspace(bx.left, bx.right, 97)
+        ys = np.linspace(bx.top, bx.bottom, 71)
+        ha, va = a.sample_grid(xs, ys, a.resolution_merc)
+        hb, vb = b.sample_grid(xs, ys, b.resolution_merc)
+        assert va.mean() > 0.9
+        np.testing.assert_array_equal(vb, va)
+        np.testing.assert_allclose(hb[vb], ha[va], atol=1e-3)
+        box = Bbox(bx.left, bx.bottom, (bx.left + bx.right) / 2, bx.top)
+        pa = np.concatenate([np.stack(p, 1) for p in a.pixels_in(box)])
+        pb = np.concatenate([np.stack(p, 1) for p in b.pixels_in(box)])
+        assert pa.shape == pb.shape
+        assert pa.shape[0] > 500
+        np.testing.assert_allclose(pb, pa, atol=1e-3)
+
+
 def test_array_source_errors() -> None:
     with pytest.raises(SourceError, match=r"^array: .*not invertible"):
         ArraySource(np.ones((4, 4)), Affine(0.0, 0.0, 0.0, 0.0, 0.0, 0.0))

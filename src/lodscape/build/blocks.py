@@ -400,7 +400,7 @@ def plan_blocks(source: HeightSource, band: Band, rows: int = 1) -> Iterator[lis
 
     # each footprint's tiles (a mosaic's members far apart: not every tile of their joint box)
     ranges = np.array([level_range(b, band.root) for b in footprints(source)], np.int64)
-    x0, y0, nx, ny = level_range(source.bounds_merc, band.root)
+    _, y0, _, ny = level_range(source.bounds_merc, band.root)
     has_data = getattr(source, "has_data", None)
     for y in range(y0, y0 + ny, rows):
         cols, lines = [], []

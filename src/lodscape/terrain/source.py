@@ -177,6 +177,35 @@ class HeightSource(Protocol):
     def close(self) -> None: ...
 
 
+def _turn(crs: CRS, transform: Affine, shape: tuple[int, int]) -> float:
+    """Degrees a geographic raster's longitudes lie from -180..180 by whole turns (360 for one
+    stored as 190..196°, the -170..-164° of data kept in 0..360° longitudes), else 0."""
+    if not crs.is_geographic:
+        return 0.0
+    h, w = shape
+    t = transform
+    xs = [float(t.a * c + t.b * r + t.c) for c in (0, w) for r in (0, h)]
+    west, east = min(xs), max(xs)
+    if west < 180.0 and east > -180.0:
+        return 0.0
+    return 360.0 * math.floor((west + 180.0) / 360.0)
+
+
+class _Turned:
+    """A pyproj transformer to or from a raster's geographic CRS (``into``: towards it) whose
+    longitudes lie ``turn`` degrees from -180..180: the raster's side of it shifted so."""
+
+    def __init__(self, t: Transformer, turn: float, into: bool) -> None:
+        self.t, self.turn, self.into = t, turn, into
+
+    def transform(self, x: ArrayLike, y: ArrayLike) -> tuple[Any, Any]:
+        if self.into:
+            xs, ys = self.t.transform(x, y)
+            return np.asarray(xs, np.float64) + self.turn, ys
+        out: tuple[Any, Any] = self.t.transform(np.asarray(x, np.float64) - self.turn, y)
+        return out
+
+
 @dataclass(frozen=True)
 class _Level:
     """One resolution of the source: 2^k level-0 pixels per pixel (sx, sy exactly for overviews)."""
@@ -328,6 +357,7 @@ class _GridSource:
                 f"{name}: geotransform {coeffs} is not invertible; fix the georeferencing"
             )
         self._inv = ~transform
+        self._turn = _turn(crs, transform, shape)
         self._kmax = (min(h, w) - 1).bit_length() - 1  # coarsest level still 2×2 pixels
         self._native: dict[int, _Level] = {}
         for index, oh, ow in overviews:
@@ -355,7 +385,10 @@ class _GridSource:
             src, dst = {"to_src": (merc, self._crs), "to_merc": (self._crs, merc)}.get(
                 key, (self._crs, ll)
             )
-            t = cache[key] = Transformer.from_crs(src, dst, always_xy=True)
+            t = Transformer.from_crs(src, dst, always_xy=True)
+            if self._turn:
+                t = _Turned(t, self._turn, key == "to_src")  # type: ignore[assignment]
+            cache[key] = t
         return t
 
     def _footprint(self) -> Bbox:
