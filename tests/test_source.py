@@ -18,6 +18,7 @@ from rasterio.transform import Affine
 from lodscape.data import sample_dem_path
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import (
+    ORIGIN,
     Bbox,
     Tile,
     lonlat_to_merc,
@@ -447,6 +448,29 @@ def test_longitudes_a_whole_turn_off(tmp_path: Path, turn: float) -> None:
         assert pa.shape == pb.shape
         assert pa.shape[0] > 500
         np.testing.assert_allclose(pb, pa, atol=1e-3)
+
+
+@pytest.mark.parametrize("west", [0.0, -180.5])
+def test_a_whole_world_read_from_its_first_turn(tmp_path: Path, west: float) -> None:
+    """A whole world in 0..360° longitudes, or -180..180° with a pixel's overlap, spans the
+    world (it was refused as crossing the antimeridian), and every longitude reads its pixel
+    at its first turn from the raster's west edge, across 0° and 180° alike."""
+    rng = np.random.default_rng(6)
+    cols = 721 if west < -180.0 else 720
+    data = rng.uniform(-4000.0, 5000.0, (300, cols)).astype(np.float32)
+    path = write_tif(tmp_path / "world.tif", data, from_origin(west, 75.0, 0.5, 0.5))
+    with RasterSource(str(path)) as source:
+        b = source.bounds_merc
+        assert (b.left, b.right) == (-ORIGIN, ORIGIN)
+        r = rng.integers(0, 300, 400)
+        c = rng.integers(0, cols, 400)
+        lon = np.mod(west + (c + 0.5) * 0.5 + 180.0, 360.0) - 180.0
+        lat = 75.0 - (r + 0.5) * 0.5
+        first = np.floor((np.mod(lon - west, 360.0)) / 0.5).astype(int)  # its first turn
+        xm, ym = lonlat_to_merc(lon, lat)
+        h, valid = source.sample(xm, ym, source.resolution_merc)
+        assert valid.all()
+        np.testing.assert_array_equal(h, data[r, first])
 
 
 def test_array_source_errors() -> None:

@@ -177,32 +177,57 @@ class HeightSource(Protocol):
     def close(self) -> None: ...
 
 
-def _turn(crs: CRS, transform: Affine, shape: tuple[int, int]) -> float:
-    """Degrees a geographic raster's longitudes lie from -180..180 by whole turns (360 for one
-    stored as 190..196°, the -170..-164° of data kept in 0..360° longitudes), else 0."""
+@dataclass(frozen=True)
+class _Turn:
+    """How a geographic raster's longitudes sit against -180..180°: ``shift`` degrees away by
+    whole turns (360 for one stored as 190..196°, the -170..-164° of data kept in 0..360°), or
+    all the way round from ``west`` (a whole world in 0..360°, or -180..180° with a pixel's
+    overlap): a longitude is then read at its first turn from ``west``."""
+
+    shift: float = 0.0
+    west: float | None = None
+
+    def __bool__(self) -> bool:
+        return self.shift != 0.0 or self.west is not None
+
+
+def _turn(crs: CRS, transform: Affine, shape: tuple[int, int]) -> _Turn:
+    """The ``_Turn`` of a raster of this CRS, transform and shape (none: not geographic, or
+    within -180..180°)."""
     if not crs.is_geographic:
-        return 0.0
+        return _Turn()
     h, w = shape
     t = transform
     xs = [float(t.a * c + t.b * r + t.c) for c in (0, w) for r in (0, h)]
     west, east = min(xs), max(xs)
+    eps = 1e-9
+    if west >= -180.0 - eps and east <= 180.0 + eps:
+        return _Turn()
+    if east - west >= 360.0 - eps:
+        return _Turn(west=west)
     if west < 180.0 and east > -180.0:
-        return 0.0
-    return 360.0 * math.floor((west + 180.0) / 360.0)
+        return _Turn()
+    return _Turn(shift=360.0 * math.floor((west + 180.0) / 360.0))
 
 
 class _Turned:
     """A pyproj transformer to or from a raster's geographic CRS (``into``: towards it) whose
-    longitudes lie ``turn`` degrees from -180..180: the raster's side of it shifted so."""
+    longitudes are turned (``_Turn``): the raster's side of it shifted or wrapped so."""
 
-    def __init__(self, t: Transformer, turn: float, into: bool) -> None:
+    def __init__(self, t: Transformer, turn: _Turn, into: bool) -> None:
         self.t, self.turn, self.into = t, turn, into
 
     def transform(self, x: ArrayLike, y: ArrayLike) -> tuple[Any, Any]:
+        turn = self.turn
         if self.into:
             xs, ys = self.t.transform(x, y)
-            return np.asarray(xs, np.float64) + self.turn, ys
-        out: tuple[Any, Any] = self.t.transform(np.asarray(x, np.float64) - self.turn, y)
+            xs = np.asarray(xs, np.float64)
+            if turn.west is not None:
+                return turn.west + np.mod(xs - turn.west, 360.0), ys
+            return xs + turn.shift, ys
+        x = np.asarray(x, np.float64)
+        x = np.mod(x + 180.0, 360.0) - 180.0 if turn.west is not None else x - turn.shift
+        out: tuple[Any, Any] = self.t.transform(x, y)
         return out
 
 
@@ -414,9 +439,11 @@ class _GridSource:
             raise SourceError(f"{self.name}: footprint cannot be projected to longitude/latitude")
         lo, hi = float(lat[finite].min()), float(lat[finite].max())
         # round the edges, longitudes unwrapped: back where they began, the data does not hold a
-        # pole, and if they left -180..180 on the way, it straddles the antimeridian
+        # pole, and if they left -180..180 on the way, it straddles the antimeridian (a raster
+        # all the way round, read from its first turn, spans the world instead)
         ring = np.degrees(np.unwrap(np.radians(lon[finite])))
-        if abs(ring[-1] - ring[0]) < 180.0 and (ring.min() < -180.0 or ring.max() > 180.0):
+        crossing = ring.min() < -180.0 or ring.max() > 180.0
+        if self._turn.west is None and abs(ring[-1] - ring[0]) < 180.0 and crossing:
             west, east = float(ring.min()), float(ring.max())
             raise SourceError(
                 f"{self.name}: the data crosses the antimeridian (its longitudes run "
@@ -436,6 +463,8 @@ class _GridSource:
             xm, ym = xm.copy(), ym.copy()
             xm[bad], ym[bad] = xm2, ym2
         xm, ym = xm[finite], np.clip(ym[finite], -ORIGIN, ORIGIN)
+        if self._turn.west is not None:
+            return Bbox(-ORIGIN, float(ym.min()), ORIGIN, float(ym.max()))
         return Bbox(float(xm.min()), float(ym.min()), float(xm.max()), float(ym.max()))
 
     def _resolution(self) -> float:
