@@ -103,6 +103,20 @@ _OSM = """<?xml version='1.0' encoding='UTF-8'?>
 """
 
 
+def test_what_a_city_file_lost_is_said_once(capsys: pytest.CaptureFixture[str]) -> None:
+    """Objects an OSM file cannot make (a relation whose rings do not close in the extract, a
+    missing node) are counted and said once on stderr, naming the file, when a scene opens it."""
+    skipped = sum(read_osm(sample_city_path()).skipped.values())
+    assert skipped >= 1
+    capsys.readouterr()
+    with lodscape.open("flat", city=str(sample_city_path())):
+        pass
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert str(sample_city_path().name) in lines[0]
+    assert f": {skipped} OSM objects skipped (" in lines[0]
+
+
 def test_broken_footprints_are_repaired_or_skipped(tmp_path: Path) -> None:
     p = tmp_path / "small.osm"
     p.write_text(_OSM)

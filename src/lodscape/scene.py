@@ -398,19 +398,23 @@ class Scene:
     def add_city(self, city: str | PathLike[str] | Any, options: Any = None) -> Any:
         """Drape a city on the terrain: an OSM file (.osm.pbf, .osm) or a built ``CityModel``;
         its objects stand on this scene's ground, in a scene tree packed as ``options.packing``
-        says (a built model keeps its own). Returns the model."""
+        says (a built model keeps its own). Returns the model. What a file's objects could not
+        be made of (a missing node, a ring that does not close) is said once on stderr and
+        counted (``City.skipped``)."""
         from lodscape.city.model import CityModel, CityOptions, build_city
         from lodscape.city.osm import City, read_osm
+        from lodscape.imagery.layers import warn_stderr
 
         options = options or CityOptions()
         if isinstance(city, CityModel):
             model = city
         else:
-            model = build_city(
-                city if isinstance(city, City) else read_osm(str(city)),
-                self.heights,
-                packing=options.packing,
-            )
+            if not isinstance(city, City):
+                city = read_osm(str(city))
+                note = city.skipped_note()
+                if note is not None:
+                    warn_stderr(note)
+            model = build_city(city, self.heights, packing=options.packing)
         self._drop_city_pass()
         self.city = model
         self.city_options = options

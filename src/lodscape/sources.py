@@ -370,8 +370,13 @@ def _read_city(city: Any) -> Any:
     if city is None or not isinstance(city, str | PathLike):
         return city
     from lodscape.city.osm import read_osm
+    from lodscape.imagery.layers import warn_stderr
 
-    return read_osm(Path(city))
+    town = read_osm(Path(city))
+    note = town.skipped_note()  # what could not be made of the file: said once
+    if note is not None:
+        warn_stderr(note)
+    return town
 
 
 def _ground_under(town: Any) -> str:

@@ -220,6 +220,14 @@ class City:
             self.other_roofs + other.other_roofs,
         )
 
+    def skipped_note(self) -> str | None:
+        """One line saying what was skipped and why (None: nothing was)."""
+        n = sum(self.skipped.values())
+        if not n:
+            return None
+        why = ", ".join(f"{reason}: {k}" for reason, k in self.skipped.most_common())
+        return f"{self.name}: {n} OSM object{'s' if n > 1 else ''} skipped ({why})"
+
     def report(self) -> dict[str, object]:
         kinds = Counter(f.kind for f in self.features)
         return {
