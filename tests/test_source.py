@@ -15,6 +15,7 @@ from pyproj import Transformer
 from rasterio.enums import Resampling
 from rasterio.transform import Affine
 
+from _synthetic import run_cli
 from lodscape.data import sample_dem_path
 from lodscape.errors import SourceError
 from lodscape.geo.tiles import (
@@ -396,6 +397,53 @@ def test_no_crs(tmp_path: Path) -> None:
     data = np.ones((8, 9), np.float32)
     path = write_tif(tmp_path / "nocrs.tif", data, from_origin(0, 1, 0.1, 0.1), crs=None)
     _one_line_error(path, "raster has no CRS; georeference it first (e.g. gdal_edit.py -a_srs")
+
+
+def test_cf_longitudes_and_latitudes_are_wgs84(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A netCDF grid with CF's longitude and latitude axes (degrees_east, degrees_north) and no
+    grid mapping is read as WGS 84, as CF says, and said once; one whose axes are not is
+    refused, with a fix that works for its format (gdal_edit.py edits GeoTIFFs alone)."""
+    xr = pytest.importorskip("xarray")
+    rng = np.random.default_rng(3)
+    lon = np.arange(10.005, 10.4, 0.01)
+    lat = np.arange(45.005, 45.3, 0.01)
+    z = rng.uniform(100.0, 900.0, (lat.size, lon.size)).astype(np.float32)
+    ds = xr.Dataset({"elevation": (("lat", "lon"), z)}, coords={"lat": lat, "lon": lon})
+    ds.lon.attrs["units"] = "degrees_east"
+    ds.lat.attrs["units"] = "degrees_north"
+    path = tmp_path / "grid.nc"
+    ds.to_netcdf(path, engine="scipy")
+    try:
+        source = RasterSource(str(path))
+    except SourceError as exc:
+        if "not a raster that GDAL can read" in str(exc):
+            pytest.skip("GDAL without its netCDF driver")
+        raise
+    with source:
+        assert source.crs_note is not None
+        assert "EPSG:4326" in source.crs_note
+        w, s = merc_to_lonlat(source.bounds_merc.left, source.bounds_merc.bottom)
+        assert float(w) == pytest.approx(10.0, abs=1e-6)
+        assert float(s) == pytest.approx(45.0, abs=1e-6)
+        # a cell's centre reads its own value (the file's rows run south to north)
+        xm, ym = lonlat_to_merc([lon[7]], [lat[3]])
+        h, ok = source.sample(xm, ym, source.resolution_merc)
+        assert ok.all()
+        assert float(h[0]) == pytest.approx(float(z[3, 7]), abs=1e-3)
+    code, _, err = run_cli(["info", str(path)], capsys)
+    assert code == 0, err
+    assert err.count("read as WGS 84 (EPSG:4326)") == 1
+    ds.lon.attrs["units"] = "m"
+    ds.lat.attrs["units"] = "m"
+    plain = tmp_path / "plain.nc"
+    ds.to_netcdf(plain, engine="scipy")
+    _one_line_error(
+        plain,
+        f"raster has no CRS; georeference it first (e.g. gdal_translate -a_srs EPSG:4326 "
+        f"{plain} plain.tif)",
+    )
 
 
 def test_outside_web_mercator(tmp_path: Path) -> None:

@@ -480,8 +480,8 @@ def _terrain(
         raster = RasterSource(
             spec.text, band=ground.band, nodata=ground.nodata, z_units=ground.z_units
         )
-        if raster.z_note is not None:
-            warn_stderr(raster.z_note)
+        for note in raster.notes:
+            warn_stderr(note)
         said = sea_note(raster, ground.sea_level)
         if said is not None:
             warn_stderr(said)

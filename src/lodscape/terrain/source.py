@@ -1028,15 +1028,30 @@ class RasterSource(_GridSource):
             raise SourceError(f"{name}: band {band} holds {dtype} values; need integers or floats")
         if ds.width < 2 or ds.height < 2:
             raise SourceError(f"{name}: raster is {ds.width}×{ds.height} pixels; need at least 2×2")
+        #: One line on where the CRS came from, where the file does not state one (None).
+        self.crs_note: str | None = None
         if ds.crs is None:
-            raise SourceError(
-                f"{name}: raster has no CRS; georeference it first "
-                f"(e.g. gdal_edit.py -a_srs EPSG:4326 {name})"
+            if not _cf_lonlat(ds.tags()):
+                # gdal_edit.py changes a GeoTIFF in place; other formats are copied to one
+                stem = os.path.splitext(os.path.basename(name))[0]
+                fix = (
+                    f"gdal_edit.py -a_srs EPSG:4326 {name}"
+                    if ds.driver == "GTiff"
+                    else f"gdal_translate -a_srs EPSG:4326 {name} {stem}.tif"
+                )
+                raise SourceError(f"{name}: raster has no CRS; georeference it first (e.g. {fix})")
+            # CF's coordinates named longitude and latitude in degrees: WGS 84's, as CF says
+            # where no grid mapping is given (QGIS and xarray read them so)
+            crs = CRS.from_epsg(4326)
+            self.crs_note = (
+                f"{name}: no CRS stated; its coordinates are longitude and latitude in degrees "
+                "(CF's degrees_east and degrees_north): read as WGS 84 (EPSG:4326)"
             )
-        try:
-            crs = CRS.from_wkt(ds.crs.to_wkt())
-        except Exception as exc:  # pyproj's CRSError, or rasterio's on export
-            raise SourceError(f"{name}: unusable CRS ({_one_line(exc)})") from None
+        else:
+            try:
+                crs = CRS.from_wkt(ds.crs.to_wkt())
+            except Exception as exc:  # pyproj's CRSError, or rasterio's on export
+                raise SourceError(f"{name}: unusable CRS ({_one_line(exc)})") from None
         self._scale = float(ds.scales[band - 1] if ds.scales else 1.0)
         self._offset = float(ds.offsets[band - 1] if ds.offsets else 0.0)
         said: str | None = "--z-units"
@@ -1115,6 +1130,12 @@ class RasterSource(_GridSource):
         ok &= np.isfinite(vals)
         vals[~ok] = 0.0
         return vals, ok
+
+    @property
+    def notes(self) -> list[str]:
+        """What the file left unsaid and was read as (its CRS, its height unit): one line each,
+        for the app to say once on stderr."""
+        return [n for n in (self.crs_note, self.z_note) if n is not None]
 
     def close(self) -> None:
         """Close the dataset and its overviews; further samples raise SourceError."""
@@ -1581,9 +1602,22 @@ def sea_note(source: HeightSource, level: float | None) -> str | None:
 
 
 def z_notes(source: HeightSource) -> list[str]:
-    """What the rasters under ``source`` say of their height units where they are not plain
-    metres (``RasterSource.z_note``), once each: for the app to say on stderr."""
-    return [r.z_note for r in rasters_of(source) if r.z_note is not None]
+    """What the rasters under ``source`` say of their CRS where they state none and of their
+    height units where they are not plain metres (``RasterSource.notes``), once each: for the
+    app to say on stderr."""
+    return [note for r in rasters_of(source) for note in r.notes]
+
+
+#: CF's units of longitude and latitude (CF conventions, 4.1 and 4.2).
+_CF_EAST = {"degrees_east", "degree_east", "degree_e", "degrees_e", "degreee", "degreese"}
+_CF_NORTH = {"degrees_north", "degree_north", "degree_n", "degrees_n", "degreen", "degreesn"}
+
+
+def _cf_lonlat(tags: dict[str, str]) -> bool:
+    """Whether a raster's metadata (GDAL's netCDF tags, ``var#units``) names its axes CF's
+    longitude and latitude in degrees."""
+    units = {v.strip().lower() for k, v in tags.items() if k.lower().endswith("#units")}
+    return bool(units & _CF_EAST) and bool(units & _CF_NORTH)
 
 
 def _crs_name(wkt: str) -> str:
