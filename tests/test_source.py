@@ -446,6 +446,55 @@ def test_cf_longitudes_and_latitudes_are_wgs84(
     )
 
 
+def test_ground_control_points(tmp_path: Path) -> None:
+    """A raster georeferenced by ground control points alone reads as the same raster with its
+    geotransform where an affine map fits them (said once); where none does, it is refused
+    with the warp that grids it."""
+    import warnings
+
+    import rasterio.errors
+    from rasterio.control import GroundControlPoint
+
+    rng = np.random.default_rng(8)
+    data = rng.uniform(100.0, 900.0, (60, 80)).astype(np.float32)
+    grid = Affine(9.0, 2.0, 700_000.0, 1.5, -10.0, 4_070_000.0)  # turned and sheared
+    plain = write_tif(tmp_path / "plain.tif", data, grid, crs="EPSG:32617")
+
+    def with_gcps(name: str, shift: float) -> Path:
+        pts = []
+        for i, (c, r) in enumerate([(0, 0), (80, 0), (0, 60), (80, 60), (40, 30)]):
+            x, y = grid.a * c + grid.b * r + grid.c, grid.d * c + grid.e * r + grid.f
+            if i == 4:
+                x += shift * grid.a
+            pts.append(GroundControlPoint(row=r, col=c, x=x, y=y))
+        path = tmp_path / name
+        profile = {"driver": "GTiff", "height": 60, "width": 80, "count": 1, "dtype": "float32"}
+        with warnings.catch_warnings():
+            # rasterio warns of a file with no geotransform before its points are set
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(path, "w", **profile) as dst:
+                dst.write(data, 1)
+                dst.gcps = (pts, rasterio.crs.CRS.from_epsg(32617))
+        return path
+
+    with RasterSource(str(plain)) as a, RasterSource(str(with_gcps("gcps.tif", 0.0))) as b:
+        assert a.crs_note is None
+        assert b.crs_note is not None
+        assert "5 ground control points" in b.crs_note
+        assert tuple(b.bounds_merc) == pytest.approx(tuple(a.bounds_merc), abs=1e-3)
+        bx = a.bounds_merc
+        xs = np.linspace(bx.left, bx.right, 61)
+        ys = np.linspace(bx.top, bx.bottom, 47)
+        ha, va = a.sample_grid(xs, ys, a.resolution_merc)
+        hb, vb = b.sample_grid(xs, ys, b.resolution_merc)
+        np.testing.assert_array_equal(vb, va)
+        np.testing.assert_allclose(hb[vb], ha[va], atol=1e-2)
+    _one_line_error(
+        with_gcps("bent.tif", 3.0),
+        "ground control points that no affine map fits (off by up to",
+    )
+
+
 def test_outside_web_mercator(tmp_path: Path) -> None:
     data = np.ones((10, 10), np.float32)
     path = write_tif(tmp_path / "pole.tif", data, from_origin(0.0, 89.9, 0.1, 0.1))

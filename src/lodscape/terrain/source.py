@@ -1030,7 +1030,29 @@ class RasterSource(_GridSource):
             raise SourceError(f"{name}: raster is {ds.width}×{ds.height} pixels; need at least 2×2")
         #: One line on where the CRS came from, where the file does not state one (None).
         self.crs_note: str | None = None
-        if ds.crs is None:
+        transform = ds.transform
+        gcps, gcp_crs = ds.gcps if ds.crs is None else ([], None)
+        if gcps and gcp_crs is not None:
+            # ground control points alone: read on their affine fit where it holds them all
+            # (what gdalwarp's first order makes of them), else warped first
+            transform, off = _gcp_fit(gcps)
+            code = gcp_crs.to_epsg()
+            srs = f"EPSG:{code}" if code else "its CRS"
+            if not off <= GCP_TOLERANCE:
+                raise SourceError(
+                    f"{name}: georeferenced by {len(gcps)} ground control points that no affine "
+                    f"map fits (off by up to {off:.2g} pixels); warp it onto a grid first "
+                    f"(e.g. gdalwarp -t_srs {srs} {name} warped.tif)"
+                )
+            try:
+                crs = CRS.from_wkt(gcp_crs.to_wkt())
+            except Exception as exc:  # pyproj's CRSError, or rasterio's on export
+                raise SourceError(f"{name}: unusable CRS ({_one_line(exc)})") from None
+            self.crs_note = (
+                f"{name}: georeferenced by {len(gcps)} ground control points, read on their "
+                f"affine fit ({srs}; every point within {max(off, 0.01):.2f} pixels)"
+            )
+        elif ds.crs is None:
             if not _cf_lonlat(ds.tags()):
                 # gdal_edit.py changes a GeoTIFF in place; other formats are copied to one
                 stem = os.path.splitext(os.path.basename(name))[0]
@@ -1090,7 +1112,7 @@ class RasterSource(_GridSource):
         #: The sidecar VRT whose overviews are read (None: the file's own, if any).
         self.sidecar = None if where == self.path else where
         self._overview_band = band if where == self.path else 1
-        self._setup(name, crs, ds.transform, (ds.height, ds.width), overviews)
+        self._setup(name, crs, transform, (ds.height, ds.width), overviews)
 
     def _stated_range(self) -> tuple[float, float] | None:
         try:
@@ -1606,6 +1628,31 @@ def z_notes(source: HeightSource) -> list[str]:
     height units where they are not plain metres (``RasterSource.notes``), once each: for the
     app to say on stderr."""
     return [note for r in rasters_of(source) for note in r.notes]
+
+
+#: Pixels a raster's ground control points may lie off their affine fit for it to be read on it.
+GCP_TOLERANCE = 0.1
+
+
+def _gcp_fit(gcps: Sequence[Any]) -> tuple[Affine, float]:
+    """The least-squares affine map of pixel (col, row) edges to coordinates through ground
+    control points (rasterio's ``GroundControlPoint``: row, col, x, y), and how far the
+    farthest point lies off it, in pixels (inf: fewer than three, or all in a line)."""
+    col = np.array([float(g.col) for g in gcps])
+    row = np.array([float(g.row) for g in gcps])
+    xy = np.array([[float(g.x), float(g.y)] for g in gcps])
+    a = np.column_stack([col, row, np.ones_like(col)])
+    if len(gcps) < 3 or np.linalg.matrix_rank(a) < 3:
+        return Affine.identity(), math.inf
+    (ca, cb, cc), *_ = np.linalg.lstsq(a, xy[:, 0], rcond=None)
+    (cd, ce, cf), *_ = np.linalg.lstsq(a, xy[:, 1], rcond=None)
+    fit = Affine(float(ca), float(cb), float(cc), float(cd), float(ce), float(cf))
+    if fit.determinant == 0.0 or not all(math.isfinite(v) for v in fit[:6]):
+        return Affine.identity(), math.inf
+    inv = ~fit
+    back_col = inv.a * xy[:, 0] + inv.b * xy[:, 1] + inv.c
+    back_row = inv.d * xy[:, 0] + inv.e * xy[:, 1] + inv.f
+    return fit, float(np.hypot(back_col - col, back_row - row).max())
 
 
 #: CF's units of longitude and latitude (CF conventions, 4.1 and 4.2).
