@@ -493,6 +493,24 @@ def test_ground_control_points(tmp_path: Path) -> None:
         with_gcps("bent.tif", 3.0),
         "ground control points that no affine map fits (off by up to",
     )
+    # rational polynomial coefficients alone (a satellite scene's): orthorectified first
+    from rasterio.rpc import RPC
+
+    rpcs = RPC(
+        height_off=500.0, height_scale=500.0, lat_off=36.7, lat_scale=0.05,
+        line_den_coeff=[1.0] + [0.0] * 19, line_num_coeff=[0.0, 0.0, -1.0] + [0.0] * 17,
+        line_off=30.0, line_scale=30.0,
+        long_off=-84.2, long_scale=0.05, samp_den_coeff=[1.0] + [0.0] * 19,
+        samp_num_coeff=[0.0, 1.0] + [0.0] * 18, samp_off=40.0, samp_scale=40.0,
+    )  # fmt: skip
+    path = tmp_path / "rpc.tif"
+    profile = {"driver": "GTiff", "height": 60, "width": 80, "count": 1, "dtype": "float32"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(path, "w", **profile) as dst:
+            dst.write(data, 1)
+            dst.rpcs = rpcs
+    _one_line_error(path, "georeferenced by rational polynomial coefficients (RPCs) alone")
 
 
 def test_outside_web_mercator(tmp_path: Path) -> None:

@@ -1052,6 +1052,12 @@ class RasterSource(_GridSource):
                 f"{name}: georeferenced by {len(gcps)} ground control points, read on their "
                 f"affine fit ({srs}; every point within {max(off, 0.01):.2f} pixels)"
             )
+        elif ds.crs is None and ds.rpcs is not None:
+            raise SourceError(
+                f"{name}: georeferenced by rational polynomial coefficients (RPCs) alone; "
+                f"orthorectify it onto a grid first (e.g. gdalwarp -rpc -t_srs EPSG:4326 {name} "
+                "ortho.tif)"
+            )
         elif ds.crs is None:
             if not _cf_lonlat(ds.tags()):
                 # gdal_edit.py changes a GeoTIFF in place; other formats are copied to one
