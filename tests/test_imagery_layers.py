@@ -437,6 +437,60 @@ def test_palette_grey_and_overview_rasters(tmp_path: Path) -> None:
     assert np.abs(coarse[covered][:, :3].astype(int) - 90).max() <= 1
 
 
+def test_an_orthophoto_placed_by_ground_control_points(tmp_path: Path) -> None:
+    """A scanned map placed by ground control points alone (no grid) draws as the same raster
+    with its grid where an affine map fits its points, said once; where none does, it is
+    refused with the gdalwarp that grids it (both were refused for having no CRS)."""
+    import warnings
+
+    import rasterio
+    import rasterio.errors
+    from rasterio.control import GroundControlPoint
+    from rasterio.transform import Affine
+
+    from lodscape.imagery.raster import RasterImagery
+    from lodscape.imagery.sources import ImageryError
+
+    rng = np.random.default_rng(5)
+    rgb = rng.integers(0, 256, (3, 200, 300), dtype=np.uint8)
+    grid = Affine(9.0, 1.5, WEST, 2.0, -10.0, NORTH)  # turned and sheared
+    common = {"driver": "GTiff", "height": 200, "width": 300, "count": 3, "dtype": "uint8"}
+    with rasterio.open(tmp_path / "grid.tif", "w", crs="EPSG:32616", transform=grid, **common) as d:
+        d.write(rgb)
+
+    def placed(name: str, shift: float) -> Path:
+        pts = []
+        for i, (c, r) in enumerate([(0, 0), (300, 0), (0, 200), (300, 200), (150, 100)]):
+            x, y = grid.a * c + grid.b * r + grid.c, grid.d * c + grid.e * r + grid.f
+            pts.append(GroundControlPoint(row=r, col=c, x=x + (shift if i == 4 else 0.0), y=y))
+        with warnings.catch_warnings():
+            # rasterio warns of a file with no geotransform before its points are set
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(tmp_path / name, "w", **common) as d:
+                d.write(rgb)
+                d.gcps = (pts, rasterio.crs.CRS.from_epsg(32616))
+        return tmp_path / name
+
+    a, b = RasterImagery(tmp_path / "grid.tif"), RasterImagery(placed("gcps.tif", 0.0))
+    assert a.place_note is None
+    assert b.place_note is not None
+    assert "5 ground control points" in b.place_note
+    assert tuple(b.bounds_merc) == pytest.approx(tuple(a.bounds_merc), abs=1e-3)
+    lon, lat = (
+        float(v)
+        for v in merc_to_lonlat(
+            (a.bounds_merc.left + a.bounds_merc.right) / 2,
+            (a.bounds_merc.bottom + a.bounds_merc.top) / 2,
+        )
+    )
+    for z in (14, 16):
+        ta, tb = _tile_over(a, lon, lat, z), _tile_over(b, lon, lat, z)
+        assert (ta[..., 3] == 255).mean() > 0.3
+        assert np.abs(ta.astype(int) - tb.astype(int)).max() <= 1
+    with pytest.raises(ImageryError, match="ground control points that no affine map fits"):
+        RasterImagery(placed("bent.tif", 30.0))
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [

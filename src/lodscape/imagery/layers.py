@@ -171,8 +171,9 @@ def open_layer(
         from lodscape.imagery.raster import RasterImagery
 
         raster = RasterImagery(spec, bands=bands)
-        if raster.band_note is not None:
-            warn(f"imagery layer {index}: {raster.band_note}")
+        for note in (raster.place_note, raster.band_note):
+            if note is not None:
+                warn(f"imagery layer {index}: {note}")
         if raster.needs_overviews:
             warn(
                 f"imagery layer {index} ({spec}): a large raster without overviews; its coarse "

@@ -53,11 +53,13 @@ class RasterImagery:
         except RasterioIOError as exc:
             raise ImageryError(f"{self.name}: not a raster GDAL can read ({exc})") from None
         with src:
+            #: One line on where the raster's place came from, where it states no grid (None).
+            self.place_note: str | None = None
+            self.crs, self._transform = src.crs, src.transform
             if src.crs is None:
-                raise ImageryError(f"{self.name}: the raster has no CRS (it cannot be placed)")
+                self._place_by_gcps(src)
             if src.count < 1:
                 raise ImageryError(f"{self.name}: the raster has no bands")
-            self.crs = src.crs
             #: One line on the bands drawn as red, green and blue where they were guessed.
             self.band_note: str | None = None
             if bands is not None:
@@ -76,10 +78,14 @@ class RasterImagery:
                         f"bands {drawn} drawn as red, green, blue (--imagery-bands R,G,B picks "
                         "others, e.g. 4,3,2 for Landsat 8)"
                     )
+            t, cw, ch = self._transform, src.width, src.height
+            xs = [t.a * c + t.b * r + t.c for c in (0, cw) for r in (0, ch)]
+            ys = [t.d * c + t.e * r + t.f for c in (0, cw) for r in (0, ch)]
+            box = (min(xs), min(ys), max(xs), max(ys))
             try:
-                w, s, e, n = transform_bounds(src.crs, "EPSG:4326", *src.bounds, densify_pts=21)
+                w, s, e, n = transform_bounds(self.crs, "EPSG:4326", *box, densify_pts=21)
                 left, bottom, right, top = transform_bounds(
-                    src.crs, _MERCATOR, *src.bounds, densify_pts=21
+                    self.crs, _MERCATOR, *box, densify_pts=21
                 )
             except Exception as exc:  # GDAL's projection errors come in several classes
                 raise ImageryError(
@@ -92,7 +98,7 @@ class RasterImagery:
                 max(left, -ORIGIN), max(bottom, -ORIGIN), min(right, ORIGIN), min(top, ORIGIN)
             )
             #: Web Mercator metres per pixel at the raster's middle.
-            self.resolution_merc = _merc_resolution(src)
+            self.resolution_merc = _merc_resolution(src, self._transform, self.crs)
             try:
                 self._stretch = _stretch(src, self._bands) if src.dtypes[0] != "uint8" else None
             except ImageryError:
@@ -109,6 +115,30 @@ class RasterImagery:
         if max_zoom is not None:
             self.max_zoom = int(max_zoom)
         self.min_zoom = 0
+
+    def _place_by_gcps(self, src: Any) -> None:
+        """A raster with no grid of its own placed on its ground control points' affine fit,
+        where it holds them all within ``GCP_TOLERANCE`` pixels (what gdalwarp's first order
+        makes of them); else refused, as one with no place at all."""
+        from lodscape.terrain.source import GCP_TOLERANCE, gcp_fit
+
+        gcps, gcp_crs = src.gcps
+        if not gcps or gcp_crs is None:
+            raise ImageryError(f"{self.name}: the raster has no CRS (it cannot be placed)")
+        fit, off = gcp_fit(gcps)
+        code = gcp_crs.to_epsg()
+        srs = f"EPSG:{code}" if code else "its CRS"
+        if not off <= GCP_TOLERANCE:
+            raise ImageryError(
+                f"{self.name}: placed by {len(gcps)} ground control points that no affine map "
+                f"fits (off by up to {off:.2g} pixels); warp it onto a grid first (e.g. gdalwarp "
+                f"-t_srs {srs} {self.name} warped.tif)"
+            )
+        self.crs, self._transform = gcp_crs, fit
+        self.place_note = (
+            f"{self.name}: placed by {len(gcps)} ground control points, read on their affine "
+            f"fit ({srs}; every point within {max(off, 0.01):.2f} pixels)"
+        )
 
     def _dataset(self) -> Any:
         src = getattr(self._local, "src", None)
@@ -155,9 +185,9 @@ class RasterImagery:
         # the tile's footprint in the raster, a few texels wider so the filter has neighbours
         pad = 2.0 * texel
         sb = transform_bounds(
-            _MERCATOR, src.crs, left - pad, bottom - pad, right + pad, top + pad, densify_pts=21
+            _MERCATOR, self.crs, left - pad, bottom - pad, right + pad, top + pad, densify_pts=21
         )
-        win = from_bounds(*sb, transform=src.transform)
+        win = from_bounds(*sb, transform=self._transform)
         full = Window(0, 0, src.width, src.height)
         try:
             win = win.intersection(full)
@@ -172,7 +202,11 @@ class RasterImagery:
         # read no finer than ~2 source pixels per texel: GDAL averages (or takes an overview)
         span = max(sb[2] - sb[0], sb[3] - sb[1])
         want = (
-            (TILE + 4) * 2.0 * max(win.width, win.height) * abs(src.transform.a) / max(span, 1e-12)
+            (TILE + 4)
+            * 2.0
+            * max(win.width, win.height)
+            * abs(self._transform.a)
+            / max(span, 1e-12)
         )
         f = max(1.0, max(win.width, win.height) / max(want, 1.0))
         out_w, out_h = max(1, round(win.width / f)), max(1, round(win.height / f))
@@ -189,7 +223,7 @@ class RasterImagery:
         # colours premultiplied by their coverage, so no-data never bleeds into the filter
         planes = np.concatenate([self._colours(data) * cover, cover[None]])
         t = (
-            src.transform
+            self._transform
             @ Affine.translation(win.col_off, win.row_off)
             @ Affine.scale(win.width / out_w, win.height / out_h)
         )
@@ -339,17 +373,15 @@ def _stretch(src: Any, bands: list[int]) -> tuple[NDArray[np.float32], NDArray[n
     return lo, hi
 
 
-def _merc_resolution(src: Any) -> float:
+def _merc_resolution(src: Any, grid: Any, crs: Any) -> float:
     """Web Mercator metres per pixel at the raster's middle (the square root of a pixel's
-    area there)."""
+    area there), its pixels placed by ``grid`` (an affine map) in ``crs``."""
     from rasterio.warp import transform
 
     c, r = src.width / 2.0, src.height / 2.0
     cols, rows = [c, c + 1.0, c], [r, r, r + 1.0]
-    xs, ys = zip(
-        *(src.transform @ (cc, rr) for cc, rr in zip(cols, rows, strict=True)), strict=True
-    )
-    mx, my = transform(src.crs, _MERCATOR, list(xs), list(ys))
+    xs, ys = zip(*(grid @ (cc, rr) for cc, rr in zip(cols, rows, strict=True)), strict=True)
+    mx, my = transform(crs, _MERCATOR, list(xs), list(ys))
     ax, ay = mx[1] - mx[0], my[1] - my[0]
     bx, by = mx[2] - mx[0], my[2] - my[0]
     area = abs(ax * by - ay * bx)

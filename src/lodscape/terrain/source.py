@@ -41,6 +41,7 @@ from lodscape.geo.tiles import MAX_LAT, ORIGIN, Bbox, lonlat_to_merc
 
 __all__ = [
     "COARSE_SIZE",
+    "GCP_TOLERANCE",
     "HEIGHT_LIMITS",
     "ArraySource",
     "Fill",
@@ -48,6 +49,7 @@ __all__ = [
     "HeightSource",
     "MosaicSource",
     "RasterSource",
+    "gcp_fit",
     "open_rasters",
     "parse_fill",
     "parse_z_units",
@@ -1035,7 +1037,7 @@ class RasterSource(_GridSource):
         if gcps and gcp_crs is not None:
             # ground control points alone: read on their affine fit where it holds them all
             # (what gdalwarp's first order makes of them), else warped first
-            transform, off = _gcp_fit(gcps)
+            transform, off = gcp_fit(gcps)
             code = gcp_crs.to_epsg()
             srs = f"EPSG:{code}" if code else "its CRS"
             if not off <= GCP_TOLERANCE:
@@ -1640,7 +1642,7 @@ def z_notes(source: HeightSource) -> list[str]:
 GCP_TOLERANCE = 0.1
 
 
-def _gcp_fit(gcps: Sequence[Any]) -> tuple[Affine, float]:
+def gcp_fit(gcps: Sequence[Any]) -> tuple[Affine, float]:
     """The least-squares affine map of pixel (col, row) edges to coordinates through ground
     control points (rasterio's ``GroundControlPoint``: row, col, x, y), and how far the
     farthest point lies off it, in pixels (inf: fewer than three, or all in a line)."""
