@@ -488,13 +488,12 @@ class _GridSource:
         """Level-0 pixel-edge coordinates (col, row) of EPSG:3857 points, and which are inside."""
         xs, ys = self._transformer("to_src").transform(xm, ym)
         xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
-        # a point the source's CRS cannot hold (far outside a UTM zone: infinite) is outside it,
-        # not a warning (inf × a zero term is NaN with one)
-        xs = np.where(np.isfinite(xs), xs, np.nan)
-        ys = np.where(np.isfinite(ys), ys, np.nan)
         inv = self._inv
-        col = inv.a * xs + inv.b * ys + inv.c
-        row = inv.d * xs + inv.e * ys + inv.f
+        # a point the source's CRS cannot hold (far outside a UTM zone: infinite) is outside it
+        # (NaN), not a warning (inf × a zero term)
+        with np.errstate(invalid="ignore"):
+            col = inv.a * xs + inv.b * ys + inv.c
+            row = inv.d * xs + inv.e * ys + inv.f
         return col, row, self._inside(col, row)
 
     def _grid_pixel_coords(self, xs: F64, ys: F64) -> tuple[F64, F64, B]:
