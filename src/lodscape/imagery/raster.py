@@ -120,25 +120,17 @@ class RasterImagery:
         """A raster with no grid of its own placed on its ground control points' affine fit,
         where it holds them all within ``GCP_TOLERANCE`` pixels (what gdalwarp's first order
         makes of them); else refused, as one with no place at all."""
-        from lodscape.terrain.source import GCP_TOLERANCE, gcp_fit
+        from lodscape.errors import SourceError
+        from lodscape.terrain.source import gcp_placement
 
         gcps, gcp_crs = src.gcps
         if not gcps or gcp_crs is None:
             raise ImageryError(f"{self.name}: the raster has no CRS (it cannot be placed)")
-        fit, off = gcp_fit(gcps)
-        code = gcp_crs.to_epsg()
-        srs = f"EPSG:{code}" if code else "its CRS"
-        if not off <= GCP_TOLERANCE:
-            raise ImageryError(
-                f"{self.name}: placed by {len(gcps)} ground control points that no affine map "
-                f"fits (off by up to {off:.2g} pixels); warp it onto a grid first (e.g. gdalwarp "
-                f"-t_srs {srs} {self.name} warped.tif)"
-            )
-        self.crs, self._transform = gcp_crs, fit
-        self.place_note = (
-            f"{self.name}: placed by {len(gcps)} ground control points, read on their affine "
-            f"fit ({srs}; every point within {max(off, 0.01):.2f} pixels)"
-        )
+        try:
+            self._transform, self.place_note = gcp_placement(self.name, gcps, gcp_crs)
+        except SourceError as exc:
+            raise ImageryError(str(exc)) from None
+        self.crs = gcp_crs
 
     def _dataset(self) -> Any:
         src = getattr(self._local, "src", None)

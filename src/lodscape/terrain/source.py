@@ -50,6 +50,7 @@ __all__ = [
     "MosaicSource",
     "RasterSource",
     "gcp_fit",
+    "gcp_placement",
     "open_rasters",
     "parse_fill",
     "parse_z_units",
@@ -1036,23 +1037,11 @@ class RasterSource(_GridSource):
         if gcps and gcp_crs is not None:
             # ground control points alone: read on their affine fit where it holds them all
             # (what gdalwarp's first order makes of them), else warped first
-            transform, off = gcp_fit(gcps)
-            code = gcp_crs.to_epsg()
-            srs = f"EPSG:{code}" if code else "its CRS"
-            if not off <= GCP_TOLERANCE:
-                raise SourceError(
-                    f"{name}: georeferenced by {len(gcps)} ground control points that no affine "
-                    f"map fits (off by up to {off:.2g} pixels); warp it onto a grid first "
-                    f"(e.g. gdalwarp -t_srs {srs} {name} warped.tif)"
-                )
+            transform, self.crs_note = gcp_placement(name, gcps, gcp_crs)
             try:
                 crs = CRS.from_wkt(gcp_crs.to_wkt())
             except Exception as exc:  # pyproj's CRSError, or rasterio's on export
                 raise SourceError(f"{name}: unusable CRS ({_one_line(exc)})") from None
-            self.crs_note = (
-                f"{name}: georeferenced by {len(gcps)} ground control points, read on their "
-                f"affine fit ({srs}; every point within {max(off, 0.01):.2f} pixels)"
-            )
         elif ds.crs is None and ds.rpcs is not None:
             raise SourceError(
                 f"{name}: georeferenced by rational polynomial coefficients (RPCs) alone; "
@@ -1660,6 +1649,26 @@ def gcp_fit(gcps: Sequence[Any]) -> tuple[Affine, float]:
     back_col = inv.a * xy[:, 0] + inv.b * xy[:, 1] + inv.c
     back_row = inv.d * xy[:, 0] + inv.e * xy[:, 1] + inv.f
     return fit, float(np.hypot(back_col - col, back_row - row).max())
+
+
+def gcp_placement(name: str, gcps: Sequence[Any], crs: Any) -> tuple[Affine, str]:
+    """Where a raster ``name`` placed by ground control points alone (in ``crs``, rasterio's)
+    lies: their affine fit (``gcp_fit``), and one line that says so; a SourceError where the
+    fit misses a point by more than ``GCP_TOLERANCE`` pixels (warped first, then)."""
+    fit, off = gcp_fit(gcps)
+    code = crs.to_epsg()
+    srs = f"EPSG:{code}" if code else "its CRS"
+    if not off <= GCP_TOLERANCE:
+        raise SourceError(
+            f"{name}: placed by {len(gcps)} ground control points that no affine map fits (off "
+            f"by up to {off:.2g} pixels); warp it onto a grid first (e.g. gdalwarp -t_srs {srs} "
+            f"{name} warped.tif)"
+        )
+    note = (
+        f"{name}: placed by {len(gcps)} ground control points, read on their affine fit "
+        f"({srs}; every point within {max(off, 0.01):.2f} pixels)"
+    )
+    return fit, note
 
 
 #: CF's units of longitude and latitude (CF conventions, 4.1 and 4.2).
