@@ -291,6 +291,11 @@ def _assemble(
     try:
         if town is not None:
             _city_on(town, provider)
+            if isinstance(city, str | PathLike):
+                # what could not be made of the file: said once, of a city that is drawn
+                note = town.skipped_note()
+                if note is not None:
+                    warn_stderr(note)
         if landcover is not None:
             from lodscape.store.provider import LandcoverProvider
 
@@ -370,13 +375,8 @@ def _read_city(city: Any) -> Any:
     if city is None or not isinstance(city, str | PathLike):
         return city
     from lodscape.city.osm import read_osm
-    from lodscape.imagery.layers import warn_stderr
 
-    town = read_osm(Path(city))
-    note = town.skipped_note()  # what could not be made of the file: said once
-    if note is not None:
-        warn_stderr(note)
-    return town
+    return read_osm(Path(city))
 
 
 def _ground_under(town: Any) -> str:
