@@ -57,9 +57,9 @@ from lodscape.terrain.source import (
     parse_fill,
     parse_z_units,
     pixel_share,
+    raster_notes,
     rasters_of,
     sea_note,
-    z_notes,
 )
 
 __all__ = ["BuildOptions", "BuildReport", "build", "executor_for"]
@@ -315,7 +315,7 @@ def _prepare(
         nodata=options.nodata,
         z_units=options.z_units,
     )
-    for note in z_notes(raw):
+    for note in raster_notes(raw):
         warn_stderr(note)
     said = sea_note(raw, options.sea_level)
     if said is not None:

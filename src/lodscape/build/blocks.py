@@ -38,7 +38,7 @@ from lodscape.build.tiles import (
 )
 from lodscape.geo.tiles import MAX_ZOOM, ORIGIN, Bbox, bounds_array
 from lodscape.store.tileset import SHARD_SCHEMA, TIN_GRID, TileRecord, TilesetError
-from lodscape.terrain.source import HeightSource
+from lodscape.terrain.source import HeightSource, rasters_of
 
 __all__ = [
     "DEPTH",
@@ -147,15 +147,9 @@ def touching(
 
 
 def footprints(source: HeightSource) -> list[Bbox]:
-    """The boxes (Web Mercator) of the data ``source`` is made of: each member's of a mosaic
-    (``terrain.source.MosaicSource``), through a fill's wrapper; else its own."""
-    members = getattr(source, "sources", None)
-    if members is not None:
-        return [b for s in members for b in footprints(s)]
-    wrapped = getattr(source, "source", None)  # a fill over another source
-    if wrapped is not None and wrapped is not source:
-        return footprints(wrapped)
-    return [source.bounds_merc]
+    """The boxes (Web Mercator) of the data ``source`` is made of: each raster's under it
+    (``terrain.source.rasters_of``: a mosaic's members, through its fill); else its own."""
+    return [r.bounds_merc for r in rasters_of(source)] or [source.bounds_merc]
 
 
 def planned(source: HeightSource, block: Block) -> dict[int, NDArray[np.int64]]:

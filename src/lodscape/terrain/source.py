@@ -55,9 +55,9 @@ __all__ = [
     "parse_fill",
     "parse_z_units",
     "pixel_share",
+    "raster_notes",
     "rasters_of",
     "sea_note",
-    "z_notes",
 ]
 
 #: Longest side (pixels) of the hole-filled whole-raster overview that fills invalid points.
@@ -1032,32 +1032,34 @@ class RasterSource(_GridSource):
             raise SourceError(f"{name}: raster is {ds.width}×{ds.height} pixels; need at least 2×2")
         #: One line on where the CRS came from, where the file does not state one (None).
         self.crs_note: str | None = None
-        transform = ds.transform
-        gcps, gcp_crs = ds.gcps if ds.crs is None else ([], None)
+        transform, stated = ds.transform, ds.crs
+        gcps, gcp_crs = ds.gcps if stated is None else ([], None)
         if gcps and gcp_crs is not None:
             # ground control points alone: read on their affine fit where it holds them all
             # (what gdalwarp's first order makes of them), else warped first
             transform, self.crs_note = gcp_placement(name, gcps, gcp_crs)
+            stated = gcp_crs
+        if stated is not None:
             try:
-                crs = CRS.from_wkt(gcp_crs.to_wkt())
+                crs = CRS.from_wkt(stated.to_wkt())
             except Exception as exc:  # pyproj's CRSError, or rasterio's on export
                 raise SourceError(f"{name}: unusable CRS ({_one_line(exc)})") from None
-        elif ds.crs is None and ds.rpcs is not None:
+        elif ds.rpcs is not None:
             raise SourceError(
                 f"{name}: georeferenced by rational polynomial coefficients (RPCs) alone; "
                 f"orthorectify it onto a grid first (e.g. gdalwarp -rpc -t_srs EPSG:4326 {name} "
                 "ortho.tif)"
             )
-        elif ds.crs is None:
-            if not _cf_lonlat(ds.tags()):
-                # gdal_edit.py changes a GeoTIFF in place; other formats are copied to one
-                stem = os.path.splitext(os.path.basename(name))[0]
-                fix = (
-                    f"gdal_edit.py -a_srs EPSG:4326 {name}"
-                    if ds.driver == "GTiff"
-                    else f"gdal_translate -a_srs EPSG:4326 {name} {stem}.tif"
-                )
-                raise SourceError(f"{name}: raster has no CRS; georeference it first (e.g. {fix})")
+        elif not _cf_lonlat(ds.tags()):
+            # gdal_edit.py changes a GeoTIFF in place; other formats are copied to one
+            stem = os.path.splitext(os.path.basename(name))[0]
+            fix = (
+                f"gdal_edit.py -a_srs EPSG:4326 {name}"
+                if ds.driver == "GTiff"
+                else f"gdal_translate -a_srs EPSG:4326 {name} {stem}.tif"
+            )
+            raise SourceError(f"{name}: raster has no CRS; georeference it first (e.g. {fix})")
+        else:
             # CF's coordinates named longitude and latitude in degrees: WGS 84's, as CF says
             # where no grid mapping is given (QGIS and xarray read them so)
             crs = CRS.from_epsg(4326)
@@ -1065,11 +1067,6 @@ class RasterSource(_GridSource):
                 f"{name}: no CRS stated; its coordinates are longitude and latitude in degrees "
                 "(CF's degrees_east and degrees_north): read as WGS 84 (EPSG:4326)"
             )
-        else:
-            try:
-                crs = CRS.from_wkt(ds.crs.to_wkt())
-            except Exception as exc:  # pyproj's CRSError, or rasterio's on export
-                raise SourceError(f"{name}: unusable CRS ({_one_line(exc)})") from None
         self._scale = float(ds.scales[band - 1] if ds.scales else 1.0)
         self._offset = float(ds.offsets[band - 1] if ds.offsets else 0.0)
         said: str | None = "--z-units"
@@ -1619,7 +1616,7 @@ def sea_note(source: HeightSource, level: float | None) -> str | None:
     )
 
 
-def z_notes(source: HeightSource) -> list[str]:
+def raster_notes(source: HeightSource) -> list[str]:
     """What the rasters under ``source`` say of their CRS where they state none and of their
     height units where they are not plain metres (``RasterSource.notes``), once each: for the
     app to say on stderr."""
